@@ -1,0 +1,3 @@
+from nemo.cli import main
+
+raise SystemExit(main())

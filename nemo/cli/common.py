@@ -1,0 +1,62 @@
+"""Options and helpers shared by the ``nemo`` subcommands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from nemo.errors import NemoError
+
+
+def add_common(
+    parser: argparse.ArgumentParser,
+    frame: bool = False,
+    output: bool = True,
+    output_help: str = "output file",
+    output_required: bool = True,
+) -> None:
+    """Add the options every subcommand shares.
+
+    ``--t/--c/--spacing`` only for commands that read an image (``frame=True``).
+    """
+    if frame:
+        parser.add_argument("--t", type=int, default=0, metavar="T", help="time point (0-based, default 0)")
+        parser.add_argument("--c", type=int, default=0, metavar="C", help="channel (0-based, default 0)")
+        parser.add_argument(
+            "--spacing", type=float, nargs=3, metavar=("DZ", "DY", "DX"),
+            help="voxel size in µm, overriding the file's calibration",
+        )
+    if output:
+        parser.add_argument("-o", "--output", required=output_required, metavar="FILE", help=output_help)
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+
+
+def positive(kind=float):
+    """argparse type: a strictly positive number."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        return value
+
+    return parse
+
+
+def output_path(path: str | Path, suffixes: tuple[str, ...] = (".parquet",)) -> Path:
+    """Check an output path's suffix and create its folder."""
+    path = Path(path)
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise NemoError(f"output {path} should end in {' or '.join(suffixes)}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def print_json(obj) -> None:
+    json.dump(obj, sys.stdout, indent=2, default=str)
+    sys.stdout.write("\n")

@@ -1,0 +1,330 @@
+"""Lazy reading and writing of microscopy hyperstacks.
+
+Images are ImageJ hyperstacks or OME-TIFF files with any subset of the axes T, Z, C, Y, X.
+Only the (Z, Y, X) stack of one time point and channel is ever read: tifffile exposes the file
+as a chunked zarr store (one chunk per page), so a 10 GB file costs one stack of memory.
+
+Spacing is returned as ``(dz, dy, dx)`` in micrometres whenever the unit is known; an
+uncalibrated file gives spacing 1 with unit ``"pixel"`` and a :class:`~nemo.errors.NemoWarning`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import warnings
+import xml.etree.ElementTree as ET
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import tifffile
+import zarr
+
+from nemo.errors import NemoError, NemoWarning
+
+AXES = "TZCYX"
+_UNIT_TO_UM = {
+    "um": 1.0, "µm": 1.0, "μm": 1.0, "micron": 1.0, "microns": 1.0, "micrometer": 1.0,
+    "micrometre": 1.0, "\\u00b5m": 1.0, "nm": 1e-3, "nanometer": 1e-3, "nanometre": 1e-3,
+    "mm": 1e3, "millimeter": 1e3, "millimetre": 1e3, "cm": 1e4, "m": 1e6, "meter": 1e6,
+}
+
+
+@dataclass
+class ImageInfo:
+    """What a hyperstack holds, without reading its pixels.
+
+    Attributes
+    ----------
+    path : str
+        The file.
+    axes : str
+        Axes as stored in the file, e.g. ``"TZCYX"`` (tifffile's letters; ``I``/``Q`` are
+        read as Z, ``S`` as C).
+    shape : dict[str, int]
+        Sizes of ``T, C, Z, Y, X``; absent axes have size 1.
+    dtype : str
+        Pixel type.
+    spacing : tuple[float, float, float]
+        ``(dz, dy, dx)`` in ``unit``.
+    unit : str
+        ``"um"`` when the file's unit was recognised, else the file's unit or ``"pixel"``.
+    calibrated : bool
+        False when the spacing is a default of 1 because the file had no calibration.
+    """
+
+    path: str
+    axes: str
+    shape: dict[str, int]
+    dtype: str
+    spacing: tuple[float, float, float]
+    unit: str
+    calibrated: bool = True
+    _normalised_axes: str = field(default="", repr=False)
+
+    def to_json(self) -> dict:
+        """The public description: ``axes``, ``shape``, ``dtype``, ``spacing``, ``unit``."""
+        d = asdict(self)
+        d.pop("_normalised_axes")
+        d["spacing"] = list(self.spacing)
+        return d
+
+
+def _unit_scale(unit: str | None) -> float | None:
+    if unit is None:
+        return None
+    return _UNIT_TO_UM.get(unit.strip().lower().replace("\\u00b5", "µ"))
+
+
+def _normalise_axes(axes: str) -> str:
+    """Map tifffile's axis letters onto T, Z, C, Y, X."""
+    out = []
+    for a in axes:
+        if a in "IQ" and "Z" not in axes and "Z" not in out:
+            a = "Z"
+        elif a == "S" and "C" not in axes and "C" not in out:
+            a = "C"
+        out.append(a)
+    extra = [a for a in out if a not in AXES]
+    if extra or len(set(out)) != len(out):
+        raise NemoError(
+            f"image axes {axes!r} cannot be read as a T, Z, C, Y, X hyperstack "
+            f"(unsupported axes {''.join(extra) or 'repeated'}); re-save it from Fiji as a hyperstack"
+        )
+    if "Y" not in out or "X" not in out:
+        raise NemoError(f"image axes {axes!r} have no Y and X: this is not an image stack")
+    return "".join(out)
+
+
+def _ome_spacing(ome_xml: str) -> tuple[list[float | None], list[str | None]]:
+    root = ET.fromstring(ome_xml)
+    pixels = next((el for el in root.iter() if el.tag.endswith("Pixels")), None)
+    if pixels is None:
+        return [None, None, None], [None, None, None]
+    vals, units = [], []
+    for ax in "ZYX":
+        v = pixels.get(f"PhysicalSize{ax}")
+        vals.append(float(v) if v is not None else None)
+        units.append(pixels.get(f"PhysicalSize{ax}Unit", "µm") if v is not None else None)
+    return vals, units
+
+
+def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, float], str, bool]:
+    """Return (spacing in µm or raw units, unit, calibrated)."""
+    if tif.is_ome and tif.ome_metadata:
+        vals, units = _ome_spacing(tif.ome_metadata)
+        if vals[1] is not None and vals[2] is not None:
+            scales = [_unit_scale(u) if u else None for u in units]
+            if all(s is not None for s, v in zip(scales, vals) if v is not None):
+                dz = vals[0] * scales[0] if vals[0] is not None else vals[2] * scales[2]
+                return (dz, vals[1] * scales[1], vals[2] * scales[2]), "um", True
+            unit = next(u for u in units if u)
+            dz = vals[0] if vals[0] is not None else vals[2]
+            return (dz, vals[1], vals[2]), unit, True
+    page = tif.pages.first
+    ij = tif.imagej_metadata or {}
+    xres = page.tags.get("XResolution")
+    yres = page.tags.get("YResolution")
+
+    def _res(tag) -> float | None:
+        if tag is None:
+            return None
+        num, den = tag.value
+        return den / num if num else None
+
+    dx, dy = _res(xres), _res(yres)
+    dz = ij.get("spacing")
+    unit = ij.get("unit")
+    if unit is None:
+        runit = page.tags.get("ResolutionUnit")
+        code = int(runit.value) if runit is not None else 1
+        unit = {3: "cm", 2: None}.get(code)  # 2 = inch: not a microscopy unit
+        if code == 1:
+            unit = None
+    has_xy = dx is not None and dy is not None and not (dx == 1.0 and dy == 1.0 and unit is None)
+    if not has_xy and dz is None:
+        return (1.0, 1.0, 1.0), "pixel", False
+    dx = dx if dx is not None else 1.0
+    dy = dy if dy is not None else dx
+    dz = float(dz) if dz is not None else dx
+    scale = _unit_scale(unit)
+    if scale is None:
+        return (dz, dy, dx), (unit or "pixel"), unit is not None
+    return (dz * scale, dy * scale, dx * scale), "um", True
+
+
+def _open_tiff(path: str | os.PathLike) -> tifffile.TiffFile:
+    path = Path(path)
+    if not path.exists():
+        raise NemoError(f"image file not found: {path}")
+    if path.is_dir():
+        raise NemoError(f"{path} is a folder, not a TIFF image")
+    try:
+        return tifffile.TiffFile(path)
+    except (tifffile.TiffFileError, ValueError, OSError) as exc:
+        raise NemoError(
+            f"{path} is not a readable TIFF file ({exc}); NEMO reads ImageJ hyperstacks and OME-TIFF"
+        ) from None
+
+
+def _info_from_tiff(tif: tifffile.TiffFile, path: str) -> ImageInfo:
+    series = tif.series[0]
+    axes = _normalise_axes(series.axes)
+    sizes = dict(zip(axes, series.shape))
+    if "Z" not in sizes:
+        raise NemoError(
+            f"{path} is a 2-D image (axes {series.axes!r}); NEMO needs a 3-D stack with a Z axis"
+        )
+    spacing, unit, calibrated = _spacing_from_tiff(tif)
+    return ImageInfo(
+        path=str(path),
+        axes=series.axes,
+        shape={a: int(sizes.get(a, 1)) for a in AXES},
+        dtype=str(series.dtype),
+        spacing=tuple(float(s) for s in spacing),
+        unit=unit,
+        calibrated=calibrated,
+        _normalised_axes=axes,
+    )
+
+
+def read_info(path: str | os.PathLike) -> ImageInfo:
+    """Describe a hyperstack (axes, sizes, dtype, spacing, unit) without reading pixels.
+
+    Raises
+    ------
+    NemoError
+        If the file is missing, not a TIFF, or has no Z axis.
+    """
+    with _open_tiff(path) as tif:
+        return _info_from_tiff(tif, str(path))
+
+
+def _check_spacing(spacing) -> tuple[float, float, float]:
+    try:
+        dz, dy, dx = (float(s) for s in spacing)
+    except (TypeError, ValueError):
+        raise NemoError(f"spacing must be three numbers DZ DY DX, got {spacing!r}") from None
+    if not all(np.isfinite(s) and s > 0 for s in (dz, dy, dx)):
+        raise NemoError(f"spacing must be three positive numbers DZ DY DX, got {spacing!r}")
+    return dz, dy, dx
+
+
+def read_stack(
+    path: str | os.PathLike,
+    t: int = 0,
+    c: int = 0,
+    spacing: tuple[float, float, float] | None = None,
+) -> tuple[np.ndarray, ImageInfo]:
+    """Read the (Z, Y, X) stack of time point ``t`` and channel ``c``, and nothing else.
+
+    Parameters
+    ----------
+    path : path-like
+        ImageJ hyperstack or OME-TIFF.
+    t, c : int
+        Time point and channel (0-based).
+    spacing : (dz, dy, dx), optional
+        Overrides the file's calibration (same unit as the rest of the analysis, µm).
+
+    Returns
+    -------
+    stack : ndarray, shape (Z, Y, X)
+        The pixels, in the file's dtype.
+    info : ImageInfo
+        The file's description, with ``spacing`` overridden when given.
+    """
+    with _open_tiff(path) as tif:
+        info = _info_from_tiff(tif, str(path))
+        axes = info._normalised_axes
+        for name, index in (("t", t), ("c", c)):
+            size = info.shape[name.upper()]
+            if not isinstance(index, (int, np.integer)) or not 0 <= index < size:
+                raise NemoError(
+                    f"{name} = {index} is out of range: {path} has {size} "
+                    f"{'time point' if name == 't' else 'channel'}{'s' if size != 1 else ''} "
+                    f"(valid: 0 to {size - 1})"
+                )
+        series = tif.series[0]
+        key = tuple(
+            {"T": int(t), "C": int(c)}.get(a, slice(None)) for a in axes
+        )
+        store = series.aszarr(level=0)
+        try:
+            arr = zarr.open(store, mode="r")
+            if isinstance(arr, zarr.Group):  # multiscale store: level 0 is "0"
+                arr = arr["0"]
+            data = np.asarray(arr[key])
+        finally:
+            store.close()
+    kept = [a for a in axes if a not in "TC"]
+    data = np.transpose(data, [kept.index(a) for a in "ZYX"])
+    if spacing is not None:
+        info.spacing = _check_spacing(spacing)
+        info.calibrated = True
+    elif not info.calibrated:
+        warnings.warn(
+            f"{path} has no spatial calibration: using spacing 1 with unit 'pixel'. "
+            "Set it with --spacing DZ DY DX (or 'spacing' in the config).",
+            NemoWarning,
+            stacklevel=2,
+        )
+    return data, info
+
+
+def write_hyperstack(
+    path: str | os.PathLike,
+    data: np.ndarray,
+    spacing: tuple[float, float, float],
+    unit: str = "um",
+    axes: str = "TZCYX",
+    ome: bool = False,
+    compression: str | None = None,
+    metadata: dict | None = None,
+) -> None:
+    """Write an ImageJ hyperstack (or OME-TIFF) with calibration, atomically.
+
+    Parameters
+    ----------
+    path : path-like
+        Output ``.tif``.
+    data : ndarray
+        Pixels with the axes named in ``axes`` (a subset of T, Z, C, Y, X in that order for
+        ImageJ; any order for OME).
+    spacing : (dz, dy, dx)
+        Voxel size in ``unit``.
+    unit : str
+        Physical unit, ``"um"`` by default.
+    ome : bool
+        Write OME-TIFF instead of an ImageJ hyperstack.
+    compression : str, optional
+        e.g. ``"zlib"``; ``None`` writes uncompressed pages.
+    metadata : dict, optional
+        Extra key/values stored in the ImageJ ``Info`` string as JSON.
+    """
+    dz, dy, dx = _check_spacing(spacing)
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    if ome:
+        tifffile.imwrite(
+            tmp, data, ome=True, photometric="minisblack", compression=compression,
+            metadata={
+                "axes": axes, "PhysicalSizeX": dx, "PhysicalSizeY": dy, "PhysicalSizeZ": dz,
+                "PhysicalSizeXUnit": "µm" if unit == "um" else unit,
+                "PhysicalSizeYUnit": "µm" if unit == "um" else unit,
+                "PhysicalSizeZUnit": "µm" if unit == "um" else unit,
+            },
+        )
+    else:
+        if not re.fullmatch("T?Z?C?YX", axes):
+            raise NemoError(f"ImageJ hyperstacks need axes in the order TZCYX, got {axes!r}")
+        md = {"axes": axes, "spacing": dz, "unit": "micron" if unit == "um" else unit}
+        if metadata:
+            md["Info"] = json.dumps(metadata)
+        tifffile.imwrite(
+            tmp, data, imagej=True, resolution=(1.0 / dx, 1.0 / dy),
+            metadata=md, compression=compression,
+        )
+    os.replace(tmp, path)

@@ -1,0 +1,204 @@
+"""Surface meshes: the container, PLY/OBJ input and output, and validation.
+
+A NEMO surface is a :class:`trimesh.Trimesh` whose vertices are physical ``(x, y, z)``
+coordinates (x = image column, y = row, z = plane, in the image's unit, usually µm) and whose
+faces are wound so that ``mesh.vertex_normals`` point **outward**. Two trimesh attributes make
+it the container the rest of NEMO uses:
+
+* ``mesh.units`` -- the physical unit (``"um"``), written into the PLY header as a comment;
+* ``mesh.vertex_attributes`` -- per-vertex fields (``(N,)`` float arrays), written as extra
+  PLY vertex properties and read back.
+
+Meshes edited elsewhere (MeshLab, Blender) come back through :func:`load_mesh`.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from nemo.errors import NemoError
+
+_UNIT_COMMENT = re.compile(rb"comment nemo unit (\S+)")
+_XYZ = ("x", "y", "z")
+_PLY_SKIP = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha"}
+
+
+def make_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    unit: str = "um",
+    fields: dict[str, np.ndarray] | None = None,
+    orient_outward: bool = True,
+) -> trimesh.Trimesh:
+    """Build a NEMO surface from arrays.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (N, 3)
+        Physical x, y, z.
+    faces : ndarray, shape (F, 3)
+        Vertex indices of triangles.
+    unit : str
+        Physical unit of ``vertices``.
+    fields : dict of str to ndarray, shape (N,), optional
+        Per-vertex fields to carry along.
+    orient_outward : bool
+        Flip the winding of every face when the signed volume is negative, so that normals of
+        a closed surface point outward (open surfaces keep the winding they were given).
+
+    Returns
+    -------
+    trimesh.Trimesh
+    """
+    mesh = trimesh.Trimesh(
+        vertices=np.asarray(vertices, dtype=np.float64),
+        faces=np.asarray(faces, dtype=np.int64),
+        process=False,
+    )
+    if orient_outward and len(mesh.faces):
+        orient_outward_(mesh)
+    mesh.units = unit
+    for name, values in (fields or {}).items():
+        mesh.vertex_attributes[name] = np.asarray(values, dtype=np.float64)
+    return mesh
+
+
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Signed enclosed volume (positive for outward winding), divergence theorem."""
+    tri = vertices[faces]
+    return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+
+
+def orient_outward_(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Make the winding consistent and outward, in place.
+
+    Consistency comes from trimesh's face-adjacency repair; for each connected component the
+    winding is flipped when its signed volume is negative. Components that are open are oriented
+    by the same rule applied to their closed hull's side (good enough for the split halves of a
+    closed surface, which keep their parent's winding anyway).
+    """
+    if not mesh.is_winding_consistent:
+        trimesh.repair.fix_winding(mesh)
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
+    faces = mesh.faces.copy()
+    for label in np.unique(labels):
+        sel = labels == label
+        if signed_volume(mesh.vertices, faces[sel]) < 0:
+            faces[sel] = faces[sel][:, ::-1]
+    mesh.faces = faces
+    return mesh
+
+
+def vertex_normals(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Unit outward vertex normals, shape (N, 3) (area-weighted face normals)."""
+    normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    return normals
+
+
+def mean_edge_length(mesh: trimesh.Trimesh) -> float:
+    """Mean edge length: the mesh spacing that default length scales follow."""
+    return float(np.mean(mesh.edges_unique_length))
+
+
+def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
+    """Write a mesh as PLY (binary, with unit and per-vertex fields) or OBJ, atomically."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    if suffix == ".ply":
+        out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
+        for name, values in mesh.vertex_attributes.items():
+            values = np.asarray(values)
+            if values.ndim == 1 and len(values) == len(mesh.vertices):
+                out.vertex_attributes[name] = values.astype(np.float64)
+        data = out.export(file_type="ply", encoding="binary")
+        unit = getattr(mesh, "units", None) or "um"
+        data = data.replace(b"\nelement vertex", f"\ncomment nemo unit {unit}\nelement vertex".encode(), 1)
+        tmp.write_bytes(data)  # trimesh stores vertices as float32: ~1e-7 relative precision
+    elif suffix == ".obj":
+        tmp.write_text(mesh.export(file_type="obj"))
+    else:
+        raise NemoError(f"cannot write mesh {path}: use a .ply or .obj file name")
+    os.replace(tmp, path)
+
+
+def _load_ply(path: Path) -> trimesh.Trimesh:
+    raw = path.read_bytes()
+    header = raw[: raw.find(b"end_header") + 10] if b"end_header" in raw else b""
+    if not raw.startswith(b"ply") or not header:
+        raise NemoError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
+    try:
+        loaded = trimesh.load(trimesh.util.wrap_as_stream(raw), file_type="ply", process=False)
+    except Exception as exc:  # trimesh raises many types on corrupt files
+        raise NemoError(f"{path} is a corrupt PLY file ({type(exc).__name__}: {exc}); re-export it") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise NemoError(f"{path} holds no triangles (a point cloud?); NEMO needs a triangle mesh")
+    mesh = trimesh.Trimesh(vertices=loaded.vertices, faces=loaded.faces, process=False)
+    match = _UNIT_COMMENT.search(header)
+    mesh.units = match.group(1).decode() if match else "um"
+    ply_raw = loaded.metadata.get("_ply_raw", {})
+    vertex_data = ply_raw.get("vertex", {}).get("data")
+    if vertex_data is not None and getattr(vertex_data, "dtype", None) is not None and vertex_data.dtype.names:
+        for name in vertex_data.dtype.names:
+            if name not in _PLY_SKIP:
+                mesh.vertex_attributes[name] = np.asarray(vertex_data[name], dtype=np.float64).ravel()
+    return mesh
+
+
+def load_mesh(path: str | os.PathLike, unit: str | None = None) -> trimesh.Trimesh:
+    """Read a PLY or OBJ surface and check it is usable.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.ply`` (NEMO's or any other program's) or ``.obj``.
+    unit : str, optional
+        Unit to assume when the file does not say (default ``"um"``).
+
+    Returns
+    -------
+    trimesh.Trimesh
+        With ``units`` and any per-vertex fields found in the file.
+
+    Raises
+    ------
+    NemoError
+        Missing, unreadable or corrupt file, no faces, NaN vertices, faces indexing outside the
+        vertex list.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise NemoError(f"mesh file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        mesh = _load_ply(path)
+    elif suffix == ".obj":
+        try:
+            loaded = trimesh.load(path, file_type="obj", process=False, force="mesh")
+        except Exception as exc:
+            raise NemoError(f"{path} is a corrupt OBJ file ({exc}); re-export it") from None
+        if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+            raise NemoError(f"{path} holds no triangles; NEMO needs a triangle mesh")
+        mesh = trimesh.Trimesh(vertices=loaded.vertices, faces=loaded.faces, process=False)
+        mesh.units = "um"
+    else:
+        raise NemoError(f"cannot read mesh {path}: NEMO reads .ply and .obj meshes")
+    if unit is not None:
+        mesh.units = unit
+    check_mesh(mesh, str(path))
+    return mesh
+
+
+def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> None:
+    """Raise :class:`NemoError` if a mesh cannot be analysed (empty, NaN, bad indices)."""
+    if len(mesh.vertices) < 4 or len(mesh.faces) < 2:
+        raise NemoError(f"{name} has only {len(mesh.vertices)} vertices and {len(mesh.faces)} faces")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise NemoError(f"{name} has vertices with NaN or infinite coordinates; repair the mesh")
+    if mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices):
+        raise NemoError(f"{name} has faces that refer to missing vertices; the file is corrupt")

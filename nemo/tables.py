@@ -1,0 +1,134 @@
+"""Parquet tables: every arrow of the data flow is one of these files.
+
+Per-vertex tables are keyed by an integer ``vertex`` column (the row index of the vertex in
+the mesh the table was computed on). Each file stores, in its Parquet key/value metadata under
+``nemo``, a JSON object with the unit, the command and parameters that made it, so a table can
+be traced back to its inputs. Writes are atomic (temporary file + rename).
+
+The documented schemas live in :data:`SCHEMAS`; :func:`read_table` checks a file against one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from nemo import __version__
+from nemo.errors import NemoError
+
+#: Required columns of each table kind (more columns may follow).
+SCHEMAS: dict[str, tuple[str, ...]] = {
+    "layer": ("vertex", "intensity"),
+    "curvature": ("vertex", "H", "K"),
+    "thickness": ("vertex", "thickness"),
+    "directors": ("vertex", "x", "y", "z", "nx", "ny", "nz", "coherency"),
+    "order": ("vertex", "S", "nx", "ny", "nz"),
+    "align": ("vertex", "c"),
+    "defects": ("x", "y", "z", "vertex", "S", "charge", "charge_winding",
+                "charge_curvature", "charge_rounded"),
+}
+
+
+def write_table(df: pd.DataFrame, path: str | os.PathLike, **provenance) -> None:
+    """Write ``df`` to Parquet atomically, with NEMO provenance metadata.
+
+    Parameters
+    ----------
+    df : DataFrame
+    path : path-like
+        Output ``.parquet`` file; its folder is created if needed.
+    **provenance
+        JSON-serialisable key/values stored under the ``nemo`` metadata key (unit, command,
+        parameters, input files).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    meta = dict(table.schema.metadata or {})
+    meta[b"nemo"] = json.dumps({"version": __version__, **provenance}, default=_json_default).encode()
+    table = table.replace_schema_metadata(meta)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    pq.write_table(table, tmp)
+    os.replace(tmp, path)
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.integer, np.floating)):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, os.PathLike):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj)}")
+
+
+def read_table(
+    path: str | os.PathLike,
+    kind: str | None = None,
+    columns: tuple[str, ...] | None = None,
+) -> pd.DataFrame:
+    """Read a NEMO Parquet table and check it has the columns of ``kind``.
+
+    Parameters
+    ----------
+    path : path-like
+    kind : str, optional
+        One of :data:`SCHEMAS`; the file must have its columns.
+    columns : tuple of str, optional
+        Further columns the caller needs.
+
+    Raises
+    ------
+    NemoError
+        Missing or non-Parquet file, or a file that lacks required columns.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise NemoError(f"table not found: {path}")
+    try:
+        df = pq.read_table(path).to_pandas()
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise NemoError(f"{path} is not a Parquet table ({exc})") from None
+    need = tuple(SCHEMAS.get(kind, ())) + tuple(columns or ())
+    missing = [c for c in need if c not in df.columns]
+    if missing:
+        what = f"a {kind} table" if kind else "this step"
+        raise NemoError(
+            f"{path} lacks column(s) {', '.join(missing)} needed for {what} "
+            f"(it has: {', '.join(map(str, df.columns))}); was it made by the right nemo command?"
+        )
+    return df
+
+
+def read_provenance(path: str | os.PathLike) -> dict:
+    """The ``nemo`` metadata stored with a table (empty dict when absent)."""
+    meta = pq.read_schema(path).metadata or {}
+    raw = meta.get(b"nemo")
+    return json.loads(raw) if raw else {}
+
+
+def field_on_vertices(df: pd.DataFrame, column: str, n_vertices: int, path: str = "table") -> np.ndarray:
+    """Scatter a per-vertex column onto an (N,) array (NaN where the table has no row).
+
+    Raises
+    ------
+    NemoError
+        If the table refers to vertices the mesh does not have (table made on another mesh).
+    """
+    if column not in df.columns:
+        raise NemoError(f"{path} has no column {column!r} (columns: {', '.join(df.columns)})")
+    vertex = df["vertex"].to_numpy()
+    if len(vertex) and (vertex.min() < 0 or vertex.max() >= n_vertices):
+        raise NemoError(
+            f"{path} refers to vertex {int(vertex.max())} but the mesh has {n_vertices} vertices: "
+            "the table was computed on another mesh"
+        )
+    out = np.full(n_vertices, np.nan)
+    out[vertex] = df[column].to_numpy(dtype=np.float64)
+    return out
