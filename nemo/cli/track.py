@@ -1,0 +1,61 @@
+"""``nemo track``: link the defects of a time-lapse into tracks (same charge only)."""
+
+from __future__ import annotations
+
+from nemo.cli.common import add_common, output_path, positive
+
+HELP = "link defects frame to frame into tracks (laptrack; same-charge links only)"
+DESCRIPTION = """\
+Link the defects of all frames into tracks with laptrack (linear-assignment tracking):
+a defect in one analysed frame is linked to a defect of the same rounded charge in the next
+frame within --max-distance µm; --gap-frames N bridges up to N frames in which it was missed.
+Tracking runs separately per channel 'c' and 'layer' when those columns exist.
+
+The input holds the defects of every frame with a 't' column (and 'x', 'y', 'z',
+'charge_rounded'), as the workflow's aggregation writes it. Output: one row per track
+(track_id, c, layer, charge, charge_rounded, first_t, last_t, length, span, path_length,
+mean_speed, mean_S); --linked also writes the input rows with their track_id.
+
+example:
+  nemo track results/demo/summary/defects_untracked.parquet -o tracks.parquet \\
+      --linked defects.parquet --max-distance 15 --gap-frames 1"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("defects", help="Parquet table of the defects of all frames (column t)")
+    add_common(parser, output_help="tracks table (.parquet), one row per track")
+    parser.add_argument("--linked", metavar="FILE",
+                        help="also write the defects with their track_id (.parquet)")
+    parser.add_argument("--max-distance", type=positive(float), required=True, metavar="UM",
+                        help="largest displacement between consecutive frames (µm)")
+    parser.add_argument("--gap-frames", type=int, default=1, metavar="N",
+                        help="frames a defect may be missed and still be linked (default 1; 0 = off)")
+    parser.add_argument("--gap-max-distance", type=positive(float), metavar="UM",
+                        help="largest displacement across a gap (default: --max-distance)")
+    parser.add_argument("--frames", type=int, nargs="+", metavar="T",
+                        help="all analysed time points, also those without defects (default: the t found)")
+
+
+def run(args) -> int:
+    from nemo._log import logger
+    from nemo.tables import read_table, write_table
+    from nemo.track import link_defects, summarise_tracks
+
+    out = output_path(args.output)
+    linked_path = output_path(args.linked) if args.linked else None
+    defects = read_table(args.defects, columns=("t", "x", "y", "z", "charge_rounded"))
+    linked = link_defects(
+        defects, max_distance=args.max_distance, gap_frames=args.gap_frames,
+        gap_max_distance=args.gap_max_distance, frames=args.frames,
+    )
+    tracks = summarise_tracks(linked)
+    params = {"max_distance": args.max_distance, "gap_frames": args.gap_frames,
+              "gap_max_distance": args.gap_max_distance}
+    if linked_path:
+        write_table(linked, linked_path, unit="um", command="nemo track", parameters=params,
+                    inputs=[str(args.defects)])
+    write_table(tracks, out, unit="um", command="nemo track", parameters=params,
+                inputs=[str(args.defects)])
+    logger.info("%d defects linked into %d tracks", len(linked), len(tracks))
+    print(f"{len(defects)} defects -> {len(tracks)} tracks")
+    return 0

@@ -1,0 +1,177 @@
+"""Defect tracking over time: link the defects of consecutive frames into tracks.
+
+Linking is done by `laptrack <https://github.com/yfukai/laptrack>`_ (linear-assignment
+tracking, Jaqaman et al. 2008) with a maximum displacement per frame and gap closing over
+missed detections. Only defects of the **same rounded charge** are linked: tracking runs
+independently for every group of (channel, layer, ``charge_rounded``), so a +½ and a −½ that
+pass close to each other can never swap identities.
+
+Frames are the ranks of the analysed time points (``frames``), not the raw ``t`` values, so
+analysing ``t = 0, 2, 4`` links 0 → 2 → 4 as consecutive frames; a frame in which a defect
+was missed is bridged when ``gap_frames >= 1``. Distances are Euclidean in physical units
+(µm); on a surface this is the chord, a lower bound of the geodesic step, which is what a
+maximum-displacement cut-off needs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from nemo.errors import NemoError
+
+#: Columns a defect table must have to be tracked.
+REQUIRED = ("t", "x", "y", "z", "charge_rounded")
+#: Columns that split tracking into independent groups when present.
+GROUP_COLUMNS = ("c", "layer")
+
+
+def _check(defects: pd.DataFrame, max_distance: float, gap_frames: int) -> None:
+    missing = [c for c in REQUIRED if c not in defects.columns]
+    if missing:
+        raise NemoError(
+            f"defect table lacks column(s) {', '.join(missing)} needed for tracking "
+            f"(it has: {', '.join(map(str, defects.columns))}); it must hold the defects of all "
+            "frames with a 't' column, as written by the workflow's aggregation"
+        )
+    if not (np.isfinite(max_distance) and max_distance > 0):
+        raise NemoError(f"max_distance must be a positive length in µm, got {max_distance!r}")
+    if int(gap_frames) != gap_frames or gap_frames < 0:
+        raise NemoError(f"gap_frames must be a whole number >= 0, got {gap_frames!r}")
+    xyz = defects[["x", "y", "z"]].to_numpy(dtype=float)
+    if not np.isfinite(xyz).all():
+        raise NemoError("defect table has non-finite x, y, z positions; cannot track them")
+
+
+def link_defects(
+    defects: pd.DataFrame,
+    max_distance: float,
+    gap_frames: int = 1,
+    gap_max_distance: float | None = None,
+    frames: Sequence[int] | None = None,
+) -> pd.DataFrame:
+    """Give every defect a ``track_id`` by linking same-charge defects frame to frame.
+
+    Parameters
+    ----------
+    defects : DataFrame, shape (M, ...)
+        One row per defect and frame with columns ``t``, ``x``, ``y``, ``z`` (µm) and
+        ``charge_rounded``; optional ``c`` and ``layer`` columns separate independent series.
+    max_distance : float
+        Largest displacement (µm) between consecutive analysed frames for a link.
+    gap_frames : int
+        Largest number of consecutive frames a defect may be missed and still be linked
+        (0 = no gap closing).
+    gap_max_distance : float, optional
+        Largest displacement (µm) across a gap; default ``max_distance``. laptrack's
+        gap-closing step also joins track segments of consecutive frames, so this is
+        effectively the largest link of all: keep it close to ``max_distance``.
+    frames : sequence of int, optional
+        All analysed time points (also those without defects), so a frame with no detection
+        counts as a gap. Default: the sorted unique ``t`` of ``defects``.
+
+    Returns
+    -------
+    DataFrame, shape (M, ...)
+        ``defects`` (same row order) with an integer column ``track_id`` (0, 1, ...; unique
+        across groups, numbered by group, then first frame, then position).
+    """
+    from laptrack import LapTrack  # imported here: optional cost at import of nemo
+
+    _check(defects, max_distance, gap_frames)
+    out = defects.copy()
+    out["track_id"] = np.full(len(out), -1, dtype=np.int64)
+    if out.empty:
+        return out
+    t_all = np.unique(np.asarray(frames if frames is not None else out["t"], dtype=np.int64))
+    unknown = np.setdiff1d(out["t"].to_numpy(dtype=np.int64), t_all)
+    if unknown.size:
+        raise NemoError(f"defects at t = {unknown.tolist()} are not among the analysed frames {t_all.tolist()}")
+    rank = pd.Series(np.arange(t_all.size), index=t_all)
+    gap_max = float(gap_max_distance) if gap_max_distance is not None else float(max_distance)
+    group_cols = [c for c in GROUP_COLUMNS if c in out.columns] + ["charge_rounded"]
+    # round the charge key so float noise (0.4999999) never splits a group
+    key = out[group_cols].copy()
+    key["charge_rounded"] = np.round(key["charge_rounded"].to_numpy(dtype=float) * 2) / 2
+    next_id = 0
+    for _, index in key.groupby(group_cols, sort=True, dropna=False).groups.items():
+        sub = out.loc[index, ["x", "y", "z"]].astype(float).reset_index(drop=True)
+        sub["frame"] = rank.loc[out.loc[index, "t"].to_numpy(dtype=np.int64)].to_numpy()
+        sub["row_"] = np.arange(len(sub))
+        lt = LapTrack(
+            metric="sqeuclidean",
+            cutoff=float(max_distance) ** 2,
+            gap_closing_metric="sqeuclidean",
+            gap_closing_cutoff=float(gap_max) ** 2 if gap_frames > 0 else False,
+            gap_closing_max_frame_count=int(gap_frames) + 1,
+            splitting_cutoff=False,
+            merging_cutoff=False,
+        )
+        track_df, _, _ = lt.predict_dataframe(sub, coordinate_cols=["x", "y", "z"], frame_col="frame")
+        local = np.empty(len(sub), dtype=np.int64)
+        local[track_df["row_"].to_numpy(dtype=np.int64)] = track_df["track_id"].to_numpy()
+        # renumber deterministically: by first frame, then x, y, z of the first detection
+        first = (
+            pd.DataFrame({"tid": local, "frame": sub["frame"].to_numpy(), "x": sub["x"].to_numpy(),
+                          "y": sub["y"].to_numpy(), "z": sub["z"].to_numpy()})
+            .sort_values(["frame", "x", "y", "z"]).drop_duplicates("tid")
+        )
+        new = {tid: next_id + i for i, tid in enumerate(first["tid"])}
+        out.loc[index, "track_id"] = np.array([new[v] for v in local], dtype=np.int64)
+        next_id += len(new)
+    return out
+
+
+def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
+    """One row per track from a table made by :func:`link_defects`.
+
+    Parameters
+    ----------
+    linked : DataFrame
+        Defects with ``track_id``, ``t``, ``x``, ``y``, ``z``, ``charge_rounded`` (and
+        optionally ``charge``, ``S``, ``c``, ``layer``).
+
+    Returns
+    -------
+    DataFrame, shape (n_tracks, ...)
+        Columns ``track_id``, [``c``, ``layer``,] ``charge`` (mean raw charge, NaN if absent),
+        ``charge_rounded``, ``first_t``, ``last_t``, ``length`` (number of detections),
+        ``span`` (``last_t - first_t + 1``), ``path_length`` (µm, sum of the steps between
+        successive detections), ``mean_speed`` (µm per unit of t: path length /
+        (last_t - first_t); NaN for a single detection), ``mean_S``.
+    """
+    if "track_id" not in linked.columns:
+        raise NemoError("table has no 'track_id' column: link the defects first (nemo track)")
+    group = [c for c in GROUP_COLUMNS if c in linked.columns]
+    cols = ["track_id", *group, "charge", "charge_rounded", "first_t", "last_t", "length",
+            "span", "path_length", "mean_speed", "mean_S"]
+    if linked.empty:
+        return pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else float) for c in cols})
+    df = linked.sort_values(["track_id", "t"]).reset_index(drop=True)
+    xyz = df[["x", "y", "z"]].to_numpy(dtype=float)
+    tid = df["track_id"].to_numpy()
+    step = np.zeros(len(df))
+    same = np.r_[False, tid[1:] == tid[:-1]]
+    step[same] = np.linalg.norm(xyz[1:] - xyz[:-1], axis=1)[same[1:]]
+    df["_step"] = step
+    if "charge" not in df.columns:
+        df["charge"] = np.nan
+    if "S" not in df.columns:
+        df["S"] = np.nan
+    agg = df.groupby("track_id", sort=True).agg(
+        **{g: (g, "first") for g in group},
+        charge=("charge", "mean"),
+        charge_rounded=("charge_rounded", "first"),
+        first_t=("t", "min"),
+        last_t=("t", "max"),
+        length=("t", "size"),
+        path_length=("_step", "sum"),
+        mean_S=("S", "mean"),
+    ).reset_index()
+    agg["span"] = agg["last_t"] - agg["first_t"] + 1
+    dt = (agg["last_t"] - agg["first_t"]).to_numpy(dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        agg["mean_speed"] = np.where(dt > 0, agg["path_length"].to_numpy() / dt, np.nan)
+    return agg[cols]

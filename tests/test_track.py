@@ -1,0 +1,152 @@
+"""Defect tracking (nemo.track, nemo track) on synthetic series with known moving defects."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from nemo.errors import NemoError
+from nemo.tables import read_table, write_table
+from nemo.track import link_defects, summarise_tracks
+
+R = 100.0  # µm
+
+
+def _tetrahedron() -> np.ndarray:
+    v = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=float)
+    return R * v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _rotz(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def _series(n_frames=8, omega=0.05, noise=0.5, rng=None, extra=None, drop=()):
+    """4 × +½ at tetrahedron vertices rotating about z by ``omega`` rad per frame.
+
+    Returns the shuffled defect table and the true identity of each row (column ``truth``).
+    """
+    rng = np.random.default_rng(rng)
+    base = _tetrahedron()
+    charges = [0.5] * 4
+    if extra is not None:  # (position (3,), charge)
+        base = np.vstack([base, extra[0]])
+        charges.append(extra[1])
+    rows = []
+    for t in range(n_frames):
+        pos = base @ _rotz(omega * t).T + rng.normal(0, noise, base.shape)
+        for k, (p, q) in enumerate(zip(pos, charges)):
+            if (t, k) in drop:
+                continue
+            rows.append(dict(t=t, c=0, layer="basal", x=p[0], y=p[1], z=p[2],
+                             charge=q + rng.normal(0, 0.02), charge_rounded=q, S=0.05, truth=k))
+    return pd.DataFrame(rows).sample(frac=1.0, random_state=3).reset_index(drop=True)
+
+
+def _check_identity(linked: pd.DataFrame) -> None:
+    """Every track holds exactly one true defect and every true defect exactly one track."""
+    pairs = linked.groupby("track_id")["truth"].nunique()
+    assert (pairs == 1).all(), "a track mixes two defects"
+    per_truth = linked.groupby("truth")["track_id"].nunique()
+    assert (per_truth == 1).all(), "a defect was split into several tracks"
+
+
+def test_one_track_per_rotating_defect_with_right_charge_and_speed():
+    omega = 0.05
+    df = _series(omega=omega, noise=0.3, rng=1)
+    linked = link_defects(df, max_distance=15.0, gap_frames=1)
+    _check_identity(linked)
+    tracks = summarise_tracks(linked)
+    assert len(tracks) == 4
+    assert (tracks["charge_rounded"] == 0.5).all()
+    assert np.allclose(tracks["charge"], 0.5, atol=0.03)
+    assert (tracks["first_t"] == 0).all() and (tracks["last_t"] == 7).all()
+    assert (tracks["length"] == 8).all()
+    # analytic speed: chord of the rotation per frame, 2 r sin(ω/2), r = distance to the z axis
+    truth = _tetrahedron()
+    r_axis = np.hypot(truth[:, 0], truth[:, 1])
+    expected = 2 * r_axis * np.sin(omega / 2)
+    first = linked.sort_values("t").groupby("track_id")["truth"].first()
+    got = tracks.set_index("track_id")["mean_speed"]
+    exp = pd.Series(expected[first.to_numpy()], index=first.index)
+    # noise adds sqrt(2·3)·σ per step in quadrature at most; 0.3 µm noise on a 4 µm step
+    assert np.allclose(got.loc[exp.index], exp, rtol=0.15)
+
+
+def test_same_charge_links_only():
+    # a −½ sitting where a +½ will be one frame later: a charge-blind linker would swap them
+    omega = 0.05
+    p0 = _tetrahedron()[0]
+    minus = _rotz(omega) @ p0 + np.array([0.0, 0.0, 0.5])
+    df = _series(omega=omega, noise=0.0, rng=2, extra=(minus, -0.5))
+    linked = link_defects(df, max_distance=15.0, gap_frames=1)
+    _check_identity(linked)
+    tracks = summarise_tracks(linked)
+    assert len(tracks) == 5
+    assert sorted(tracks["charge_rounded"]) == [-0.5, 0.5, 0.5, 0.5, 0.5]
+    mixed = linked.groupby("track_id")["charge_rounded"].nunique()
+    assert (mixed == 1).all()
+
+
+def test_gap_closing_and_max_displacement():
+    df = _series(n_frames=6, omega=0.05, noise=0.2, rng=3, drop={(3, 1)})
+    closed = link_defects(df, max_distance=15.0, gap_frames=1)
+    _check_identity(closed)
+    tr = summarise_tracks(closed)
+    assert len(tr) == 4
+    assert sorted(tr["length"]) == [5, 6, 6, 6]  # the missed frame is bridged
+    assert (tr["span"] == 6).all()
+    open_ = summarise_tracks(link_defects(df, max_distance=15.0, gap_frames=0))
+    assert len(open_) == 5  # without gap closing the missed defect restarts a track
+    # a step (≈ 4 µm) larger than max_distance is never linked
+    cut = summarise_tracks(link_defects(df, max_distance=3.0, gap_frames=1))
+    assert len(cut) == len(df)
+
+
+def test_non_consecutive_time_points_are_consecutive_frames():
+    df = _series(n_frames=5, omega=0.05, noise=0.1, rng=4)
+    df["t"] = df["t"] * 2  # analysed t = 0, 2, 4, 6, 8
+    linked = link_defects(df, max_distance=15.0, gap_frames=0, frames=[0, 2, 4, 6, 8])
+    _check_identity(linked)
+    tr = summarise_tracks(linked)
+    assert len(tr) == 4 and (tr["last_t"] == 8).all()
+    # speed is per unit of t: half the per-frame step
+    assert tr["mean_speed"].max() < 0.6 * 2 * R * np.sin(0.05 / 2)
+
+
+def test_layers_and_channels_are_tracked_separately():
+    a = _series(n_frames=4, rng=5)
+    b = a.copy()
+    b["layer"] = "apical"  # identical positions in another layer must not share tracks
+    linked = link_defects(pd.concat([a, b], ignore_index=True), max_distance=15.0)
+    assert linked["track_id"].nunique() == 8
+    assert (linked.groupby("track_id")["layer"].nunique() == 1).all()
+
+
+def test_empty_and_bad_tables():
+    empty = _series(n_frames=1).iloc[:0]
+    assert summarise_tracks(link_defects(empty, max_distance=5.0)).empty
+    with pytest.raises(NemoError, match="charge_rounded"):
+        link_defects(_series(n_frames=2).drop(columns="charge_rounded"), max_distance=5.0)
+    with pytest.raises(NemoError, match="max_distance"):
+        link_defects(_series(n_frames=2), max_distance=-1.0)
+    with pytest.raises(NemoError, match="not among the analysed frames"):
+        link_defects(_series(n_frames=3), max_distance=5.0, frames=[0, 1])
+
+
+def test_cli_track(tmp_path, run_cli):
+    df = _series(n_frames=5, omega=0.05, noise=0.2, rng=6)
+    src = tmp_path / "defects_untracked.parquet"
+    write_table(df, src)
+    code, out, err = run_cli("track", src, "-o", tmp_path / "tracks.parquet",
+                             "--linked", tmp_path / "defects.parquet", "--max-distance", "15")
+    assert code == 0, err
+    tracks = read_table(tmp_path / "tracks.parquet")
+    linked = read_table(tmp_path / "defects.parquet")
+    assert len(tracks) == 4 and "track_id" in linked
+    _check_identity(linked)
+    code, out, err = run_cli("track", tmp_path / "tracks.parquet", "-o", tmp_path / "x.parquet",
+                             "--max-distance", "15")
+    assert code == 2 and "lacks column" in err and "\n" not in err.strip()
