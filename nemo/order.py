@@ -1,0 +1,259 @@
+"""Tangential nematic order: Q-tensor average and inter-layer alignment (method note §6).
+
+Each director ``n`` at a surface point with normal ``N`` is lifted to the 3D tensor
+
+    Q̃ = n nᵀ − ½ (I − N Nᵀ)   (= q_ij t_i ⊗ t_j with q = n nᵀ − ½ I₂ in any tangent basis),
+
+averaged over the directors within ``radius`` of a target vertex, projected onto the target's
+tangent plane (2 × 2 components in a tangent basis), made traceless and diagonalised in closed
+form: ``S = 2 λ_max`` and the averaged director is the eigenvector of ``λ_max``. All of it is
+frame independent: the result does not depend on the tangent basis used.
+
+The neighbour sums run over (target, director) pairs from ``cKDTree.sparse_distance_matrix``
+in chunks of targets (bounded memory for millions of targets), accumulated with
+``np.bincount``.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import trimesh
+from scipy.spatial import cKDTree
+
+from nemo._log import logger, step
+from nemo.errors import NemoError, NemoWarning
+from nemo.frames import axis_frames
+
+#: Upper bound on (target, director) pairs held at once.
+_CHUNK_PAIRS = 4_000_000
+
+#: Index pairs of the 6 independent components of a symmetric 3 × 3 tensor.
+_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v / norm
+
+
+def lift_q(n: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Lifted tangential Q-tensors ``n nᵀ − ½ (I − N Nᵀ)``.
+
+    Parameters
+    ----------
+    n : ndarray, shape (P, 3)
+        Unit directors (sign irrelevant: ``n`` and ``−n`` give the same tensor).
+    normals : ndarray, shape (P, 3)
+        Unit surface normals at the directors.
+
+    Returns
+    -------
+    ndarray, shape (P, 6)
+        Components ``(xx, xy, xz, yy, yz, zz)``.
+    """
+    out = np.empty((len(n), 6))
+    for k, (i, j) in enumerate(_SYM):
+        out[:, k] = n[:, i] * n[:, j] + 0.5 * normals[:, i] * normals[:, j] - (0.5 if i == j else 0.0)
+    return out
+
+
+def tangential_eig(q6: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project symmetric 3D tensors onto tangent planes, remove the trace, diagonalise.
+
+    Parameters
+    ----------
+    q6 : ndarray, shape (T, 6)
+        Tensors as ``(xx, xy, xz, yy, yz, zz)``.
+    normals : ndarray, shape (T, 3)
+        Unit normals of the target tangent planes.
+
+    Returns
+    -------
+    S : ndarray, shape (T,)
+        ``2 λ_max`` of the traceless tangential part (in [0, 1] for averages of unit directors).
+    n : ndarray, shape (T, 3)
+        Unit eigenvector of ``λ_max`` (tangent to the target plane).
+    """
+    t1, t2 = axis_frames(normals)
+    q = np.empty((len(q6), 3, 3))
+    for k, (i, j) in enumerate(_SYM):
+        q[:, i, j] = q6[:, k]
+        q[:, j, i] = q6[:, k]
+    qt1 = np.einsum("tij,tj->ti", q, t1)
+    m11 = np.einsum("ti,ti->t", t1, qt1)
+    m12 = np.einsum("ti,ti->t", t2, qt1)
+    m22 = np.einsum("ti,tij,tj->t", t2, q, t2)
+    a = 0.5 * (m11 - m22)
+    lam = np.hypot(a, m12)
+    phi = 0.5 * np.arctan2(m12, a)
+    n = np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2
+    return 2.0 * lam, n
+
+
+def _director_arrays(mesh: trimesh.Trimesh | None, df: pd.DataFrame, name: str):
+    """Positions, unit directors, normals (when a mesh is given) of a directors table."""
+    need = ["x", "y", "z", "nx", "ny", "nz"]
+    missing = [c for c in need if c not in df.columns]
+    if missing:
+        raise NemoError(f"{name} lacks column(s) {', '.join(missing)}: is it a directors table?")
+    pos = df[["x", "y", "z"]].to_numpy(dtype=np.float64)
+    n = _unit(df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64))
+    ok = np.isfinite(pos).all(axis=1) & np.isfinite(n).all(axis=1)
+    normals = None
+    if mesh is not None:
+        vert = df["vertex"].to_numpy() if "vertex" in df.columns else None
+        n_vert = len(mesh.vertices)
+        if vert is None or (len(vert) and (vert.min() < 0 or vert.max() >= n_vert)):
+            raise NemoError(
+                f"{name} refers to vertices the mesh (with {n_vert} vertices) does not have: "
+                "the directors were computed on another mesh"
+            )
+        mesh_normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+        if len(vert):
+            gap = np.linalg.norm(np.asarray(mesh.vertices)[vert] - pos, axis=1)
+            scale = float(np.ptp(np.asarray(mesh.vertices), axis=0).max()) or 1.0
+            if np.nanmax(gap) > 1e-4 * scale:
+                raise NemoError(
+                    f"the positions in {name} do not match the mesh's vertices (up to "
+                    f"{np.nanmax(gap):.3g} apart): use the mesh the directors were computed on"
+                )
+        normals = mesh_normals[vert]
+    return pos, n, normals, ok
+
+
+def order(
+    mesh: trimesh.Trimesh,
+    directors_df: pd.DataFrame,
+    radius: float,
+    targets: str | np.ndarray = "all",
+) -> pd.DataFrame:
+    """Tangential Q-tensor average: order parameter ``S`` and averaged director per target.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The surface the directors were computed on (N vertices, outward normals).
+    directors_df : DataFrame
+        Directors table (``vertex``, ``x``, ``y``, ``z``, ``nx``, ``ny``, ``nz``).
+    radius : float
+        Averaging radius (µm, 3D distance).
+    targets : {"all", "directors"} or ndarray of int
+        Every vertex, the directors' vertices, or the given vertex indices.
+
+    Returns
+    -------
+    DataFrame
+        One row per target: ``vertex``, ``S`` (2 λ_max, in [0, 1]), ``nx``, ``ny``, ``nz``
+        (averaged director, tangent), ``x``, ``y``, ``z``, ``count`` (directors averaged).
+        Targets with no director within ``radius``: ``S`` and the director are NaN.
+    """
+    if not (np.isfinite(radius) and radius > 0):
+        raise NemoError(f"averaging radius must be > 0 µm, got {radius}")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    pos, n, d_normals, ok = _director_arrays(mesh, directors_df, "the directors table")
+    pos, n, d_normals = pos[ok], n[ok], d_normals[ok]
+    if len(pos) == 0:
+        raise NemoError("the directors table has no valid director: rerun 'nemo directors'")
+    if isinstance(targets, str):
+        if targets == "all":
+            target_idx = np.arange(len(vertices))
+        elif targets == "directors":
+            target_idx = np.unique(directors_df["vertex"].to_numpy()[ok].astype(np.int64))
+        else:
+            raise NemoError(f"unknown targets {targets!r}: use 'all' or 'directors'")
+    else:
+        target_idx = np.asarray(targets, dtype=np.int64)
+    q6 = lift_q(n, d_normals)
+    n_t = len(target_idx)
+    qsum = np.zeros((n_t, 6))
+    count = np.zeros(n_t)
+    dtree = cKDTree(pos)
+    # expected pairs per target: directors per unit area × disc area (bounded by all directors)
+    area = float(mesh.area) if len(mesh.faces) else 1.0
+    per_target = min(len(pos), len(pos) * np.pi * radius**2 / max(area, 1e-12)) + 1
+    chunk = int(max(256, min(n_t, _CHUNK_PAIRS // per_target)))
+    tpos = vertices[target_idx]
+    with step(f"order: {n_t} targets, {len(pos)} directors, radius {radius:g}"):
+        for start in range(0, n_t, chunk):
+            stop = min(n_t, start + chunk)
+            pairs = cKDTree(tpos[start:stop]).sparse_distance_matrix(dtree, radius, output_type="ndarray")
+            ti = pairs["i"].astype(np.int64)
+            dj = pairs["j"].astype(np.int64)
+            count[start:stop] = np.bincount(ti, minlength=stop - start)
+            for k in range(6):
+                qsum[start:stop, k] = np.bincount(ti, weights=q6[dj, k], minlength=stop - start)
+            logger.debug("order chunk %d-%d: %d pairs", start, stop, len(ti))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        qmean = qsum / count[:, None]
+    s, navg = tangential_eig(qmean, normals[target_idx])
+    empty = count == 0
+    if empty.any():
+        s[empty] = np.nan
+        navg[empty] = np.nan
+        warnings.warn(
+            f"{int(empty.sum())} of {n_t} targets have no director within {radius:g}: S is NaN "
+            "there (use a larger --radius or more patches)",
+            NemoWarning, stacklevel=2,
+        )
+    return pd.DataFrame({
+        "vertex": target_idx.astype(np.int64),
+        "S": s,
+        "nx": navg[:, 0], "ny": navg[:, 1], "nz": navg[:, 2],
+        "x": tpos[:, 0], "y": tpos[:, 1], "z": tpos[:, 2],
+        "count": count.astype(np.int64),
+    })
+
+
+def alignment(
+    dir_a: pd.DataFrame,
+    dir_b: pd.DataFrame,
+    mesh_a: trimesh.Trimesh | None = None,
+    normals_a: np.ndarray | None = None,
+) -> pd.DataFrame:
+    """Inter-layer nematic alignment ``c = cos 2(θ_B − θ_A)`` for every director of A.
+
+    For each director of A the nearest director of B (by position) is taken; B's director is
+    projected onto A's tangent plane and both angles are measured in A's basis, so
+    ``c = 2 (n_A · n̂_B)² − 1`` with ``n̂_B`` the normalised projection.
+
+    Parameters
+    ----------
+    dir_a, dir_b : DataFrame
+        Directors tables.
+    mesh_a : trimesh.Trimesh, optional
+        The mesh of A's directors, for A's normals. Without it (and without ``normals_a``),
+        ``n_B`` is not projected (exact when both layers share the surface or are parallel).
+    normals_a : ndarray, shape (len(dir_a), 3), optional
+        A's normals, given directly.
+
+    Returns
+    -------
+    DataFrame
+        ``vertex`` (A's), ``c`` in [−1, 1] (1 parallel, −1 orthogonal), ``x``, ``y``, ``z``
+        (A's director), ``distance`` (to the matched director of B).
+    """
+    pos_a, n_a, nrm_mesh, ok_a = _director_arrays(mesh_a, dir_a, "directors A")
+    pos_b, n_b, _, ok_b = _director_arrays(None, dir_b, "directors B")
+    pos_b, n_b = pos_b[ok_b], n_b[ok_b]
+    if not ok_a.any() or len(pos_b) == 0:
+        raise NemoError("a directors table has no valid director: rerun 'nemo directors'")
+    normals = nrm_mesh if normals_a is None else np.asarray(normals_a, dtype=np.float64)
+    dist, j = cKDTree(pos_b).query(pos_a[ok_a], workers=-1)
+    na, nb = n_a[ok_a], n_b[j]
+    if normals is not None:
+        nrm = _unit(normals[ok_a])
+        na = _unit(na - np.einsum("ij,ij->i", na, nrm)[:, None] * nrm)
+        nb = _unit(nb - np.einsum("ij,ij->i", nb, nrm)[:, None] * nrm)
+    dot = np.einsum("ij,ij->i", na, nb)
+    c = np.clip(2.0 * dot**2 - 1.0, -1.0, 1.0)
+    vert = dir_a["vertex"].to_numpy()[ok_a] if "vertex" in dir_a.columns else np.flatnonzero(ok_a)
+    pa = pos_a[ok_a]
+    return pd.DataFrame({
+        "vertex": vert.astype(np.int64), "c": c,
+        "x": pa[:, 0], "y": pa[:, 1], "z": pa[:, 2], "distance": dist,
+    })
