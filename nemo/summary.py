@@ -1,0 +1,182 @@
+"""Aggregation of per-frame results into the summary tables of a time-lapse.
+
+The workflow writes one folder per time point and channel (``results/{dataset}/t{t}/c{c}/``);
+these functions collect the per-frame tables into ``results/{dataset}/summary/``:
+
+* :func:`frame_summary` -> ``frames.parquet``: one row per (t, c, layer) with the surface's
+  area, volume, Euler characteristic, mean H and K, mean thickness, mean layer intensity,
+  director count and coherency, mean S, number of defects and their total charge;
+* :func:`collect_defects` -> the defects of all frames with ``t``, ``c``, ``layer`` columns
+  (``nemo track`` then adds ``track_id``);
+* :func:`alignment_summary` -> ``alignment.parquet``: one row per (t, c, layer pair).
+
+Every input is described by a *record*: a dict of the frame's keys (``t``, ``c``, ``layer``...)
+and the paths of its files. Nothing here recomputes science; it reads tables and averages.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from nemo.errors import NemoError
+from nemo.tables import read_table
+
+#: Columns of frames.parquet, in order (documented in docs/workflow.md).
+FRAME_COLUMNS = (
+    "t", "c", "layer", "surface", "area", "volume", "euler_characteristic", "H_mean", "K_mean",
+    "H_fit_mean", "K_fit_mean", "thickness_mean", "thickness_median", "thickness_valid",
+    "intensity_mean", "n_directors", "coherency_mean", "S_mean", "S_median", "n_defects",
+    "charge_sum", "charge_rounded_sum",
+)
+#: Columns of defects.parquet before tracking (``nemo track`` appends ``track_id``).
+DEFECT_COLUMNS = ("t", "c", "layer", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
+                  "charge_winding", "charge_curvature")
+#: Columns of alignment.parquet.
+ALIGN_COLUMNS = ("t", "c", "layer_a", "layer_b", "n", "c_mean", "c_median", "c_std",
+                 "fraction_parallel", "fraction_orthogonal")
+
+
+def _finite_mean(values) -> float:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else math.nan
+
+
+def _finite_median(values) -> float:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else math.nan
+
+
+def _read_measure(path: str | Path) -> dict:
+    try:
+        with open(path) as fh:
+            data = json.load(fh)
+    except FileNotFoundError:
+        raise NemoError(f"measure file not found: {path}") from None
+    except json.JSONDecodeError as exc:
+        raise NemoError(f"{path} is not the JSON of 'nemo measure --json' ({exc})") from None
+    return data
+
+
+def _num(value) -> float:
+    return float(value) if value is not None else math.nan
+
+
+def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
+    """One row per (t, c, layer) from the per-frame files.
+
+    Parameters
+    ----------
+    records : iterable of mapping
+        Each with keys ``t``, ``c``, ``layer``, ``surface`` and the paths ``measure`` (JSON of
+        ``nemo measure``), ``layer_table``, ``directors``, ``order``, ``defects`` and optionally
+        ``curvature`` and ``thickness`` (None when not computed).
+
+    Returns
+    -------
+    DataFrame, shape (n_records, len(FRAME_COLUMNS))
+        Sorted by t, c, layer. Means ignore NaN (e.g. thickness rays that hit nothing);
+        ``thickness_valid`` is the fraction of vertices with a finite thickness.
+    """
+    rows = []
+    for r in records:
+        m = _read_measure(r["measure"])
+        row = {"t": int(r["t"]), "c": int(r["c"]), "layer": str(r["layer"]),
+               "surface": str(r["surface"]), "area": _num(m.get("area")),
+               "volume": _num(m.get("volume")),
+               "euler_characteristic": _num(m.get("euler_characteristic")),
+               "H_mean": _num(m.get("mean_H")), "K_mean": _num(m.get("mean_K"))}
+        if r.get("curvature"):
+            cur = read_table(r["curvature"], "curvature")
+            row["H_fit_mean"] = _finite_mean(cur["H"])
+            row["K_fit_mean"] = _finite_mean(cur["K"])
+        if r.get("thickness"):
+            th = read_table(r["thickness"], "thickness")["thickness"].to_numpy(dtype=np.float64)
+            row["thickness_mean"] = _finite_mean(th)
+            row["thickness_median"] = _finite_median(th)
+            row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
+        row["intensity_mean"] = _finite_mean(read_table(r["layer_table"], "layer")["intensity"])
+        d = read_table(r["directors"], "directors")
+        row["n_directors"] = len(d)
+        row["coherency_mean"] = _finite_mean(d["coherency"])
+        s = read_table(r["order"], "order")["S"]
+        row["S_mean"] = _finite_mean(s)
+        row["S_median"] = _finite_median(s)
+        df = read_table(r["defects"], "defects")
+        row["n_defects"] = len(df)
+        row["charge_sum"] = float(df["charge"].sum())
+        row["charge_rounded_sum"] = float(df["charge_rounded"].sum())
+        rows.append(row)
+    out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
+    out = out.astype({"t": "int64", "c": "int64", "n_directors": "Int64", "n_defects": "Int64"})
+    return out.sort_values(["t", "c", "layer"], kind="stable").reset_index(drop=True)
+
+
+def collect_defects(records: Iterable[Mapping]) -> pd.DataFrame:
+    """The defects of all frames in one table with ``t``, ``c``, ``layer`` first.
+
+    Parameters
+    ----------
+    records : iterable of mapping
+        Each with keys ``t``, ``c``, ``layer`` and ``defects`` (path of a defects table).
+
+    Returns
+    -------
+    DataFrame
+        Columns :data:`DEFECT_COLUMNS` (then any further columns of the inputs), sorted by
+        t, c, layer, then the input order.
+    """
+    parts = []
+    for r in records:
+        df = read_table(r["defects"], "defects")
+        df.insert(0, "layer", str(r["layer"]))
+        df.insert(0, "c", int(r["c"]))
+        df.insert(0, "t", int(r["t"]))
+        parts.append(df)
+    if not parts or all(p.empty for p in parts):
+        return pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else "float64")
+                             for c in DEFECT_COLUMNS}).astype({"t": "int64", "c": "int64"})
+    out = pd.concat([p for p in parts if not p.empty], ignore_index=True)
+    extra = [c for c in out.columns if c not in DEFECT_COLUMNS]
+    out = out[list(DEFECT_COLUMNS) + extra]
+    return out.sort_values(["t", "c", "layer"], kind="stable").reset_index(drop=True)
+
+
+def alignment_summary(records: Iterable[Mapping]) -> pd.DataFrame:
+    """One row per (t, c, layer pair) from the ``nemo align`` tables.
+
+    Parameters
+    ----------
+    records : iterable of mapping
+        Each with keys ``t``, ``c``, ``layer_a``, ``layer_b`` and ``align`` (path).
+
+    Returns
+    -------
+    DataFrame
+        Columns :data:`ALIGN_COLUMNS`: ``n`` directors of A with a partner, mean / median /
+        standard deviation of c = cos 2(θ_B − θ_A), and the fractions with c > 0.5 (close to
+        parallel, within 30°) and c < −0.5 (close to orthogonal).
+    """
+    rows = []
+    for r in records:
+        c = read_table(r["align"], "align")["c"].to_numpy(dtype=np.float64)
+        c = c[np.isfinite(c)]
+        rows.append({
+            "t": int(r["t"]), "c": int(r["c"]), "layer_a": str(r["layer_a"]),
+            "layer_b": str(r["layer_b"]), "n": int(c.size),
+            "c_mean": float(c.mean()) if c.size else math.nan,
+            "c_median": float(np.median(c)) if c.size else math.nan,
+            "c_std": float(c.std()) if c.size else math.nan,
+            "fraction_parallel": float((c > 0.5).mean()) if c.size else math.nan,
+            "fraction_orthogonal": float((c < -0.5).mean()) if c.size else math.nan,
+        })
+    out = pd.DataFrame(rows, columns=list(ALIGN_COLUMNS))
+    out = out.astype({"t": "int64", "c": "int64", "n": "int64"})
+    return out.sort_values(["t", "c", "layer_a", "layer_b"], kind="stable").reset_index(drop=True)

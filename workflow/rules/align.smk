@@ -1,0 +1,21 @@
+# Inter-layer alignment (method note §6): c = cos 2(θ_B − θ_A) for each director of layer A.
+
+
+rule align:
+    input:
+        a=FRAME + "/directors_{a}.parquet",
+        b=FRAME + "/directors_{b}.parquet",
+    output:
+        FRAME + "/align_{a}_{b}.parquet",
+    log:
+        LOGS + "/align/t{t}_c{c}_{a}_{b}.log",
+    benchmark:
+        BENCH + "/align/t{t}_c{c}_{a}_{b}.tsv"
+    threads: res("align", "threads")
+    resources:
+        mem_mb=res("align", "mem_mb"),
+        runtime=res("align", "runtime"),
+    conda:
+        "../envs/nemo.yaml"
+    shell:
+        NEMO + " align {input.a} {input.b} -o {output} > {log} 2>&1"
