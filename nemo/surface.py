@@ -16,7 +16,7 @@ so that normals point **out of the bright object** (the solid). Steps:
    A numeric threshold is used as the iso-level as given; a mask is blurred by σ and cut at 0.5.
 3. The blurred volume is sampled every ``step`` voxels (the grid scikit-image's marching cubes
    would use with ``step_size=step``) and padded by one sample of its minimum, so that
-   objects touching the image border give **closed** surfaces (capped at the border); marching
+   objects touching the image border give **closed** surfaces (flat caps on the border planes); marching
    cubes then runs with the physical spacing.
 4. Connected components: keep the largest by area (``keep="largest"``) or all.
 5. Taubin (windowed-sinc) smoothing through PyVista removes the staircase without shrinking.
@@ -355,6 +355,7 @@ def reconstruct(
         field = _blur_sampled(source.view(np.uint8) if source.dtype == bool else source, sig_vox, step)
     # marching cubes now runs at step 1 on the sampled grid (spacing x step): identical to
     # scikit-image's step_size=step on the full blurred volume, at a fraction of the cost
+    sampled_shape = field.shape
     pad = 1
     padded = np.empty(tuple(s + 2 * pad for s in field.shape), dtype=np.float32)
     inner = padded[pad:-pad, pad:-pad, pad:-pad]
@@ -403,6 +404,10 @@ def reconstruct(
         verts_zyx, faces, _, _ = measure.marching_cubes(padded, level, spacing=(dz * step, dy * step, dx * step))
     del padded, inner
     vertices = verts_zyx[:, ::-1].astype(np.float64) - pad * step * np.array([dx, dy, dz])
+    # caps of objects cut by the border lie between the last sample and the pad: put them on
+    # the border plane (the image's extent), also after smoothing
+    box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
+    np.clip(vertices, 0.0, box, out=vertices)
     # swapping z and x is a reflection, which reverses the winding; re-reverse it so normals
     # point down the intensity gradient (out of the object).
     faces = np.ascontiguousarray(faces[:, ::-1], dtype=np.int64)
@@ -415,7 +420,7 @@ def reconstruct(
     mesh = keep_components(mesh, keep)
     if smooth_iter > 0:
         with log_step(f"Taubin smoothing ({smooth_iter} iterations, {len(mesh.vertices)} vertices)"):
-            mesh.vertices = _taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band)
+            mesh.vertices = np.clip(_taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band), 0.0, box)
     mesh.metadata["nemo_surface"] = {
         "level": float(level), "threshold": thr if not isinstance(thr, str) else thr, "method": str(how),
         "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,

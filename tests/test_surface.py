@@ -1,0 +1,341 @@
+"""Surface reconstruction against analytic shapes (method note §2)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.special import ellipeinc, ellipkinc, erf
+
+from nemo.errors import NemoError
+from nemo.io import write_hyperstack
+from nemo.mesh import load_mesh, signed_volume
+from nemo.surface import fit_sphere, keep_components, reconstruct, split_mesh
+
+
+# ----------------------------------------------------------------------------- volumes
+def _grid(shape, spacing):
+    dz, dy, dx = spacing
+    z = np.arange(shape[0]) * dz
+    y = np.arange(shape[1]) * dy
+    x = np.arange(shape[2]) * dx
+    return z[:, None, None], y[None, :, None], x[None, None, :]
+
+
+def _edge(d, width):
+    """Smooth step: 1 inside (d < 0), 0 outside, exactly 1/2 at d = 0."""
+    return 0.5 * (1.0 - erf(d / (np.sqrt(2.0) * width)))
+
+
+def shell_volume(shape, spacing, centre, r_in, r_out, width=1.0, amp=200.0, noise=0.0, rng=None):
+    """Hollow spherical shell r_in <= r <= r_out (physical x, y, z centre), smooth edges."""
+    z, y, x = _grid(shape, spacing)
+    r = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2)
+    v = amp * _edge(r_in - r, width) * _edge(r - r_out, width)
+    if noise:
+        v = v + noise * rng.standard_normal(v.shape)
+    return v.astype(np.float32)
+
+
+def ball_volume(shape, spacing, centre, radius, width=1.0, amp=200.0):
+    return shell_volume(shape, spacing, centre, -1e9, radius, width, amp)
+
+
+def ellipsoid_volume(shape, spacing, centre, axes, width=1.0, amp=200.0):
+    """Solid ellipsoid with semi-axes (a, b, c) along x, y, z; the half level is exactly on it."""
+    z, y, x = _grid(shape, spacing)
+    a, b, c = axes
+    u = np.stack(np.broadcast_arrays((x - centre[0]) / a, (y - centre[1]) / b, (z - centre[2]) / c))
+    s = np.sqrt((u**2).sum(axis=0))
+    # first-order signed distance (sqrt(F) - 1) / |grad sqrt(F)|: zero exactly on the surface
+    grad = np.sqrt((u[0] / a) ** 2 + (u[1] / b) ** 2 + (u[2] / c) ** 2) / np.maximum(s, 1e-12)
+    d = (s - 1.0) / np.maximum(grad, 1e-12)
+    return (amp * _edge(d, width)).astype(np.float32)
+
+
+def ellipsoid_area(a: float, b: float, c: float) -> float:
+    """Exact surface area (Legendre's form with incomplete elliptic integrals)."""
+    a, b, c = sorted((a, b, c), reverse=True)
+    if a == c:
+        return 4 * np.pi * a**2
+    phi = np.arccos(c / a)
+    m = a**2 * (b**2 - c**2) / (b**2 * (a**2 - c**2))
+    s = np.sin(phi)
+    return float(2 * np.pi * c**2 + 2 * np.pi * a * b / s * (ellipeinc(phi, m) * s**2 + ellipkinc(phi, m) * np.cos(phi) ** 2))
+
+
+def ellipsoid_area_numeric(a, b, c, n=400) -> float:
+    """Area by midpoint quadrature of |r_theta x r_phi| (independent check of the formula)."""
+    th = (np.arange(n) + 0.5) * np.pi / n
+    ph = (np.arange(2 * n) + 0.5) * np.pi / n
+    T, P = np.meshgrid(th, ph, indexing="ij")
+    rt = np.stack([a * np.cos(T) * np.cos(P), b * np.cos(T) * np.sin(P), -c * np.sin(T)])
+    rp = np.stack([-a * np.sin(T) * np.sin(P), b * np.sin(T) * np.cos(P), np.zeros_like(T)])
+    return float(np.linalg.norm(np.cross(rt, rp, axis=0), axis=0).sum() * (np.pi / n) ** 2)
+
+
+def _radii(mesh, centre):
+    return np.linalg.norm(np.asarray(mesh.vertices) - centre, axis=1)
+
+
+def _outward(mesh, centre):
+    return np.einsum("ij,ij->i", np.asarray(mesh.vertex_normals), np.asarray(mesh.vertices) - centre)
+
+
+# ----------------------------------------------------------------------------- shells
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (2.0, 1.0, 1.0)], ids=["iso", "dz=2dx"])
+@pytest.mark.parametrize("step", [1, 2])
+def test_shell_inner_surface_is_sphere_of_radius_R(spacing, step):
+    R, T = 20.0, 6.0
+    centre = np.array([35.3, 34.6, 36.1])  # off-grid, distinct per axis (x, y, z)
+    shape = (int(round(72 / spacing[0])), 72, 72)
+    vol = shell_volume(shape, spacing, centre, R, R + T)
+    whole = reconstruct(vol, spacing, step=step, keep="all")
+    inner, outer = split_mesh(whole, keep="largest")
+    c_in, r_in = fit_sphere(inner)
+    c_out, r_out = fit_sphere(outer)
+    dx = spacing[2]
+    assert abs(r_in - R) < 0.5 * dx
+    assert abs(r_out - (R + T)) < 0.5 * dx
+    np.testing.assert_allclose(c_in, centre, atol=0.1 * dx)
+    # every vertex on the sphere, not only the fit (the coarse z sampling at step 2, dz = 2 is
+    # a 4 µm grid: allow one voxel there)
+    tol = 0.5 * dx if step * spacing[0] <= 2 else 1.0 * dx
+    assert np.abs(_radii(inner, centre) - R).max() < tol
+    assert np.abs(_radii(outer, centre) - (R + T)).max() < tol
+    # orientation: both halves' normals point away from the centre, closed spheres, volume > 0
+    assert (_outward(inner, centre) > 0).all() and (_outward(outer, centre) > 0).all()
+    assert inner.is_watertight and outer.is_watertight
+    assert signed_volume(inner.vertices, inner.faces) == pytest.approx(4 / 3 * np.pi * R**3, rel=0.03)
+    # the whole shell: normals point out of the solid, i.e. into the cavity on the inner wall
+    assert signed_volume(whole.vertices, whole.faces) == pytest.approx(
+        4 / 3 * np.pi * ((R + T) ** 3 - R**3), rel=0.03)
+
+
+def test_noisy_shell_within_half_voxel(rng):
+    R = 18.0
+    centre = np.array([32.0, 31.5, 32.5])
+    vol = shell_volume((64, 64, 64), (1, 1, 1), centre, R, R + 6, amp=100.0, noise=15.0, rng=rng)
+    whole = reconstruct(vol, (1, 1, 1), sigma=1.0, step=1, keep="all")
+    inner, _ = split_mesh(whole, keep="largest")
+    _, r = fit_sphere(inner)
+    assert abs(r - R) < 0.5
+    assert np.percentile(np.abs(_radii(inner, centre) - R), 95) < 0.5
+
+
+def test_vertices_are_physical_xyz():
+    """x = column * dx, y = row * dy, z = plane * dz, with three different spacings."""
+    spacing = (1.5, 0.8, 0.6)
+    centre = np.array([20.0, 16.0, 30.0])  # x, y, z in µm
+    shape = (42, 40, 66)
+    vol = ball_volume(shape, spacing, centre, 9.0)
+    mesh = reconstruct(vol, spacing, step=1)
+    c, r = fit_sphere(mesh)
+    np.testing.assert_allclose(c, centre, atol=0.1)
+    assert r == pytest.approx(9.0, abs=0.3)
+    assert mesh.units == "um"
+
+
+# ----------------------------------------------------------------------------- ellipsoid
+def test_area_formula_matches_numeric_integral():
+    assert ellipsoid_area(22, 15, 11) == pytest.approx(ellipsoid_area_numeric(22, 15, 11), rel=1e-5)
+    assert ellipsoid_area(10, 10, 10) == pytest.approx(4 * np.pi * 100, rel=1e-9)
+
+
+@pytest.mark.parametrize("spacing,step", [((1.0, 1.0, 1.0), 1), ((1.0, 1.0, 1.0), 2), ((2.0, 1.0, 1.0), 1)])
+def test_ellipsoid_area_and_volume(spacing, step):
+    axes = (22.0, 15.0, 11.0)
+    centre = np.array([30.2, 24.7, 20.4])
+    shape = (int(round(42 / spacing[0])), 50, 61)
+    vol = ellipsoid_volume(shape, spacing, centre, axes)
+    mesh = reconstruct(vol, spacing, step=step)
+    a, b, c = axes
+    assert mesh.is_watertight
+    assert signed_volume(mesh.vertices, mesh.faces) == pytest.approx(4 / 3 * np.pi * a * b * c, rel=0.015)
+    assert mesh.area == pytest.approx(ellipsoid_area(a, b, c), rel=0.015)
+
+
+# ----------------------------------------------------------------------------- options
+def test_keep_largest_drops_small_blob():
+    shape, sp = (48, 48, 64), (1, 1, 1)
+    vol = ball_volume(shape, sp, (22, 24, 24), 12.0) + ball_volume(shape, sp, (52, 24, 24), 4.0)
+    all_ = reconstruct(vol, sp, step=1, keep="all")
+    big = reconstruct(vol, sp, step=1, keep="largest")
+    assert len(all_.split(only_watertight=False)) == 2
+    assert len(big.split(only_watertight=False)) == 1
+    c, r = fit_sphere(big)
+    np.testing.assert_allclose(c, (22, 24, 24), atol=0.1)
+    assert r == pytest.approx(12.0, abs=0.3)
+    assert len(keep_components(all_, "largest").faces) == len(big.faces)
+
+
+def test_object_touching_the_border_gives_closed_surface():
+    vol = ball_volume((30, 30, 30), (1, 1, 1), (5.0, 15.0, 15.0), 10.0)  # cut by the x = 0 plane
+    for step in (1, 2, 3):
+        mesh = reconstruct(vol, (1, 1, 1), step=step)
+        assert mesh.is_watertight
+        assert signed_volume(mesh.vertices, mesh.faces) > 0
+        assert mesh.vertices[:, 0].min() >= -1e-9  # capped at the border, not beyond
+
+
+def test_taubin_smoothing_does_not_shrink():
+    centre = np.array([24.0, 24.5, 23.5])
+    vol = ball_volume((48, 48, 48), (1, 1, 1), centre, 15.0, width=0.5)
+    raw = reconstruct(vol, (1, 1, 1), sigma=0, step=1, smooth_iter=0)
+    smooth = reconstruct(vol, (1, 1, 1), sigma=0, step=1, smooth_iter=30)
+    r_raw, r_smooth = _radii(raw, centre), _radii(smooth, centre)
+    assert abs(r_smooth.mean() - r_raw.mean()) < 0.05
+    assert r_smooth.std() < r_raw.std()  # and it does smooth
+    np.testing.assert_array_equal(raw.faces, smooth.faces)
+
+
+def test_mask_instead_of_threshold():
+    shape, sp = (40, 40, 40), (1.0, 1.0, 1.0)
+    z, y, x = _grid(shape, sp)
+    mask = (x - 19.5) ** 2 + (y - 20.2) ** 2 + (z - 19.8) ** 2 <= 12.0**2
+    noise = np.random.default_rng(1).random(shape)  # the image itself is irrelevant with a mask
+    mesh = reconstruct(noise, sp, mask=mask, step=1, sigma=1.0)
+    c, r = fit_sphere(mesh)
+    np.testing.assert_allclose(c, (19.5, 20.2, 19.8), atol=0.1)
+    assert r == pytest.approx(12.0, abs=0.5)
+    assert mesh.metadata["nemo_surface"]["method"] == "mask"
+
+
+def test_numeric_threshold_is_the_iso_level():
+    centre = np.array([20.0, 20.0, 20.0])
+    vol = ball_volume((40, 40, 40), (1, 1, 1), centre, 12.0, width=2.0, amp=100.0)
+    # the 0.5 * 100 level of the erf edge is at r = 12; the 84 % level at r = 12 - 2 (one sigma)
+    m50 = reconstruct(vol, (1, 1, 1), sigma=0, threshold=50.0, step=1, smooth_iter=0)
+    m84 = reconstruct(vol, (1, 1, 1), sigma=0, threshold="84.13", step=1, smooth_iter=0)
+    assert np.median(_radii(m50, centre)) == pytest.approx(12.0, abs=0.1)
+    assert np.median(_radii(m84, centre)) == pytest.approx(10.0, abs=0.15)
+
+
+def test_edge_threshold_mode_uses_raw_yen_level():
+    centre = np.array([20.0, 20.0, 20.0])
+    vol = ball_volume((40, 40, 40), (1, 1, 1), centre, 12.0, width=1.5)
+    half = reconstruct(vol, (1, 1, 1), step=1)
+    raw = reconstruct(vol, (1, 1, 1), step=1, edge="threshold")
+    md_half, md_raw = half.metadata["nemo_surface"], raw.metadata["nemo_surface"]
+    assert md_raw["level"] == pytest.approx(md_raw["threshold"])
+    assert md_half["level"] == pytest.approx(100.0, rel=0.05)  # half of the 200 plateau
+    assert np.median(_radii(half, centre)) == pytest.approx(12.0, abs=0.2)
+
+
+# ----------------------------------------------------------------------------- split
+def test_split_by_axis_separates_top_and_bottom():
+    shape, sp = (30, 60, 60), (1.0, 1.0, 1.0)
+    z, y, x = _grid(shape, sp)
+    rho = np.sqrt((x - 30) ** 2 + (y - 30) ** 2)
+    vol = (200 * _edge(rho - 22, 1.0) * _edge(10 - z, 1.0) * _edge(z - 18, 1.0)).astype(np.float32)
+    whole = reconstruct(vol, sp, step=1)
+    lower, upper = split_mesh(whole, by="axis", axis=(0, 0, 2.0), keep="largest")
+    fn_l, fn_u = lower.face_normals, upper.face_normals
+    flat_l, flat_u = np.abs(fn_l[:, 2]) > 0.95, np.abs(fn_u[:, 2]) > 0.95
+    # faces of the bottom (z = 10) go to the lower half, top (z = 18) to the upper half
+    assert np.median(lower.triangles_center[flat_l, 2]) == pytest.approx(10.0, abs=0.2)
+    assert np.median(upper.triangles_center[flat_u, 2]) == pytest.approx(18.0, abs=0.2)
+    # both point along +axis (the lower half was flipped)
+    assert (fn_l[flat_l, 2] > 0).all() and (fn_u[flat_u, 2] > 0).all()
+    assert len(lower.faces) + len(upper.faces) <= len(whole.faces)
+
+
+def test_split_by_centre_with_given_centre_and_field_carry_over():
+    R = 14.0
+    centre = np.array([25.0, 25.0, 25.0])
+    whole = reconstruct(shell_volume((50, 50, 50), (1, 1, 1), centre, R, R + 5), (1, 1, 1), step=2, keep="all")
+    whole.vertex_attributes["r"] = _radii(whole, centre)
+    inner, outer = split_mesh(whole, by="centre", centre=centre)
+    np.testing.assert_allclose(inner.vertex_attributes["r"], _radii(inner, centre))
+    assert inner.vertex_attributes["r"].max() < R + 1 < outer.vertex_attributes["r"].min()
+
+
+def test_split_single_wall_is_an_error():
+    mesh = reconstruct(ball_volume((30, 30, 30), (1, 1, 1), (15, 15, 15), 9.0), (1, 1, 1), step=2)
+    with pytest.raises(NemoError, match="single wall"):
+        split_mesh(mesh)
+    with pytest.raises(NemoError, match="axis"):
+        split_mesh(mesh, by="axis")
+    with pytest.raises(NemoError, match="non-zero"):
+        split_mesh(mesh, by="axis", axis=(0, 0, 0))
+    with pytest.raises(NemoError, match="centre"):
+        split_mesh(mesh, by="middle")
+
+
+# ----------------------------------------------------------------------------- sphere fit
+def test_fit_sphere_recovers_centre_and_radius(rng):
+    u = rng.standard_normal((5000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    centre, radius = np.array([103.0, -7.5, 41.0]), 57.0
+    c, r = fit_sphere(centre + radius * u + 0.05 * rng.standard_normal((5000, 3)))
+    np.testing.assert_allclose(c, centre, atol=0.01)
+    assert r == pytest.approx(radius, abs=0.01)
+    # a cap of the sphere is enough
+    cap = u[u[:, 2] > 0.3]
+    c, r = fit_sphere(centre + radius * cap)
+    np.testing.assert_allclose(c, centre, atol=1e-6)
+    with pytest.raises(NemoError):
+        fit_sphere(np.zeros((3, 3)))
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_bad_inputs_raise_clear_errors():
+    vol = ball_volume((20, 20, 20), (1, 1, 1), (10, 10, 10), 5.0)
+    with pytest.raises(NemoError, match="constant"):
+        reconstruct(np.zeros((10, 10, 10), np.uint8), (1, 1, 1))
+    with pytest.raises(NemoError, match="selects no voxel"):
+        reconstruct(vol, (1, 1, 1), threshold=1000)
+    with pytest.raises(NemoError, match="selects every voxel"):
+        reconstruct(vol + 10, (1, 1, 1), threshold=5)
+    with pytest.raises(NemoError, match="shape"):
+        reconstruct(vol, (1, 1, 1), mask=np.ones((20, 20, 19), bool))
+    with pytest.raises(NemoError, match="empty"):
+        reconstruct(vol, (1, 1, 1), mask=np.zeros((20, 20, 20), bool))
+    with pytest.raises(NemoError, match="3-D"):
+        reconstruct(vol[0], (1, 1, 1))
+    with pytest.raises(NemoError, match="spacing"):
+        reconstruct(vol, (1, 0, 1))
+    with pytest.raises(NemoError, match="step"):
+        reconstruct(vol, (1, 1, 1), step=0)
+    with pytest.raises(NemoError, match="threshold"):
+        reconstruct(vol, (1, 1, 1), threshold="triangle")
+    with pytest.raises(NemoError, match="keep"):
+        reconstruct(vol, (1, 1, 1), keep="biggest")
+    with pytest.raises(NemoError, match="sigma"):
+        reconstruct(vol, (1, 1, 1), sigma=-1)
+
+
+# ----------------------------------------------------------------------------- CLI
+def test_cli_mesh_split_and_fit_sphere(tmp_path, run_cli):
+    R = 16.0
+    centre = np.array([27.0, 26.5, 27.5])
+    vol = shell_volume((54, 54, 54), (1, 1, 1), centre, R, R + 5, amp=200.0)
+    # stored with 0.5 µm voxels in the file; --spacing overrides to 1 µm
+    write_hyperstack(tmp_path / "shell.tif", vol.astype(np.uint8)[None, :, None], (0.5, 0.5, 0.5))
+    out = tmp_path / "out" / "shell.ply"
+    code, stdout, err = run_cli("mesh", tmp_path / "shell.tif", "-o", out, "--split", "centre",
+                                "--fit-sphere", "--step", "1", "--spacing", "1", "1", "1")
+    assert code == 0, err
+    assert "inner:" in stdout and "vertices" in stdout and "area" in stdout
+    for name in ("shell.ply", "shell.inner.ply", "shell.outer.ply", "shell.sphere.json"):
+        assert (tmp_path / "out" / name).exists()
+    spheres = json.loads((tmp_path / "out" / "shell.sphere.json").read_text())
+    assert abs(spheres["inner"]["radius"] - R) < 0.5
+    assert abs(spheres["outer"]["radius"] - (R + 5)) < 0.5
+    np.testing.assert_allclose(spheres["inner"]["centre"], centre, atol=0.1)
+    inner = load_mesh(tmp_path / "out" / "shell.inner.ply")
+    assert inner.units == "um"
+    assert (_outward(inner, centre) > 0).all()
+    # the file's own 0.5 µm calibration halves every length
+    code, stdout, err = run_cli("mesh", tmp_path / "shell.tif", "-o", tmp_path / "half.ply", "--fit-sphere", "--step", "1")
+    assert code == 0, err
+    half = json.loads((tmp_path / "half.sphere.json").read_text())
+    assert half["whole"]["radius"] == pytest.approx((R + 5) / 2, abs=0.25)
+
+
+def test_cli_mesh_split_axis_needs_axis(tmp_path, run_cli):
+    vol = ball_volume((20, 20, 20), (1, 1, 1), (10, 10, 10), 6.0)
+    write_hyperstack(tmp_path / "b.tif", vol.astype(np.uint8), (1, 1, 1), axes="ZYX")
+    code, _, err = run_cli("mesh", tmp_path / "b.tif", "-o", tmp_path / "b.ply", "--split", "axis")
+    assert code == 2 and "--axis" in err and "Traceback" not in err
