@@ -1,0 +1,148 @@
+"""Hyperstack I/O: axes, calibration, lazy (t, c) reads, errors (nemo.io)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import tifffile
+
+from nemo.errors import NemoError, NemoWarning
+from nemo.io import read_info, read_stack, write_hyperstack
+
+SPACING = (2.5, 0.4, 0.3)  # distinct dz, dy, dx so that any axis mix-up shows
+
+
+def _data(shape, rng, dtype=np.uint16):
+    return rng.integers(0, 60000 if dtype == np.uint16 else 250, size=shape).astype(dtype)
+
+
+def _slice(data, axes, t, c):
+    """The (Z, Y, X) stack of (t, c) taken directly from the array in memory."""
+    index = tuple({"T": t, "C": c}.get(a, slice(None)) for a in axes)
+    kept = [a for a in axes if a not in "TC"]
+    return np.transpose(data[index], [kept.index(a) for a in "ZYX"])
+
+
+CASES = [
+    ("ZYX", (5, 12, 14), False),
+    ("ZCYX", (5, 3, 12, 14), False),
+    ("TZYX", (4, 5, 12, 14), False),
+    ("TZCYX", (3, 5, 2, 12, 14), False),
+    ("TZCYX", (3, 5, 2, 12, 14), True),
+    ("ZYX", (5, 12, 14), True),
+    ("CZYX", (2, 5, 12, 14), True),  # OME allows other axis orders
+    ("TCZYX", (2, 3, 5, 12, 14), True),
+]
+
+
+@pytest.mark.parametrize("axes,shape,ome", CASES, ids=[f"{a}{'-ome' if o else ''}" for a, _, o in CASES])
+def test_round_trip_axes_spacing_and_every_frame(tmp_path, rng, axes, shape, ome):
+    data = _data(shape, rng)
+    path = tmp_path / "stack.ome.tif" if ome else tmp_path / "stack.tif"
+    write_hyperstack(path, data, SPACING, unit="um", axes=axes, ome=ome)
+    info = read_info(path)
+    sizes = dict(zip(axes, shape))
+    assert info.shape == {a: sizes.get(a, 1) for a in "TCZYX"}
+    assert info.dtype == "uint16"
+    assert info.unit == "um" and info.calibrated
+    np.testing.assert_allclose(info.spacing, SPACING, rtol=1e-6)
+    assert set(info.to_json()) == {"path", "axes", "shape", "dtype", "spacing", "unit", "calibrated"}
+    for t in range(sizes.get("T", 1)):
+        for c in range(sizes.get("C", 1)):
+            stack, sinfo = read_stack(path, t, c)
+            assert stack.shape == (sizes["Z"], sizes["Y"], sizes["X"])
+            np.testing.assert_array_equal(stack, _slice(data, axes, t, c))
+            np.testing.assert_allclose(sinfo.spacing, SPACING, rtol=1e-6)
+
+
+def test_compressed_file_reads_the_same_frame(tmp_path, rng):
+    data = _data((3, 4, 2, 16, 16), rng)
+    write_hyperstack(tmp_path / "z.tif", data, SPACING, compression="zlib")
+    stack, _ = read_stack(tmp_path / "z.tif", 2, 1)
+    np.testing.assert_array_equal(stack, data[2, :, 1])
+
+
+def test_uint8_and_float_dtypes(tmp_path, rng):
+    for dtype in (np.uint8, np.float32):
+        data = (rng.random((2, 4, 8, 9)) * 200).astype(dtype)
+        write_hyperstack(tmp_path / "d.tif", data, (1, 1, 1), axes="ZCYX")
+        stack, info = read_stack(tmp_path / "d.tif", c=1)
+        assert stack.dtype == dtype and info.dtype == np.dtype(dtype).name
+        np.testing.assert_array_equal(stack, data[:, 1])
+
+
+@pytest.mark.parametrize("unit,scale", [("nm", 1e-3), ("mm", 1e3), ("micron", 1.0), ("um", 1.0),
+                                        ("\\u00B5m", 1.0), ("microns", 1.0)])
+def test_imagej_unit_normalised_to_um(tmp_path, rng, unit, scale):
+    data = _data((4, 6, 7), rng)
+    dz, dy, dx = 3.0, 2.0, 1.5
+    # written with tifffile directly, the way ImageJ stores it (µm may come escaped)
+    tifffile.imwrite(tmp_path / "u.tif", data, imagej=True, resolution=(1 / dx, 1 / dy),
+                     metadata={"axes": "ZYX", "spacing": dz, "unit": unit})
+    info = read_info(tmp_path / "u.tif")
+    assert info.unit == "um"
+    np.testing.assert_allclose(info.spacing, (dz * scale, dy * scale, dx * scale), rtol=1e-6)
+
+
+@pytest.mark.parametrize("unit,scale", [("nm", 1e-3), ("mm", 1e3), ("µm", 1.0)])
+def test_ome_unit_normalised_to_um(tmp_path, rng, unit, scale):
+    data = _data((4, 6, 7), rng)
+    write_hyperstack(tmp_path / "u.ome.tif", data, (300.0, 120.0, 100.0), unit=unit, axes="ZYX", ome=True)
+    info = read_info(tmp_path / "u.ome.tif")
+    assert info.unit == "um"
+    np.testing.assert_allclose(info.spacing, (300 * scale, 120 * scale, 100 * scale), rtol=1e-6)
+
+
+def test_uncalibrated_file_warns_and_uses_pixels(tmp_path, rng):
+    data = _data((5, 6, 7), rng)
+    # plain multi-page TIFF, no calibration
+    tifffile.imwrite(tmp_path / "raw.tif", data, photometric="minisblack")
+    info = read_info(tmp_path / "raw.tif")
+    assert info.unit == "pixel" and not info.calibrated and info.spacing == (1.0, 1.0, 1.0)
+    with pytest.warns(NemoWarning, match="--spacing"):
+        stack, info = read_stack(tmp_path / "raw.tif")
+    np.testing.assert_array_equal(stack, data)
+    # an explicit spacing overrides silently
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, info = read_stack(tmp_path / "raw.tif", spacing=(2.0, 0.5, 0.5))
+    assert info.spacing == (2.0, 0.5, 0.5) and info.calibrated
+
+
+def test_spacing_override_beats_file_calibration(tmp_path, rng):
+    write_hyperstack(tmp_path / "s.tif", _data((3, 5, 5), rng), SPACING, axes="ZYX")
+    _, info = read_stack(tmp_path / "s.tif", spacing=[1, 2, 3])
+    assert info.spacing == (1.0, 2.0, 3.0)
+    for bad in ([1, 2], [1, 0, 1], [1, -2, 1], ["a", 1, 1], [1, float("nan"), 1]):
+        with pytest.raises(NemoError, match="spacing"):
+            read_stack(tmp_path / "s.tif", spacing=bad)
+
+
+def test_missing_dz_falls_back_to_dx(tmp_path, rng):
+    tifffile.imwrite(tmp_path / "nodz.tif", _data((3, 5, 5), rng), imagej=True, resolution=(2.0, 2.0),
+                     metadata={"axes": "ZYX", "unit": "micron"})
+    info = read_info(tmp_path / "nodz.tif")
+    assert info.spacing == pytest.approx((0.5, 0.5, 0.5))
+
+
+# ----------------------------------------------------------------------------- errors
+def test_errors_name_the_problem(tmp_path, rng):
+    with pytest.raises(NemoError, match="not found"):
+        read_info(tmp_path / "missing.tif")
+    with pytest.raises(NemoError, match="folder"):
+        read_info(tmp_path)
+    (tmp_path / "notes.tif").write_text("this is not an image\n")
+    with pytest.raises(NemoError, match="not a readable TIFF"):
+        read_stack(tmp_path / "notes.tif")
+    tifffile.imwrite(tmp_path / "flat.tif", _data((6, 7), rng))
+    with pytest.raises(NemoError, match="2-D"):
+        read_stack(tmp_path / "flat.tif")
+    write_hyperstack(tmp_path / "h.tif", _data((2, 3, 2, 4, 4), rng), SPACING)
+    with pytest.raises(NemoError, match=r"t = 2 is out of range.*2 time points"):
+        read_stack(tmp_path / "h.tif", t=2)
+    with pytest.raises(NemoError, match=r"c = -1 is out of range.*2 channels"):
+        read_stack(tmp_path / "h.tif", c=-1)
+    with pytest.raises(NemoError, match="ImageJ hyperstacks need axes"):
+        write_hyperstack(tmp_path / "bad.tif", _data((2, 3, 4, 4), rng), SPACING, axes="CZYX")
