@@ -1,0 +1,169 @@
+"""The mesh container: PLY/OBJ round trips, foreign files, corrupt files (nemo.mesh)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from nemo.errors import NemoError
+from nemo.mesh import check_mesh, load_mesh, make_mesh, mean_edge_length, save_mesh, signed_volume
+
+
+def _sphere(radius=50.0, centre=(120.0, 80.0, 60.0), subdivisions=3):
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(ico.vertices) + np.asarray(centre), np.asarray(ico.faces)
+
+
+def test_make_mesh_orients_inverted_sphere_outward():
+    v, f = _sphere()
+    mesh = make_mesh(v, f[:, ::-1])  # inward winding given
+    assert signed_volume(mesh.vertices, mesh.faces) > 0
+    outward = np.einsum("ij,ij->i", mesh.vertex_normals, mesh.vertices - v.mean(axis=0))
+    assert (outward > 0).all()
+    assert mesh.units == "um"
+
+
+def test_ply_round_trip_keeps_vertices_faces_units_fields(tmp_path, rng):
+    v, f = _sphere()
+    h = rng.normal(size=len(v))
+    mesh = make_mesh(v, f, unit="nm", fields={"H": h, "thickness": np.full(len(v), np.nan)})
+    save_mesh(mesh, tmp_path / "m.ply")
+    back = load_mesh(tmp_path / "m.ply")
+    np.testing.assert_allclose(back.vertices, v, rtol=1e-6)  # float32 storage
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    assert back.units == "nm"
+    np.testing.assert_allclose(back.vertex_attributes["H"], h, rtol=1e-6)
+    assert np.isnan(back.vertex_attributes["thickness"]).all()
+    # orientation survives: same face normals
+    np.testing.assert_allclose(back.face_normals, mesh.face_normals, atol=1e-5)
+    assert not list(tmp_path.glob(".*tmp*"))  # atomic write left no temporary file
+
+
+def test_obj_round_trip(tmp_path):
+    v, f = _sphere()
+    save_mesh(make_mesh(v, f), tmp_path / "m.obj")
+    back = load_mesh(tmp_path / "m.obj")
+    np.testing.assert_allclose(back.vertices, v, rtol=1e-6)
+    np.testing.assert_array_equal(back.faces, f)
+    assert back.units == "um"
+    assert load_mesh(tmp_path / "m.obj", unit="mm").units == "mm"
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary"])
+def test_foreign_ply_without_nemo_comment(tmp_path, encoding):
+    """A PLY written by another program (trimesh itself, as MeshLab would) reads back, unit µm."""
+    v, f = _sphere(radius=20.0)
+    (tmp_path / "ext.ply").write_bytes(trimesh.Trimesh(v, f, process=False).export(file_type="ply", encoding=encoding))
+    back = load_mesh(tmp_path / "ext.ply")
+    np.testing.assert_allclose(back.vertices, v, rtol=1e-6)
+    np.testing.assert_array_equal(back.faces, f)
+    assert back.units == "um"
+    assert dict(back.vertex_attributes) == {}
+
+
+def _meshlab_ply(tmp_path):
+    """MeshLab-style ASCII PLY with per-vertex normals, colours and a 'quality' field."""
+    v, f = _sphere(radius=10.0, subdivisions=1)
+    n = v - v.mean(axis=0)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    lines = ["ply", "format ascii 1.0", "comment VCGLIB generated", f"element vertex {len(v)}",
+             "property float x", "property float y", "property float z",
+             "property float nx", "property float ny", "property float nz",
+             "property uchar red", "property uchar green", "property uchar blue", "property float quality",
+             f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
+    lines += [" ".join(f"{x:.6f}" for x in (*p, *q)) + f" 10 20 30 {i:.1f}" for i, (p, q) in enumerate(zip(v, n))]
+    lines += [f"3 {a} {b} {c}" for a, b, c in f]
+    (tmp_path / "meshlab.ply").write_text("\n".join(lines) + "\n")
+    return tmp_path / "meshlab.ply", v, f
+
+
+def test_foreign_ply_with_normals_and_colours(tmp_path):
+    """Normals and colours are not mistaken for fields."""
+    path, v, f = _meshlab_ply(tmp_path)
+    back = load_mesh(path)
+    np.testing.assert_allclose(back.vertices, v, atol=1e-6)
+    np.testing.assert_array_equal(back.faces, f)
+    assert not {"nx", "ny", "nz", "red", "green", "blue"} & set(back.vertex_attributes)
+
+
+@pytest.mark.xfail(strict=True, reason="nemo.mesh._load_ply ignores ASCII PLY vertex properties "
+                   "(trimesh gives them as a dict, not a structured array); fix requested from the lead")
+def test_foreign_ascii_ply_keeps_extra_vertex_fields(tmp_path):
+    path, v, _ = _meshlab_ply(tmp_path)
+    back = load_mesh(path)
+    assert set(back.vertex_attributes) == {"quality"}
+    np.testing.assert_allclose(back.vertex_attributes["quality"], np.arange(len(v)))
+
+
+def test_foreign_obj(tmp_path):
+    text = "# cube corner\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    (tmp_path / "tet.obj").write_text(text)
+    back = load_mesh(tmp_path / "tet.obj")
+    assert back.vertices.shape == (4, 3) and back.faces.shape == (4, 3)
+    assert abs(signed_volume(back.vertices, back.faces)) == pytest.approx(1 / 6)
+
+
+def test_corrupt_and_wrong_files(tmp_path):
+    v, f = _sphere()
+    save_mesh(make_mesh(v, f), tmp_path / "good.ply")
+    raw = (tmp_path / "good.ply").read_bytes()
+    (tmp_path / "truncated.ply").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(NemoError, match="corrupt|truncated"):
+        load_mesh(tmp_path / "truncated.ply")
+    (tmp_path / "noheader.ply").write_bytes(b"hello world\n" + raw[100:])
+    with pytest.raises(NemoError, match="not a PLY"):
+        load_mesh(tmp_path / "noheader.ply")
+    (tmp_path / "garbage.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999\n"
+                                           b"property float x\nend_header\n\x00\x01")
+    with pytest.raises(NemoError):
+        load_mesh(tmp_path / "garbage.ply")
+    points = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    (tmp_path / "cloud.ply").write_text(points)
+    with pytest.raises(NemoError, match="no triangles"):
+        load_mesh(tmp_path / "cloud.ply")
+    with pytest.raises(NemoError, match="not found"):
+        load_mesh(tmp_path / "missing.ply")
+    (tmp_path / "m.stl").write_text("solid x\nendsolid x\n")
+    with pytest.raises(NemoError, match=r"\.ply and \.obj"):
+        load_mesh(tmp_path / "m.stl")
+    with pytest.raises(NemoError, match=r"\.ply or \.obj"):
+        save_mesh(make_mesh(v, f), tmp_path / "m.stl")
+
+
+def test_check_mesh_rejects_nan_and_bad_indices():
+    v, f = _sphere(subdivisions=1)
+    bad = trimesh.Trimesh(np.where(np.arange(len(v))[:, None] == 3, np.nan, v), f, process=False)
+    with pytest.raises(NemoError, match="NaN"):
+        check_mesh(bad)
+    with pytest.raises(NemoError, match="only"):
+        check_mesh(trimesh.Trimesh(v[:3], f[:1], process=False))
+
+
+def test_mean_edge_length_of_a_regular_mesh():
+    # a flat grid of unit squares split into triangles: edges 1 (x2 per cell) and sqrt(2) (x1)
+    n = 30
+    x, y = np.meshgrid(np.arange(n + 1.0), np.arange(n + 1.0))
+    verts = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+    mesh = make_mesh(verts, faces, orient_outward=False)
+    n_unit = 2 * n * (n + 1)
+    expected = (n_unit + n * n * np.sqrt(2)) / (n_unit + n * n)
+    assert mean_edge_length(mesh) == pytest.approx(expected)
+
+
+def test_split_inner_surface_survives_a_ply_round_trip(tmp_path):
+    """The inner wall from a shell keeps outward (away from centre) normals on disk."""
+    from nemo.surface import reconstruct, split_mesh
+
+    z, y, x = np.ogrid[:40, :40, :40]
+    r = np.sqrt((x - 20.0) ** 2 + (y - 19.5) ** 2 + (z - 20.5) ** 2)
+    vol = ((r > 10) & (r < 15)).astype(np.float32) * 100
+    inner, _ = split_mesh(reconstruct(vol, (1, 1, 1), sigma=1.0, step=2, keep="all"), keep="largest")
+    save_mesh(inner, tmp_path / "inner.ply")
+    back = load_mesh(tmp_path / "inner.ply")
+    outward = np.einsum("ij,ij->i", back.vertex_normals, back.vertices - [20.0, 19.5, 20.5])
+    assert (outward > 0).all()
+    assert signed_volume(back.vertices, back.faces) > 0
