@@ -339,3 +339,35 @@ def test_cli_mesh_split_axis_needs_axis(tmp_path, run_cli):
     write_hyperstack(tmp_path / "b.tif", vol.astype(np.uint8), (1, 1, 1), axes="ZYX")
     code, _, err = run_cli("mesh", tmp_path / "b.tif", "-o", tmp_path / "b.ply", "--split", "axis")
     assert code == 2 and "--axis" in err and "Traceback" not in err
+
+
+# ----------------------------------------------------------------------------- synthetic vesicle
+@pytest.mark.parametrize("spacing,step", [((1.0, 1.0, 1.0), 2), ((1.0, 1.0, 1.0), 1), ((2.0, 1.0, 1.0), 1)],
+                         ids=["iso-step2", "iso-step1", "dz=2dx-step1"])
+def test_synthetic_vesicle_inner_surface_radius(spacing, step):
+    """nemo.synthetic's vesicle (fibres + shell background, inner edge exactly at R)."""
+    from nemo.synthetic import vesicle
+
+    data, truth = vesicle(radius=40.0, spacing=spacing, seed=1)
+    R, centre = truth["radius"], np.asarray(truth["centre"])
+    inner, outer = split_mesh(reconstruct(data[0, :, 0], spacing, step=step, keep="all"), keep="largest")
+    c, r = fit_sphere(inner)
+    dx = spacing[2]
+    assert abs(r - R) < 0.5 * dx
+    np.testing.assert_allclose(c, centre, atol=0.1 * dx)
+    dr = _radii(inner, centre) - R
+    assert abs(np.median(dr)) < 0.5 * dx
+    assert np.percentile(np.abs(dr), 99) < 1.0 * dx  # fibres just outside pull a few spots inward
+    assert (_outward(inner, centre) > 0).all()
+    assert inner.is_watertight
+
+
+def test_cli_mesh_on_written_vesicle(tmp_path, run_cli):
+    from nemo.synthetic import write_vesicle
+
+    truth = write_vesicle(tmp_path / "v.tif", radius=40.0, seed=2)
+    code, out, err = run_cli("mesh", tmp_path / "v.tif", "-o", tmp_path / "v.ply", "--split", "centre", "--fit-sphere")
+    assert code == 0, err
+    sphere = json.loads((tmp_path / "v.sphere.json").read_text())["inner"]
+    assert abs(sphere["radius"] - truth["radius"]) < 0.5
+    np.testing.assert_allclose(sphere["centre"], truth["centre"], atol=0.1)
