@@ -1,0 +1,739 @@
+"""Morphology of a surface: curvature, inter-surface thickness, area, volume, topology.
+
+Method note §3, paper methods "Morphological analysis".
+
+* :func:`curvature` -- mean and Gaussian curvature (and principal curvatures/directions) from a
+  least-squares quadric fitted to the neighbours within a physical radius of a random subset of
+  vertices, inverse-distance interpolated to every vertex (paper eq. ``mesh-interpolation``).
+* :func:`thickness` -- distance along the vertex normal from one surface to another, by ray
+  casting (Embree through trimesh when available); NaN where the ray finds nothing.
+* :func:`measure` -- area, enclosed volume, Euler characteristic, genus, components, discrete
+  ∫K dA with its Gauss–Bonnet check, area-weighted mean curvature.
+* :func:`vertex_areas` -- barycentric vertex areas (they sum to the mesh area).
+
+Sign conventions: vertex normals point outward, and a sphere of radius R has H = +1/R,
+K = +1/R². Thickness is the signed distance d = (V* − V)·N of the paper: positive when the other
+surface lies on the outer side (+N), negative when it lies inside.
+
+Choice of the fitted surface
+----------------------------
+The paper fits z ≈ aξ² + bη² + cξη in the frame of the vertex normal (``fit="quadric"``). Any
+error of that normal tilts the patch and leaks into a, b, c; the vertex itself may also sit a
+little off the surface (marching cubes, noise). The default ``fit="full"`` adds linear and
+constant terms, z ≈ aξ² + bη² + cξη + dξ + eη + f, and evaluates the curvature of that graph
+exactly (first fundamental form g = I + ∇h∇hᵀ, second form −∇²h/√(1+|∇h|²)), which makes the
+result independent of normal errors to first order. On marching-cubes meshes of ellipsoids the
+median relative error of H and K is several times smaller with ``"full"`` (see
+``tests/test_morphology.py::test_fit_variants_documented``).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from nemo._log import logger, step
+from nemo.errors import NemoError, NemoWarning
+from nemo.mesh import check_mesh, mean_edge_length, signed_volume
+
+#: Fewest neighbours (besides the vertex itself) a quadric fit accepts.
+MIN_NEIGHBOURS = 6
+#: Default number of sampled vertices is at least this many (or all vertices if fewer).
+MIN_DEFAULT_SAMPLES = 20_000
+#: The quartic fit needs at least this many neighbours, else that sample uses the quadratic fit.
+QUARTIC_MIN_NEIGHBOURS = 30
+#: ``fit="auto"`` picks the quartic fit when the median sample has at least this many neighbours.
+AUTO_QUARTIC_NEIGHBOURS = 100
+#: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
+_PAIRS_PER_CHUNK = 200_000
+
+FitKind = Literal["auto", "quadric", "quadratic", "quartic"]
+
+
+# --------------------------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _as_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v / n
+
+
+def _normals(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Unit outward vertex normals, shape (N, 3).
+
+    A vertex whose faces all have zero area (marching cubes duplicates a vertex wherever the
+    level equals a voxel value) takes the normal of a coincident twin; vertices on no face, or
+    without a usable twin, get NaN.
+    """
+    normals = np.array(mesh.vertex_normals, dtype=np.float64)
+    bad = ~np.isfinite(normals).all(axis=1) | (np.abs(normals).sum(axis=1) == 0)
+    if bad.any():
+        normals[bad] = np.nan
+        good = np.flatnonzero(~bad)
+        if len(good):
+            vertices = np.asarray(mesh.vertices, dtype=np.float64)
+            dist, idx = cKDTree(vertices[good]).query(vertices[bad])
+            twin = dist <= 1e-6 * max(float(np.linalg.norm(np.ptp(vertices, axis=0))), 1e-300)
+            normals[np.flatnonzero(bad)[twin]] = normals[good[idx[twin]]]
+    return normals
+
+
+def tangent_basis(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An orthonormal tangent basis (t1, t2) with t1 × t2 = N for every normal.
+
+    Parameters
+    ----------
+    normals : ndarray, shape (N, 3)
+        Unit normals.
+
+    Returns
+    -------
+    t1, t2 : ndarray, shape (N, 3)
+        t1 = N × x̂ normalised (N × ŷ where N is nearly parallel to x̂), t2 = N × t1.
+    """
+    ref = np.zeros_like(normals)
+    near_x = np.abs(normals[:, 0]) > 0.9
+    ref[~near_x, 0] = 1.0
+    ref[near_x, 1] = 1.0
+    t1 = _unit(np.cross(normals, ref))
+    t2 = np.cross(normals, t1)
+    return t1, t2
+
+
+def vertex_areas(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Barycentric vertex areas: a third of the area of every incident face.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Areas in unit² (they sum to ``mesh.area``); 0 for vertices on no face.
+    """
+    faces = np.asarray(mesh.faces)
+    third = np.repeat(np.asarray(mesh.area_faces, dtype=np.float64) / 3.0, 3)
+    return np.bincount(faces.ravel(), weights=third, minlength=len(mesh.vertices))
+
+
+def _unit_name(mesh: trimesh.Trimesh) -> str:
+    return getattr(mesh, "units", None) or "um"
+
+
+def _pretty_unit(unit: str) -> str:
+    return "µm" if unit in ("um", "µm", "micron") else unit
+
+
+# --------------------------------------------------------------------------------------------
+# curvature
+# --------------------------------------------------------------------------------------------
+
+
+def default_n_samples(n_vertices: int, area: float, radius: float) -> int:
+    """Default number of sampled vertices for :func:`curvature`.
+
+    About eight samples per fitting disc (π r²), so the samples are ~0.6 r apart and the
+    k-nearest interpolation blurs no more than the fit itself; at least
+    :data:`MIN_DEFAULT_SAMPLES`, at most every vertex.
+    """
+    per_disc = math.ceil(8.0 * area / (math.pi * radius**2))
+    return int(min(n_vertices, max(MIN_DEFAULT_SAMPLES, per_disc)))
+
+
+def _neighbour_pairs(
+    tree: cKDTree, points: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """All (i, j) with |points[i] − tree.data[j]| ≤ radius, as flat index arrays."""
+    lists = tree.query_ball_point(points, radius, return_sorted=False)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    if counts.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    j = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
+    i = np.repeat(np.arange(len(points), dtype=np.int64), counts)
+    return i, j
+
+
+def _monomials(fit: str) -> list[tuple[int, int]]:
+    """Exponents (p, q) of the terms ξ^p η^q fitted for ``fit``; the first five are always
+    ξ², η², ξη and (except "quadric") ξ, η."""
+    if fit == "quadric":
+        return [(2, 0), (0, 2), (1, 1)]
+    terms = [(2, 0), (0, 2), (1, 1), (1, 0), (0, 1), (0, 0)]
+    if fit == "quartic":
+        terms += [(3 - q, q) for q in range(4)] + [(4 - q, q) for q in range(5)]
+    return terms
+
+
+def _moments(starts: np.ndarray, u: np.ndarray, v: np.ndarray, w: np.ndarray, deg: int):
+    """Per-centre sums Σ u^a v^b (a + b ≤ 2 deg) and Σ w u^a v^b (a + b ≤ deg).
+
+    The pairs are sorted by centre and ``starts`` are the first pair of each centre (every
+    centre has at least itself as a pair), so one ``np.add.reduceat`` over a contiguous
+    (n_moments, n_pairs) array sums all of them at once.
+
+    Returns
+    -------
+    mom : dict[(a, b), int], rhs : dict[(a, b), int], sums : ndarray (n_moments, n_centres)
+    """
+    pu = [np.ones_like(u)]
+    pv = [np.ones_like(v)]
+    for _ in range(2 * deg):
+        pu.append(pu[-1] * u)
+        pv.append(pv[-1] * v)
+    keys = [(a, t - a) for t in range(2 * deg + 1) for a in range(t + 1)]
+    rkeys = [(a, t - a) for t in range(deg + 1) for a in range(t + 1)]
+    rows = np.empty((len(keys) + len(rkeys), len(u)))
+    for k, (a, b) in enumerate(keys):
+        np.multiply(pu[a], pv[b], out=rows[k])
+    for k, (a, b) in enumerate(rkeys):
+        np.multiply(rows[keys.index((a, b))], w, out=rows[len(keys) + k])
+    sums = np.add.reduceat(rows, starts, axis=1)
+    mom = {key: k for k, key in enumerate(keys)}
+    rhs = {key: len(keys) + k for k, key in enumerate(rkeys)}
+    return mom, rhs, sums
+
+
+def _solve_from_moments(mom: dict, rhs: dict, sums: np.ndarray, fit: str) -> np.ndarray:
+    """Batched least squares for the terms of ``fit`` from precomputed moments, (n, P)."""
+    mons = _monomials(fit)
+    p = len(mons)
+    idx = np.array([[mom[(a1 + a2, b1 + b2)] for (a2, b2) in mons] for (a1, b1) in mons])
+    m = sums[idx].transpose(2, 0, 1)  # (n, P, P)
+    b = sums[[rhs[key] for key in mons]].T  # (n, P)
+    # a vanishing ridge keeps exactly singular systems from aborting the batched solve;
+    # degenerate neighbourhoods are rejected by the caller from their spread
+    m = m + (1e-12 * np.trace(m, axis1=1, axis2=2) / p)[:, None, None] * np.eye(p)
+    return np.linalg.solve(m, b[..., None])[..., 0]
+
+
+def _fit_chunk(
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    tree: cKDTree,
+    centres: np.ndarray,
+    radius: float,
+    fit: str,
+) -> tuple[np.ndarray, ...]:
+    """Fit the local surface at the vertices ``centres`` (vectorised over all of them).
+
+    Returns H, K, k1, k2 (n,), d1, d2 (n, 3) and the neighbour counts (n,).
+    """
+    n = len(centres)
+    p0 = vertices[centres]
+    n0 = normals[centres]
+    t1, t2 = tangent_basis(n0)
+    i, j = _neighbour_pairs(tree, p0, radius)
+    # Euclidean balls can reach across a thin structure: keep neighbours on the same side
+    keep = np.einsum("ij,ij->i", normals[j], n0[i]) > 0.0
+    i, j = i[keep], j[keep]
+    d = (vertices[j] - p0[i]) / radius  # coordinates scaled by r: well-conditioned systems
+    u = np.einsum("ij,ij->i", d, t1[i])
+    v = np.einsum("ij,ij->i", d, t2[i])
+    w = np.einsum("ij,ij->i", d, n0[i])
+    counts = np.bincount(i, minlength=n)  # ≥ 1: every centre is its own neighbour
+    count = counts - 1  # neighbours besides the vertex itself
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    mom, rhs, sums = _moments(starts, u, v, w, 4 if fit == "quartic" else 2)
+    coef = _solve_from_moments(mom, rhs, sums, fit)
+    if fit == "quartic":
+        # too few neighbours for 15 terms (e.g. at a boundary): that centre gets the quadratic fit
+        weak = count < QUARTIC_MIN_NEIGHBOURS
+        if weak.any():
+            coef[weak, :6] = _solve_from_moments(mom, rhs, sums[:, weak], "quadratic")
+    # neighbours (nearly) on a line cannot fix a surface: smallest/largest spread of (ξ, η)
+    c0 = counts.astype(np.float64)
+    su, sv = sums[mom[(1, 0)]] / c0, sums[mom[(0, 1)]] / c0
+    cuu = sums[mom[(2, 0)]] / c0 - su * su
+    cvv = sums[mom[(0, 2)]] / c0 - sv * sv
+    cuv = sums[mom[(1, 1)]] / c0 - su * sv
+    half_tr = 0.5 * (cuu + cvv)
+    root = np.sqrt(np.maximum(half_tr**2 - (cuu * cvv - cuv**2), 0.0))
+    degenerate = (half_tr - root) <= 1e-3 * (half_tr + root)
+    coef[degenerate | ~np.isfinite(coef).all(axis=1)] = np.nan
+    coef[count < MIN_NEIGHBOURS] = np.nan
+    # back to physical units: z = r w, ξ = r u  =>  a = A / r, d = D
+    a, b, c = coef[:, 0] / radius, coef[:, 1] / radius, coef[:, 2] / radius
+    if fit == "quadric":
+        gx = gy = np.zeros(n)
+    else:
+        gx, gy = coef[:, 3], coef[:, 4]
+    # graph z = h(ξ, η) at the origin: ∇h = (gx, gy), ∇²h = [[2a, c], [c, 2b]]
+    g11, g12, g22 = 1.0 + gx * gx, gx * gy, 1.0 + gy * gy
+    det_g = g11 * g22 - g12 * g12
+    wn = np.sqrt(det_g)  # = sqrt(1 + |∇h|²)
+    c11, c12, c22 = -2.0 * a / wn, -c / wn, -2.0 * b / wn  # curvature tensor, outward normal
+    K = (c11 * c22 - c12 * c12) / det_g
+    H = 0.5 * (g22 * c11 - 2.0 * g12 * c12 + g11 * c22) / det_g  # tr(g⁻¹ C) / 2
+    disc = np.sqrt(np.maximum(H * H - K, 0.0))
+    k1, k2 = H + disc, H - disc
+    # principal direction of k1: (C − k1 g) x = 0 in (ξ, η); take the better-conditioned row
+    r1 = np.stack([-(c12 - k1 * g12), c11 - k1 * g11], axis=1)
+    r2 = np.stack([c22 - k1 * g22, -(c12 - k1 * g12)], axis=1)
+    x = np.where((np.abs(r1).sum(1) >= np.abs(r2).sum(1))[:, None], r1, r2)
+    umbilic = ~(np.abs(x).sum(1) > 1e-12 * np.abs(k1))
+    x[umbilic] = (1.0, 0.0)
+    e1 = t1 + gx[:, None] * n0  # tangent vectors of the fitted graph
+    e2 = t2 + gy[:, None] * n0
+    dir1 = _unit(x[:, :1] * e1 + x[:, 1:] * e2)
+    nrm = _unit(np.cross(e1, e2))
+    dir2 = np.cross(nrm, dir1)
+    return H, K, k1, k2, dir1, dir2, count
+
+
+def curvature(
+    mesh: trimesh.Trimesh,
+    radius: float,
+    n_samples: int | None = None,
+    fraction: float | None = None,
+    k_interp: int = 8,
+    rng: np.random.Generator | int | None = None,
+    fit: FitKind = "auto",
+) -> pd.DataFrame:
+    """Mean and Gaussian curvature at every vertex from local quadric fits.
+
+    At each sampled vertex V0 (normal N0, tangent basis t1, t2) the neighbours within
+    ``radius`` on the same side of the surface (N·N0 > 0) give ξ = (V−V0)·t1, η = (V−V0)·t2,
+    z = (V−V0)·N0, and a least-squares fit of z(ξ, η) (see the module docstring for ``fit``)
+    gives the curvature tensor C (C = [[−2a, −c], [−c, −2b]] for the paper's fit),
+    H = tr(g⁻¹C)/2, K = det C / det g. The samples' values are then interpolated to every
+    vertex by inverse-distance weights over the ``k_interp`` nearest samples whose normal
+    agrees (paper eq. mesh-interpolation); a sampled vertex keeps its own value.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Surface with outward normals, vertices in physical units.
+    radius : float
+        Fitting radius in the mesh's unit (µm). A few mesh edge lengths at least, and well
+        below the smallest radius of curvature of interest.
+    n_samples : int, optional
+        Number of randomly sampled vertices where the fit is done. Default: every vertex of
+        small meshes, else about eight per fitting disc (:func:`default_n_samples`).
+    fraction : float, optional
+        Alternatively, the fraction of vertices to sample, in (0, 1].
+    k_interp : int
+        Number of nearest samples used for the inverse-distance interpolation.
+    rng : numpy.random.Generator or int, optional
+        Randomness of the sample (seed for reproducibility).
+    fit : {"full", "quadric"}
+        ``"full"`` (default): quadric + linear + constant terms, robust to normal errors;
+        ``"quadric"``: the paper's z ≈ aξ² + bη² + cξη.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per vertex: ``vertex``, ``H`` (1/unit), ``K`` (1/unit²), ``k1 ≥ k2``, the
+        principal directions ``d1x, d1y, d1z`` (of k1) and ``d2x, d2y, d2z`` (unit tangent
+        vectors taken from the nearest sample, projected onto the vertex's tangent plane),
+        and ``sampled`` (True where the fit was done at that vertex). NaN where the fit had
+        fewer than :data:`MIN_NEIGHBOURS` neighbours (with a :class:`NemoWarning`).
+
+    Raises
+    ------
+    NemoError
+        Radius not positive, both ``n_samples`` and ``fraction``, out-of-range values.
+    """
+    check_mesh(mesh)
+    radius = float(radius)
+    if not (math.isfinite(radius) and radius > 0):
+        raise NemoError(f"curvature radius must be a positive length in µm, got {radius}")
+    if n_samples is not None and fraction is not None:
+        raise NemoError("give either the number of samples or the fraction of vertices, not both")
+    if fit not in ("auto", "quadric", "quadratic", "quartic"):
+        raise NemoError(f"unknown curvature fit {fit!r}: use auto, quadric, quadratic or quartic")
+    k_interp = int(k_interp)
+    if k_interp < 1:
+        raise NemoError(f"k_interp must be at least 1, got {k_interp}")
+    rng = _as_rng(rng)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    n_vert = len(vertices)
+    if fraction is not None:
+        if not (0 < fraction <= 1):
+            raise NemoError(f"sample fraction must be in (0, 1], got {fraction}")
+        n = max(1, int(round(fraction * n_vert)))
+    elif n_samples is not None:
+        if int(n_samples) < 1:
+            raise NemoError(f"number of samples must be at least 1, got {n_samples}")
+        n = min(int(n_samples), n_vert)
+    else:
+        n = default_n_samples(n_vert, float(mesh.area), radius)
+    normals = _normals(mesh)
+    usable = np.flatnonzero(np.isfinite(normals[:, 0]))
+    n = min(n, len(usable))
+    samples = np.sort(usable if n == len(usable) else rng.choice(usable, n, replace=False))
+
+    tree = cKDTree(vertices)
+    # chunk the samples so that the (sample, neighbour) pairs stay within memory bounds
+    probe = samples[rng.choice(len(samples), min(len(samples), 256), replace=False)]
+    probe_counts = tree.query_ball_point(vertices[probe], radius, return_length=True)
+    per_sample = max(1.0, float(np.mean(probe_counts)))
+    chunk = max(1, int(_PAIRS_PER_CHUNK // per_sample))
+    if fit == "auto":
+        fit = "quartic" if np.median(probe_counts) - 1 >= AUTO_QUARTIC_NEIGHBOURS else "quadratic"
+    unit = _pretty_unit(_unit_name(mesh))
+    out = {k: np.empty(n) for k in ("H", "K", "k1", "k2", "count")}
+    d1 = np.empty((n, 3))
+    d2 = np.empty((n, 3))
+    with step(f"curvature: {fit} fits at {n} of {n_vert} vertices (radius {radius:g} {unit}, "
+              f"~{per_sample:.0f} neighbours each)"):
+        for s in range(0, n, chunk):
+            sl = slice(s, s + chunk)
+            H, K, k1, k2, a1, a2, cnt = _fit_chunk(vertices, normals, tree, samples[sl], radius, fit)
+            out["H"][sl], out["K"][sl], out["k1"][sl], out["k2"][sl], out["count"][sl] = H, K, k1, k2, cnt
+            d1[sl], d2[sl] = a1, a2
+
+    few = out["count"] < MIN_NEIGHBOURS
+    if few.any():
+        edge = mean_edge_length(mesh)
+        warnings.warn(
+            f"curvature radius {radius:g} {unit} is too small for {int(few.sum())} of {n} sampled "
+            f"vertices (fewer than {MIN_NEIGHBOURS} neighbours within it): their H and K are NaN; "
+            f"use a larger radius (the mean edge length is {edge:.3g} {unit}, try at least "
+            f"{3 * edge:.2g} {unit})",
+            NemoWarning,
+            stacklevel=2,
+        )
+    bad_fit = ~few & ~np.isfinite(out["H"])
+    if bad_fit.any():
+        warnings.warn(
+            f"curvature: the fit was degenerate (neighbours nearly collinear) at {int(bad_fit.sum())} "
+            f"sampled vertices; their H and K are NaN",
+            NemoWarning,
+            stacklevel=2,
+        )
+
+    with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
+        H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
+    disc = np.sqrt(np.maximum(H * H - K, 0.0))
+    # direction from the nearest sample, projected onto the vertex's tangent plane
+    nearest = idx[:, 0]
+    dir1 = d1[nearest]
+    dir1 = _unit(dir1 - np.einsum("ij,ij->i", dir1, normals)[:, None] * normals)
+    dir2 = np.cross(normals, dir1)
+    sampled = np.zeros(n_vert, dtype=bool)
+    sampled[samples] = True
+    df = pd.DataFrame(
+        {
+            "vertex": np.arange(n_vert, dtype=np.int64),
+            "H": H,
+            "K": K,
+            "k1": H + disc,
+            "k2": H - disc,
+            "d1x": dir1[:, 0], "d1y": dir1[:, 1], "d1z": dir1[:, 2],
+            "d2x": dir2[:, 0], "d2y": dir2[:, 1], "d2z": dir2[:, 2],
+            "sampled": sampled,
+        }
+    )
+    # sampled vertices keep their own fitted principal values/directions
+    df.loc[samples, "k1"] = out["k1"]
+    df.loc[samples, "k2"] = out["k2"]
+    df.loc[samples, ["d1x", "d1y", "d1z"]] = d1
+    df.loc[samples, ["d2x", "d2y", "d2z"]] = d2
+    return df
+
+
+def _idw(
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    samples: np.ndarray,
+    values: np.ndarray,
+    k: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse-distance weighted interpolation of sample values to every vertex.
+
+    Samples whose normal points away from the vertex's (other side of a thin structure) and
+    samples with NaN values get zero weight; no usable sample among the k nearest -> NaN.
+    A vertex that is itself a sample keeps its own value (even NaN).
+
+    Returns
+    -------
+    H, K : ndarray, shape (N,)
+        Interpolated columns 0 and 1 of ``values``.
+    idx : ndarray, shape (N, k)
+        Indices (into ``samples``) of the k nearest samples, nearest first.
+    """
+    k = min(k, len(samples))
+    tree = cKDTree(vertices[samples])
+    dist, idx = tree.query(vertices, k=k, workers=2)
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    same_side = np.einsum("ij,ikj->ik", np.nan_to_num(normals), np.nan_to_num(normals[samples][idx])) > 0
+    vals = values[idx]  # (N, k, 2)
+    finite = np.isfinite(vals).all(axis=2) & same_side
+    with np.errstate(divide="ignore"):
+        w = np.where(finite, 1.0 / dist, 0.0)
+    wsum = w.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        res = np.einsum("nk,nkc->nc", w, np.nan_to_num(vals)) / wsum[:, None]
+    res[wsum == 0] = np.nan
+    exact = dist[:, 0] == 0  # the vertex is a sample (or coincides with one)
+    res[exact] = vals[exact, 0]
+    # exact hits of other (coinciding) samples give inf weights: already covered by `exact`
+    return res[:, 0], res[:, 1], idx
+
+
+# --------------------------------------------------------------------------------------------
+# thickness
+# --------------------------------------------------------------------------------------------
+
+
+def _ray_distance(
+    target: trimesh.Trimesh,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    eps: float,
+    back_off: bool,
+) -> np.ndarray:
+    """Distance t ≥ 0 along unit ``directions`` to the first face of ``target`` (NaN: miss).
+
+    ``back_off``: start the rays ``eps`` behind the origin so that a surface through the origin
+    (touching surfaces) is found at t = 0 rather than missed; otherwise start ``eps`` ahead
+    (the target is the origin's own mesh and its own faces must be skipped).
+    """
+    start = origins - eps * directions if back_off else origins + eps * directions
+    tri = np.asarray(target.ray.intersects_first(start, directions), dtype=np.int64)
+    miss = np.flatnonzero(tri < 0)
+    if len(miss):
+        # rays through an edge or vertex can slip between triangles: retry once, nudged sideways
+        t1, _ = tangent_basis(directions[miss])
+        retry = np.asarray(target.ray.intersects_first(start[miss] + 10 * eps * t1, directions[miss]), dtype=np.int64)
+        tri[miss] = retry
+    hit = tri >= 0
+    t = np.full(len(origins), np.nan)
+    if hit.any():
+        # exact float64 distance to the hit face's plane (Embree works in float32)
+        fn = np.asarray(target.face_normals)[tri[hit]]
+        p0 = np.asarray(target.vertices)[np.asarray(target.faces)[tri[hit], 0]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            th = np.einsum("ij,ij->i", p0 - origins[hit], fn) / np.einsum("ij,ij->i", directions[hit], fn)
+        th[~np.isfinite(th)] = np.nan
+        t[hit] = np.maximum(th, 0.0)  # tiny negatives: the surface passes through the origin
+    return t
+
+
+def thickness(
+    mesh_from: trimesh.Trimesh,
+    mesh_to: trimesh.Trimesh,
+    direction: Literal["outward", "inward", "nearest"] = "outward",
+    max_distance: float | None = None,
+) -> np.ndarray:
+    """Distance from every vertex of ``mesh_from`` to ``mesh_to`` along the vertex normal.
+
+    A ray is cast from each vertex V along +N (``"outward"``), −N (``"inward"``) or both
+    (``"nearest"``: the closer hit of the two); the first intersection V* with ``mesh_to``
+    gives the paper's d = (V* − V)·N (eq. inter-mesh-distance).
+
+    Parameters
+    ----------
+    mesh_from : trimesh.Trimesh
+        Surface whose vertices the distances belong to (outward normals).
+    mesh_to : trimesh.Trimesh
+        Surface the rays look for. It may be ``mesh_from`` itself (e.g. the wall thickness of a
+        closed shell mesh): each ray then skips the faces at its own origin.
+    direction : {"outward", "inward", "nearest"}
+    max_distance : float, optional
+        Hits farther than this (in the mesh unit) count as misses.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Signed distance d in the mesh unit: ≥ 0 for outward hits, ≤ 0 for inward hits; NaN
+        where no hit (within ``max_distance``) — never a made-up value.
+
+    Raises
+    ------
+    NemoError
+        Unknown direction, non-positive ``max_distance``, unusable meshes.
+    """
+    check_mesh(mesh_from, "mesh_from")
+    check_mesh(mesh_to, "mesh_to")
+    if direction not in ("outward", "inward", "nearest"):
+        raise NemoError(f"unknown thickness direction {direction!r}: use outward, inward or nearest")
+    if max_distance is not None and not (float(max_distance) > 0):
+        raise NemoError(f"max_distance must be a positive length, got {max_distance}")
+    u_from, u_to = _unit_name(mesh_from), _unit_name(mesh_to)
+    if u_from != u_to:
+        raise NemoError(f"the two meshes are in different units ({u_from} and {u_to}); convert one")
+    vertices = np.asarray(mesh_from.vertices, dtype=np.float64)
+    normals = _normals(mesh_from)
+    valid = np.isfinite(normals[:, 0])
+    same = mesh_to is mesh_from or (
+        mesh_to.vertices.shape == mesh_from.vertices.shape
+        and mesh_to.faces.shape == mesh_from.faces.shape
+        and np.array_equal(mesh_to.faces, mesh_from.faces)
+        and np.array_equal(mesh_to.vertices, mesh_from.vertices)
+    )
+    scale = float(np.linalg.norm(np.ptp(np.vstack([mesh_from.bounds, mesh_to.bounds]), axis=0)))
+    eps = 1e-5 * scale
+    origins, dirs = vertices[valid], normals[valid]
+    d = np.full(len(vertices), np.nan)
+    engine = "Embree" if trimesh.ray.has_embree else "trimesh (slow: install embreex)"
+    with step(f"thickness: casting {len(origins)} rays {direction} ({engine})"):
+        if direction in ("outward", "nearest"):
+            d_out = _ray_distance(mesh_to, origins, dirs, eps, back_off=not same)
+        if direction in ("inward", "nearest"):
+            d_in = -_ray_distance(mesh_to, origins, -dirs, eps, back_off=not same)
+    if direction == "outward":
+        res = d_out
+    elif direction == "inward":
+        res = d_in
+    else:
+        use_in = np.isnan(d_out) | (np.abs(d_in) < d_out)
+        res = np.where(use_in, d_in, d_out)
+    if max_distance is not None:
+        res[np.abs(res) > float(max_distance)] = np.nan
+    d[valid] = res
+    return d
+
+
+# --------------------------------------------------------------------------------------------
+# measure
+# --------------------------------------------------------------------------------------------
+
+
+def _boundary(mesh: trimesh.Trimesh) -> tuple[np.ndarray, int]:
+    """Boundary edges (E_b, 2) and the number of boundary loops."""
+    edges = np.asarray(mesh.edges_sorted)
+    once = trimesh.grouping.group_rows(edges, require_count=1)
+    bedges = edges[once]
+    if len(bedges) == 0:
+        return bedges, 0
+    nodes, inv = np.unique(bedges, return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(nodes), len(nodes)))
+    n_loops, _ = connected_components(graph, directed=False)
+    return bedges, int(n_loops)
+
+
+def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> dict:
+    """Global morphology of a surface.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Surface with outward normals.
+    curvature_df : DataFrame, optional
+        Output of :func:`curvature` on this mesh; adds the fitted ∫K dA, its Gauss–Bonnet ratio
+        and the area-weighted mean of the fitted H and K.
+
+    Returns
+    -------
+    dict
+        ``unit``, ``n_vertices``, ``n_faces``, ``area`` (unit²), ``volume`` (unit³; None for
+        open meshes), ``is_watertight``, ``n_components``, ``n_boundary_loops``,
+        ``euler_characteristic`` χ = V − E + F, ``genus`` (total over components, from
+        χ = Σ 2 − 2g − b), ``integral_K`` (discrete: Σ angle defects of interior vertices),
+        ``boundary_turning`` (Σ (π − angle sum) over boundary vertices = ∫k_g ds),
+        ``gauss_bonnet_ratio`` ((∫K dA + ∫k_g ds) / 2πχ; None when χ = 0), ``mean_H``
+        (area-weighted, from the dihedral angles: ∫H dA = ½ Σ_edges ℓ θ), ``mean_K``, and with
+        ``curvature_df``: ``integral_K_fit``, ``gauss_bonnet_ratio_fit``, ``mean_H_fit``,
+        ``mean_K_fit``; ``notes`` (list of str).
+    """
+    check_mesh(mesh)
+    notes: list[str] = []
+    unit = _unit_name(mesh)
+    n_vertices_in, n_faces_in = len(mesh.vertices), len(mesh.faces)
+    area = float(mesh.area)
+    # topology and angles on a cleaned copy: marching cubes makes coincident vertices and
+    # zero-area faces wherever the level equals a voxel value, and their angles are undefined
+    clean = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
+    clean.merge_vertices()
+    clean.update_faces(clean.nondegenerate_faces())
+    clean.remove_unreferenced_vertices()
+    n_removed = n_faces_in - len(clean.faces)
+    if n_removed:
+        notes.append(f"{n_removed} zero-area faces (coincident vertices) ignored for topology and angles")
+    mesh_t = clean
+    vertices = np.asarray(mesh_t.vertices, dtype=np.float64)
+    faces = np.asarray(mesh_t.faces)
+    watertight = bool(mesh_t.is_watertight)
+    chi = len(vertices) - len(mesh_t.edges_unique) + len(faces)
+    labels = trimesh.graph.connected_component_labels(mesh_t.face_adjacency, len(faces))
+    n_comp = int(labels.max() + 1) if len(labels) else 0
+    bedges, n_loops = _boundary(mesh_t)
+    genus_twice = 2 * n_comp - n_loops - chi
+    genus = genus_twice // 2 if genus_twice >= 0 and genus_twice % 2 == 0 else None
+    if genus is None:
+        notes.append("genus undefined: the mesh is not a manifold orientable surface")
+
+    volume = signed_volume(vertices, faces) if watertight else None
+    if not watertight:
+        notes.append(
+            f"open or non-manifold mesh ({n_loops} boundary loop(s)): no enclosed volume; "
+            "Gauss–Bonnet includes the boundary turning ∫k_g ds"
+        )
+    elif volume < 0:
+        notes.append("negative volume: the faces are wound inward (normals point inside)")
+
+    defects = np.asarray(trimesh.curvature.vertex_defects(mesh_t), dtype=np.float64)
+    boundary = np.zeros(len(vertices), dtype=bool)
+    boundary[bedges.ravel()] = True
+    interior = ~boundary
+    integral_k = float(defects[interior].sum())
+    turning = float((defects[boundary] - np.pi).sum())
+    gb = (integral_k + turning) / (2 * np.pi * chi) if chi != 0 else None
+    if chi == 0:
+        notes.append("χ = 0 (e.g. a torus): Gauss–Bonnet predicts ∫K dA + ∫k_g ds = 0, no ratio")
+
+    # total mean curvature of the polyhedral surface: ½ Σ over interior edges of length × signed
+    # dihedral angle (Steiner formula); convexity is judged against the outward face normals
+    adj_edges = np.asarray(mesh_t.face_adjacency_edges)
+    lengths = np.linalg.norm(vertices[adj_edges[:, 0]] - vertices[adj_edges[:, 1]], axis=1)
+    angles = np.asarray(mesh_t.face_adjacency_angles) * np.where(mesh_t.face_adjacency_convex, 1.0, -1.0)
+    mean_h = float(0.5 * np.sum(lengths * angles) / area) if area > 0 else None
+
+    result: dict = {
+        "unit": unit,
+        "n_vertices": int(n_vertices_in),
+        "n_faces": int(n_faces_in),
+        "area": area,
+        "volume": volume,
+        "is_watertight": watertight,
+        "n_components": n_comp,
+        "n_boundary_loops": n_loops,
+        "euler_characteristic": chi,
+        "genus": genus,
+        "integral_K": integral_k,
+        "boundary_turning": turning,
+        "gauss_bonnet_ratio": gb,
+        "mean_H": mean_h,
+        "mean_K": integral_k / area if area > 0 else None,
+    }
+    if curvature_df is not None:
+        if len(curvature_df) != n_vertices_in or "K" not in curvature_df or "H" not in curvature_df:
+            raise NemoError(
+                f"the curvature table has {len(curvature_df)} rows but the mesh {n_vertices_in} "
+                "vertices (or it lacks H, K): was it computed on this mesh?"
+            )
+        order = np.argsort(curvature_df["vertex"].to_numpy())
+        kf = curvature_df["K"].to_numpy(dtype=np.float64)[order]
+        hf = curvature_df["H"].to_numpy(dtype=np.float64)[order]
+        areas = vertex_areas(mesh)
+        ok = np.isfinite(kf) & np.isfinite(hf)
+        if (~ok & (areas > 0)).any():
+            notes.append(f"fitted curvature is NaN at {int((~ok).sum())} vertices; left out of the sums")
+        ik = float(np.sum(kf[ok] * areas[ok]))
+        a_ok = float(areas[ok].sum())
+        result["integral_K_fit"] = ik
+        result["gauss_bonnet_ratio_fit"] = (ik + turning) / (2 * np.pi * chi) if chi != 0 else None
+        result["mean_H_fit"] = float(np.sum(hf[ok] * areas[ok]) / a_ok) if a_ok > 0 else None
+        result["mean_K_fit"] = ik / a_ok if a_ok > 0 else None
+    result["notes"] = notes
+    logger.debug("measure: %s", result)
+    return result
