@@ -558,15 +558,15 @@ def vesicle(
     defects: ArrayLike | str | None = None,
     charges: ArrayLike | None = None,
     rotate: ArrayLike | int | None = None,
-    fibre_spacing: float = 4.0,
-    fibre_length: float = 40.0,
+    fibre_spacing: float = 5.0,
+    fibre_length: float | None = None,
     step_size: float | None = None,
     shell_thickness: float = 10.0,
     background: float = 0.25,
     fibre_intensity: float = 0.6,
     blur: float = 1.0,
     noise: float = 0.0,
-    layer_depth: float = 2.5,
+    layer_depth: float = 3.0,
     second_layer_depth: float | None = None,
     second_layer_rotation: float = 90.0,
     second_layer_channel: int = 0,
@@ -585,9 +585,10 @@ def vesicle(
     """Generate a synthetic nematic vesicle and its ground truth.
 
     The default reproduces the paper's Fig. 2 vesicle: R = 200 µm, 1 µm voxels, four +1/2
-    defects at the vertices of a regular tetrahedron, one fibre layer 2.5 µm outside the inner
-    surface (inside the [0, 5] µm peel range), a 10 µm shell of constant background, 1 µm blur,
-    a 450^3 volume.
+    defects at the vertices of a regular tetrahedron, one fibre layer 3 µm outside the inner
+    surface (inside the [0, 5] µm peel range; deep enough that the blurred fibres do not move
+    the inner edge), fibres 5 µm apart and 100 µm long, a 10 µm shell of constant background,
+    1 µm blur, a 450^3 volume.
 
     Parameters
     ----------
@@ -607,8 +608,9 @@ def vesicle(
         Mean distance (µm) between neighbouring fibres: the number of fibres per layer is
         ``area / (fibre_spacing * fibre_length)``, so a line across the layer meets one fibre
         every ``fibre_spacing`` µm on average.
-    fibre_length : float
-        Length (µm) of each fibre (shorter where it runs into a defect core).
+    fibre_length : float, optional
+        Length (µm) of each fibre (shorter where it runs into a defect core); default ``R / 2``
+        (100 µm for the paper's vesicle: long fibres give clean stripes in 20 µm patches).
     step_size : float, optional
         Tracing step (µm); default ``min(spacing)/2`` capped at 0.5 µm.
     shell_thickness : float
@@ -679,6 +681,8 @@ def vesicle(
     R = float(radius)
     if not np.isfinite(R) or R <= 0:
         raise NemoError(f"radius must be a positive number of µm, got {radius!r}")
+    if fibre_length is None:
+        fibre_length = 0.5 * R
     sp = _check_spacing(spacing)
     for name, val in (("fibre_spacing", fibre_spacing), ("fibre_length", fibre_length)):
         if not (np.isfinite(val) and val > 0):

@@ -296,7 +296,7 @@ def test_rasterised_fibres_follow_their_fields():
 
 def test_second_layer_is_orthogonal(rng):
     _, truth = vesicle(**SMALL, second_layer_depth=6.0, second_layer_rotation=90.0)
-    assert [lay["depth"] for lay in truth["layers"]] == [2.5, 6.0]
+    assert [lay["depth"] for lay in truth["layers"]] == [3.0, 6.0]
     assert [lay["channel"] for lay in truth["layers"]] == [0, 0]
     p = truth["centre"] + 27 * _random_unit(rng, 2000)
     dots = np.einsum("ij,ij->i", truth_directors(truth, p, layer=0), truth_directors(truth, p, layer=1))
@@ -398,7 +398,7 @@ def test_write_truth_round_trip_and_read_frames(tmp_path):
     # truth content
     assert loaded["radius"] == 25.0 and loaded["unit"] == "um" and loaded["spacing"] == [2.0, 1.0, 1.0]
     assert [(lay["depth"], lay["radius"], lay["channel"]) for lay in loaded["layers"]] == [
-        (2.5, 27.5, 0), (6.0, 31.0, 1)]
+        (3.0, 28.0, 0), (6.0, 31.0, 1)]
     recs = loaded["defects"]
     assert len(recs) == 2 * 2 * 4 and {r["charge"] for r in recs} == {0.5}
     c = np.asarray(loaded["centre"])

@@ -59,10 +59,10 @@ def add_arguments(parser) -> None:
     d.add_argument("--rotate-random", type=int, metavar="SEED",
                    help="rotate the defect set by a uniformly random rotation drawn with SEED")
     f = parser.add_argument_group("fibres and image")
-    f.add_argument("--fibre-spacing", type=positive(), default=4.0, metavar="UM",
-                   help="mean distance between neighbouring fibres in µm (default 4)")
-    f.add_argument("--fibre-length", type=positive(), default=40.0, metavar="UM",
-                   help="fibre length in µm (default 40)")
+    f.add_argument("--fibre-spacing", type=positive(), default=5.0, metavar="UM",
+                   help="mean distance between neighbouring fibres in µm (default 5)")
+    f.add_argument("--fibre-length", type=positive(), metavar="UM",
+                   help="fibre length in µm (default R/2: 100 for the paper's vesicle)")
     f.add_argument("--background", type=_nonneg, default=0.25, metavar="F",
                    help="shell background as a fraction of 255 (default 0.25)")
     f.add_argument("--fibre-intensity", type=_nonneg, default=0.6, metavar="F",
@@ -71,8 +71,8 @@ def add_arguments(parser) -> None:
                    help="Gaussian blur sigma in µm (default 1)")
     f.add_argument("--noise", type=_nonneg, default=0.0, metavar="STD",
                    help="additive Gaussian noise std on the 0-255 scale (default 0)")
-    f.add_argument("--layer-depth", type=_nonneg, default=2.5, metavar="UM",
-                   help="depth of the fibre layer outside R in µm (default 2.5)")
+    f.add_argument("--layer-depth", type=_nonneg, default=3.0, metavar="UM",
+                   help="depth of the fibre layer outside R in µm (default 3, inside a [0, 5] peel)")
     f.add_argument("--second-layer-depth", type=_nonneg, metavar="UM",
                    help="add a second fibre layer at this depth (µm)")
     f.add_argument("--second-layer-rotation", type=float, default=90.0, metavar="DEG",
