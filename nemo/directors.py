@@ -44,6 +44,11 @@ from nemo.mesh import mean_edge_length
 #: sphere of R = 200 µm is 30 × 4πR² / (π r²)).
 PATCHES_PER_AREA = 30.0
 
+#: Default micro-image pixel as a fraction of the mean edge length (finer than the vertex
+#: spacing: the σ = 1 px gradient kernel then resolves fibres a few edges apart; on the
+#: synthetic vesicle 0.5 lowers the median angle error by ~25 % over 1.0).
+PIXEL_PER_EDGE = 0.5
+
 #: Gaussian-derivative scale of the gradients (pixels), as in OrientationPy.
 GRAD_SIGMA = 1.0
 
@@ -100,18 +105,21 @@ def structure_tensor_centre(
         ``(J_rr, J_rc, J_cc)`` = (row-row, row-column, column-column) components, i.e.
         OrientationPy's flattened 2-D order ``(yy, yx, xx)``.
     """
-    images = np.asarray(images, dtype=np.float64)
+    images = np.asarray(images)
+    if images.dtype != np.float32:
+        images = images.astype(np.float64, copy=False)  # float32 stacks stay float32 (speed)
     if images.ndim == 2:
         images = images[None]
     _, h, w = images.shape
     g_r = ndimage.gaussian_filter(images, grad_sigma, order=(1, 0), mode="nearest", axes=(1, 2))
     g_c = ndimage.gaussian_filter(images, grad_sigma, order=(0, 1), mode="nearest", axes=(1, 2))
-    weight = np.outer(_centre_weights(h, sigma), _centre_weights(w, sigma))[None]
+    weight = np.outer(_centre_weights(h, sigma), _centre_weights(w, sigma))[None].astype(images.dtype)
     if mask is not None:
         weight = weight * mask
     out = np.empty((len(images), 3))
-    out[:, 0] = np.einsum("pij,pij->p", weight * g_r, g_r)
-    out[:, 1] = np.einsum("pij,pij->p", weight * g_r, g_c)
+    wg_r = weight * g_r
+    out[:, 0] = np.einsum("pij,pij->p", wg_r, g_r)
+    out[:, 1] = np.einsum("pij,pij->p", wg_r, g_c)
     out[:, 2] = np.einsum("pij,pij->p", weight * g_c, g_c)
     return out
 
@@ -180,9 +188,9 @@ def micro_images(
 
     Returns
     -------
-    images : ndarray, shape (P, 2h+1, 2h+1)
+    images : ndarray of float32, shape (P, 2h+1, 2h+1)
         Interpolated intensity; pixels without data get the patch mean.
-    density : ndarray, shape (P, 2h+1, 2h+1)
+    density : ndarray of float32, shape (P, 2h+1, 2h+1)
         Smoothed sample weight per pixel (0 where no data).
     """
     size = 2 * half + 1
@@ -199,14 +207,15 @@ def micro_images(
     n_pix = n_patches * size * size
     den = np.bincount(flat, weights=wts, minlength=n_pix).reshape(n_patches, size, size)
     num = np.bincount(flat, weights=wts * np.tile(values, 4), minlength=n_pix).reshape(den.shape)
-    den = ndimage.gaussian_filter(den, smooth, mode="constant", axes=(1, 2))
-    num = ndimage.gaussian_filter(num, smooth, mode="constant", axes=(1, 2))
-    total = den.sum(axis=(1, 2))
+    # float32 from here on: the stack is large and the precision ample
+    den = ndimage.gaussian_filter(den.astype(np.float32), smooth, mode="constant", axes=(1, 2))
+    num = ndimage.gaussian_filter(num.astype(np.float32), smooth, mode="constant", axes=(1, 2))
+    total = den.sum(axis=(1, 2), dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = num.sum(axis=(1, 2)) / total
-        filled = den > 1e-3 * (total / (size * size))[:, None, None]
-        images = np.where(filled, num / np.where(filled, den, 1.0), np.nan_to_num(mean)[:, None, None])
-    return images, np.where(filled, den, 0.0)
+        mean = (num.sum(axis=(1, 2), dtype=np.float64) / total).astype(np.float32)
+        filled = den > (1e-3 * total / (size * size)).astype(np.float32)[:, None, None]
+        images = np.where(filled, num / np.where(filled, den, np.float32(1.0)), np.nan_to_num(mean)[:, None, None])
+    return images, np.where(filled, den, np.float32(0.0))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -247,7 +256,7 @@ def directors(
         Number of centres, drawn without replacement. Default :func:`default_n_patches`
         (30 per patch area; the paper's 12 000 for R = 200 µm, r = 20 µm), capped by N.
     pixel : float, optional
-        Micro-image pixel (µm); default the mean edge length.
+        Micro-image pixel (µm); default half the mean edge length.
     sigma : float, optional
         Structure-tensor integration scale in pixels; default half the patch radius.
     frames : {"axis", "smooth"}
@@ -290,7 +299,7 @@ def directors(
         if not patch_radius > 0:
             raise NemoError(f"patch radius must be > 0 µm, got {patch_radius}")
         nominal_radius = patch_radius
-    pixel = edge if pixel is None else float(pixel)
+    pixel = PIXEL_PER_EDGE * edge if pixel is None else float(pixel)
     if not pixel > 0:
         raise NemoError(f"pixel size must be > 0 µm, got {pixel}")
     if nominal_radius < 2 * pixel:

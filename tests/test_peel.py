@@ -1,0 +1,198 @@
+"""Peeling against analytic volumes: Gaussian shells, anisotropic voxels, reductions, CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import trimesh
+
+from nemo.errors import NemoError
+from nemo.io import write_hyperstack
+from nemo.mesh import make_mesh, save_mesh, vertex_normals
+from nemo.peel import peel, sample_depths
+from nemo.tables import read_table, write_table
+
+R = 20.0        # sphere radius (µm)
+W = 1.2         # Gaussian shell half-width (µm)
+SPACING = (2.0, 1.0, 1.0)  # dz = 2 dx
+
+
+def _grid(spacing, extent=34.0):
+    dz, dy, dx = spacing
+    shape = tuple(int(round(2 * extent / s)) + 1 for s in spacing)
+    z, y, x = (np.arange(n) * s for n, s in zip(shape, spacing))
+    centre = np.array([x[-1], y[-1], z[-1]]) / 2.0  # x, y, z
+    return shape, (z, y, x), centre
+
+
+def shell_volume(radius_shell, spacing=SPACING, width=W):
+    """exp(-(|x - c| - radius_shell)² / 2w²) sampled at voxel centres (x = col·dx ...)."""
+    shape, (z, y, x), centre = _grid(spacing)
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    r = np.sqrt((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 + (zz - centre[2]) ** 2)
+    return np.exp(-((r - radius_shell) ** 2) / (2 * width**2)), centre
+
+
+def sphere_mesh(centre, radius=R, subdivisions=3):
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return make_mesh(ico.vertices + centre, ico.faces)
+
+
+def analytic_normals(mesh, centre):
+    v = mesh.vertices - centre
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("interp", ["linear", "cubic"])
+@pytest.mark.parametrize("r0", [3.0, 5.5])
+def test_profile_peaks_at_shell_depth_anisotropic(interp, r0):
+    width = 2.0  # sampled adequately by the 2 µm z planes
+    vol, centre = shell_volume(R + r0, width=width)
+    mesh = sphere_mesh(centre)
+    normals = analytic_normals(mesh, centre)
+    _, profile, depths = peel(vol, SPACING, mesh.vertices, normals, -2.0, 10.0, n_samples=97,
+                              interp=interp, return_profile=True)
+    assert depths[1] - depths[0] == pytest.approx(0.125)
+    # sub-sample peak from a parabola through the three top samples
+    k = np.argmax(profile, axis=1)
+    rows = np.arange(len(k))
+    y0, y1, y2 = profile[rows, k - 1], profile[rows, k], profile[rows, k + 1]
+    refined = depths[k] + 0.125 * 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2)
+    err = np.abs(refined - r0)
+    if interp == "cubic":
+        assert err.max() < 0.1
+    else:
+        # a trilinear interpolant peaks on a sample plane: at most dz/2 off where the ray runs
+        # along z, much less elsewhere
+        assert err.max() <= SPACING[0] / 2 + 0.01
+        assert np.median(err) < 0.25  # (a wrong z scale would be off by µm)
+
+
+def test_mean_and_max_reductions_match_analytic_shell():
+    r0 = 2.5
+    vol, centre = shell_volume(R + r0, spacing=(1.0, 1.0, 1.0))
+    mesh = sphere_mesh(centre)
+    normals = analytic_normals(mesh, centre)
+    d_min, d_max, n = 0.0, 5.0, 11
+    depths = sample_depths(d_min, d_max, n)
+    expect = np.exp(-((depths - r0) ** 2) / (2 * W**2))
+    mean = peel(vol, (1, 1, 1), mesh.vertices, normals, d_min, d_max, n, reduce="mean", interp="cubic")
+    mx = peel(vol, (1, 1, 1), mesh.vertices, normals, d_min, d_max, n, reduce="max", interp="cubic")
+    assert np.abs(mean - expect.mean()).max() < 0.01
+    assert np.abs(mx - expect.max()).max() < 0.01
+    _, prof, _ = peel(vol, (1, 1, 1), mesh.vertices, normals, d_min, d_max, n, return_profile=True)
+    lin_mean = peel(vol, (1, 1, 1), mesh.vertices, normals, d_min, d_max, n)
+    np.testing.assert_allclose(lin_mean, prof.mean(axis=1))
+
+
+def test_inward_flag_peels_inside():
+    r0 = 4.0
+    vol, centre = shell_volume(R - r0, width=2.0)
+    mesh = sphere_mesh(centre)
+    normals = vertex_normals(mesh)
+    assert np.all(np.einsum("ij,ij->i", normals, mesh.vertices - centre) > 0)  # outward
+    _, prof_in, depths = peel(vol, SPACING, mesh.vertices, -normals, 0, 8, 33, interp="cubic",
+                              return_profile=True)
+    assert np.abs(depths[np.argmax(prof_in, axis=1)] - r0).max() <= 0.25 + 1e-9
+    outward = peel(vol, SPACING, mesh.vertices, normals, 0, 8, 33)
+    inward = peel(vol, SPACING, mesh.vertices, -normals, 0, 8, 33)
+    assert inward.min() > 3 * outward.max()
+
+
+def test_shift_moves_the_range():
+    r0 = 5.0
+    vol, centre = shell_volume(R + r0, width=2.0)
+    mesh = sphere_mesh(centre)
+    normals = analytic_normals(mesh, centre)
+    n = len(mesh.vertices)
+    shifted = peel(vol, SPACING, mesh.vertices, normals, 0, 2, 5, shift=np.full(n, 3.0))
+    moved = peel(vol, SPACING, mesh.vertices, normals, 3, 5, 5)
+    np.testing.assert_allclose(shifted, moved, atol=1e-12)
+    # per-vertex shift: half the vertices shifted onto the shell, the others not
+    shift = np.where(np.arange(n) % 2 == 0, r0, 0.0)
+    value = peel(vol, SPACING, mesh.vertices, normals, 0, 0, 1, shift=shift, interp="cubic")
+    assert value[::2].min() > 0.97 and value[1::2].max() < 0.05
+    with pytest.warns(Warning, match="NaN"):
+        nan_shift = peel(vol, SPACING, mesh.vertices, normals, 0, 1, 3, shift=np.where(shift > 0, np.nan, 0.0))
+    assert np.isnan(nan_shift[::2]).all() and np.isfinite(nan_shift[1::2]).all()
+
+
+def test_nan_outside_the_volume_and_errors():
+    vol, centre = shell_volume(R + 2)
+    mesh = sphere_mesh(centre)
+    normals = analytic_normals(mesh, centre)
+    far = 34.0 - R + 1.0  # beyond the volume's faces along the axes
+    with pytest.warns(Warning, match="outside the image"):
+        out = peel(vol, SPACING, mesh.vertices, normals, 0, far + 10, 5)
+    axis_aligned = np.abs(normals).max(axis=1) > 0.95
+    assert np.isnan(out[axis_aligned]).all()
+    with pytest.raises(NemoError, match="outside the image"):
+        peel(vol, SPACING, mesh.vertices + 1000.0, normals, 0, 1, 3)
+    with pytest.raises(NemoError, match="DMIN <= DMAX"):
+        peel(vol, SPACING, mesh.vertices, normals, 3, 1)
+    with pytest.raises(NemoError, match="3-D"):
+        peel(vol[0], SPACING, mesh.vertices, normals, 0, 1)
+    with pytest.raises(NemoError, match="reduction"):
+        peel(vol, SPACING, mesh.vertices, normals, 0, 1, reduce="median")
+    with pytest.raises(NemoError, match="one value per vertex"):
+        peel(vol, SPACING, mesh.vertices, normals, 0, 1, shift=np.zeros(3))
+
+
+def test_cli_peel_profile_shift_inward(tmp_path, run_cli):
+    r0 = 3.0
+    vol, centre = shell_volume(R + r0, width=2.0)
+    img = tmp_path / "shell.tif"
+    write_hyperstack(img, (vol * 200).astype(np.uint8), SPACING, axes="ZYX")
+    mesh = sphere_mesh(centre)
+    mpath = tmp_path / "sphere.ply"
+    save_mesh(mesh, mpath)
+    out = tmp_path / "layer.parquet"
+    code, stdout, err = run_cli("peel", img, mpath, "-o", out, "--range", "0", "6", "--samples", "25",
+                                "--interp", "cubic", "--profile")
+    assert code == 0, err
+    layer = read_table(out, kind="layer")
+    assert len(layer) == len(mesh.vertices) and layer["intensity"].notna().all()
+    prof = read_table(tmp_path / "layer.profile.parquet", columns=("vertex", "depth", "intensity"))
+    assert len(prof) == 25 * len(mesh.vertices)
+    peak = prof.loc[prof.groupby("vertex")["intensity"].idxmax(), "depth"].to_numpy()
+    assert np.abs(peak - r0).max() <= 0.5
+    # --shift FIELDS:COLUMN × --shift-fraction moves the range onto the shell
+    fields = tmp_path / "fields.parquet"
+    write_table(pd.DataFrame({"vertex": np.arange(len(mesh.vertices)), "thickness": np.full(len(mesh.vertices), 2 * r0)}), fields)
+    out2 = tmp_path / "shifted.parquet"
+    code, _, err = run_cli("peel", img, mpath, "-o", out2, "--range", "0", "0", "--samples", "1",
+                           "--shift", f"{fields}:thickness", "--shift-fraction", "0.5", "--reduce", "max")
+    assert code == 0, err
+    shifted = read_table(out2, kind="layer")["intensity"].to_numpy()
+    assert shifted.min() > 0.85 * 200  # on the shell (unshifted: exp(-9/8) × 200 ≈ 65)
+    # --inward looks inside, where the image is dark
+    out3 = tmp_path / "inward.parquet"
+    code, _, err = run_cli("peel", img, mpath, "-o", out3, "--range", "0", "6", "--inward",
+                           "--interp", "cubic")
+    assert code == 0, err
+    tau = sample_depths(0, 6, 11)
+    expect_in = (200 * np.exp(-((r0 + tau) ** 2) / (2 * 2.0**2))).mean()
+    expect_out = (200 * np.exp(-((tau - r0) ** 2) / (2 * 2.0**2))).mean()
+    inward = read_table(out3)["intensity"].to_numpy()
+    assert np.abs(inward - expect_in).max() < 1.5  # uint8 rounding, mesh normals
+    code, _, err = run_cli("peel", img, mpath, "-o", out3, "--range", "0", "6", "--interp", "cubic")
+    assert np.abs(read_table(out3)["intensity"].to_numpy() - expect_out).max() < 1.5
+
+
+def test_cli_peel_bad_input(tmp_path, run_cli):
+    vol, centre = shell_volume(R + 2)
+    img = tmp_path / "shell.tif"
+    write_hyperstack(img, (vol * 200).astype(np.uint8), SPACING, axes="ZYX")
+    mpath = tmp_path / "sphere.ply"
+    save_mesh(sphere_mesh(centre), mpath)
+    code, _, err = run_cli("peel", img, tmp_path / "missing.ply", "-o", tmp_path / "l.parquet", "--range", "0", "5")
+    assert code == 2 and "mesh file not found" in err and "Traceback" not in err
+    code, _, err = run_cli("peel", img, mpath, "-o", tmp_path / "l.parquet", "--range", "5", "0")
+    assert code == 2 and "DMIN" in err
+    code, _, err = run_cli("peel", img, mpath, "-o", tmp_path / "l.parquet", "--range", "0", "5",
+                           "--shift", "nofile.parquet")
+    assert code == 2 and "COLUMN" in err
+    code, _, err = run_cli("peel", img, mpath, "-o", tmp_path / "l.parquet", "--range", "0", "5",
+                           "--spacing", "0.01", "0.01", "0.01")
+    assert code == 2 and "outside the image" in err
