@@ -729,12 +729,14 @@ def spherical_grid(vertices: np.ndarray, values: np.ndarray, centre: np.ndarray,
 
 
 def subsample_even(points: np.ndarray, spacing: float) -> np.ndarray:
-    """Indices of points thinned to about one per cube of side ``spacing`` (vectorised)."""
-    if len(points) == 0:
+    """Indices of finite points thinned to about one per cube of side ``spacing`` (vectorised)."""
+    ok = np.flatnonzero(np.isfinite(points).all(axis=1))
+    if len(ok) == 0:
         return np.zeros(0, dtype=np.int64)
-    cells = np.floor((points - points.min(axis=0)) / spacing).astype(np.int64)
+    p = points[ok]
+    cells = np.floor((p - p.min(axis=0)) / spacing).astype(np.int64)
     _, idx = np.unique(cells, axis=0, return_index=True)
-    return np.sort(idx)
+    return ok[np.sort(idx)]
 
 
 def glyph_spacing(mesh, target: int = 1500) -> float:
@@ -945,7 +947,7 @@ def distributions_figure(S: np.ndarray, charges: np.ndarray, title: str = ""):
     q = np.asarray(charges, dtype=np.float64)
     q = q[np.isfinite(q)]
     lim = max(1.25, float(np.abs(q).max()) + 0.25) if q.size else 1.25
-    ax_q.hist(q, bins=np.arange(-lim, lim + 1e-9, 0.05), density=True, color="tab:red", alpha=0.85)
+    ax_q.hist(q, bins=np.arange(-lim - 0.025, lim + 0.03, 0.05), density=True, color="tab:red", alpha=0.85)
     for x in (-0.5, 0.5):
         ax_q.axvline(x, color="k", ls="--", lw=0.8)
     ax_q.set_xlim(-lim, lim)

@@ -183,6 +183,7 @@ def _vector_layers(frames: list[Frame], stacked: bool, max_vectors: int, layer: 
                 mesh = f.surfaces[lay.surface].mesh
                 spacing = glyph_spacing(mesh, max_vectors)
                 length = 0.8 * spacing
+                df = df[np.isfinite(df[["x", "y", "z", "nx", "ny", "nz"]].to_numpy(np.float64)).all(axis=1)]
                 pos = df[["x", "y", "z"]].to_numpy(np.float64)
                 keep = subsample_even(pos, spacing)
                 pos = pos[keep]
@@ -197,7 +198,7 @@ def _vector_layers(frames: list[Frame], stacked: bool, max_vectors: int, layer: 
             vals = np.concatenate(feats)
             kwargs = {"name": f"{title} ({name})", "features": {feature: vals}, "edge_width":
                       max(0.08 * length, 1e-3), "vector_style": "line", "length": 1.0,
-                      "visible": layer is None or name == layer,
+                      "visible": name == layer,
                       "metadata": {"nemo": {"kind": table, "layer": name, "glyph_length": length}}}
             if colour is None:
                 kwargs.update(edge_color=feature, edge_colormap="viridis", edge_contrast_limits=(0.0, 1.0))
@@ -218,7 +219,9 @@ def _points_layers(frames: list[Frame], stacked: bool, layer: str | None) -> lis
             lay = f.layers.get(name)
             if lay is None or lay.defects is None or not len(lay.defects):
                 continue
-            d = lay.defects
+            d = lay.defects[np.isfinite(lay.defects[["x", "y", "z"]].to_numpy(np.float64)).all(axis=1)]
+            if not len(d):
+                continue
             mesh = f.surfaces[lay.surface].mesh
             size = 0.05 * float(np.linalg.norm(np.ptp(np.asarray(mesh.vertices), axis=0)))
             pts.append(to_napari(d[["x", "y", "z"]].to_numpy(np.float64), i if stacked else None))
@@ -231,7 +234,7 @@ def _points_layers(frames: list[Frame], stacked: bool, layer: str | None) -> lis
         kwargs = {"name": f"defects ({name})",
                   "features": {"charge": np.concatenate(charge), "label": np.asarray(label, dtype=object)},
                   "face_color": "charge", "face_colormap": "bwr", "face_contrast_limits": (-1.0, 1.0),
-                  "border_color": "black", "size": size, "visible": layer is None or name == layer,
+                  "border_color": "black", "size": size, "visible": name == layer,
                   "text": {"string": "{label}", "size": 14, "color": "yellow", "anchor": "upper_left"},
                   "metadata": {"nemo": {"kind": "defects", "layer": name}}}
         out.append((np.concatenate(pts), kwargs, "points"))
@@ -262,7 +265,7 @@ def layer_data(
         Channel (default the first with results).
     layer : str, optional
         Nematic layer to show first (its surface coloured by its intensity, its directors
-        and defects visible); default all layers visible.
+        and defects visible); default the first layer by name (the others are added hidden).
     image : path, optional
         The hyperstack, when it is not found from the tables' provenance.
     spacing : (dz, dy, dx), optional
@@ -296,16 +299,17 @@ def layer_data(
     names = sorted({n for f in frames for n in f.layers})
     if layer is not None and layer not in names:
         raise NemoError(f"layer {layer!r} not found in {tree.root} (layers: {', '.join(names) or 'none'})")
-    shown = frames[0].layers[layer].surface if layer is not None else next(
-        (f.layers[n].surface for f in frames for n in f.layers), next(iter(frames[0].surfaces)))
+    first = layer if layer is not None else (names[0] if names else None)
+    shown = next((f.layers[first].surface for f in frames if first in f.layers),
+                 next(iter(frames[0].surfaces)))
     stacked = len(frames) > 1
     out: list[tuple] = []
     img = _image_layer(frames, c, stacked, spacing)
     if img is not None:
         out.append(img)
-    out += _surface_layers(frames, stacked, layer, shown)
-    out += _vector_layers(frames, stacked, max_vectors, layer)
-    out += _points_layers(frames, stacked, layer)
+    out += _surface_layers(frames, stacked, first, shown)
+    out += _vector_layers(frames, stacked, max_vectors, first)
+    out += _points_layers(frames, stacked, first)
     return out
 
 
@@ -351,7 +355,6 @@ def add_nemo_layers(viewer, results: str | os.PathLike, **kwargs) -> dict:
     if labels:
         viewer.dims.axis_labels = labels
     viewer.scale_bar.visible = True
-    viewer.scale_bar.unit = "um"
     return added
 
 
@@ -363,7 +366,7 @@ def field_selector(napari_viewer):
     """
     from magicgui.widgets import ComboBox, Container, Label
 
-    def surfaces():
+    def surfaces(*_):
         return [lay.name for lay in napari_viewer.layers if "nemo_fields" in lay.metadata]
 
     surf = ComboBox(label="surface", choices=surfaces)

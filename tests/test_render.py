@@ -1,0 +1,344 @@
+"""Figures of NEMO results: discovery, loading, spherical maps, pyvista renders, CLI.
+
+Ground truth: an analytic results folder (icosphere of radius R around an off-centre point,
+four +1/2 defects at tetrahedron vertices on mesh vertices, analytic fields) written by
+``nemo.napari._sample.write_demo_results`` (numpy only, no napari).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from nemo.errors import NemoError, NemoWarning
+from nemo.napari._sample import defect_field, write_demo_results
+from nemo.render import (
+    CAPTIONS,
+    alignment_figure,
+    chart_directions,
+    charge_text,
+    discover_frame,
+    distributions_figure,
+    field_label,
+    find_frames,
+    load_frame,
+    morphology_figure,
+    planned_figures,
+    render_frame,
+    render_summary,
+    spherical_angles,
+    spherical_figure,
+    spherical_grid,
+    surface_centre,
+    surface_plotter,
+    tracks_figure,
+)
+from nemo.tables import write_table
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    root = tmp_path_factory.mktemp("results")
+    return write_demo_results(root, subdivisions=3, n_frames=3)
+
+
+@pytest.fixture(scope="module")
+def rendered(demo, tmp_path_factory):
+    """All figures of frame 1 (pyvista renders included), written once for several tests."""
+    out = tmp_path_factory.mktemp("figs")
+    figs = render_frame(demo["frames"][1]["dir"], out)
+    return out, figs
+
+
+def _png(path):
+    from matplotlib.image import imread
+
+    img = imread(path)[..., :3]
+    return img
+
+
+def _colour_labels(fig) -> set[str]:
+    return {ax.get_ylabel() for ax in fig.axes} | {ax.get_xlabel() for ax in fig.axes}
+
+
+# ------------------------------------------------------------------------------ discovery
+
+
+def test_discovery_classifies_workflow_files(demo):
+    ff = discover_frame(demo["frames"][0]["dir"])
+    assert set(ff.meshes) == {"inner", "outer"}
+    assert set(ff.layers) == set(ff.order) == set(ff.directors) == set(ff.defects) == {"a", "b"}
+    assert set(ff.curvature) == {""} and set(ff.thickness) == {""}
+    assert set(ff.align) == {"a_b"}
+    assert (ff.t, ff.c) == (0, 0)
+    assert ff.image is not None and ff.image.samefile(demo["image"])  # from the provenance
+
+
+def test_find_frames_from_root_dataset_and_frame(demo):
+    ds = demo["dataset_dir"]
+    for path in (ds.parent, ds):
+        tree = find_frames(path)
+        assert sorted(tree.frames) == [(0, 0), (1, 0), (2, 0)]
+        assert tree.summary == ds / "summary"
+    tree = find_frames(ds / "t2" / "c0")
+    assert list(tree.frames) == [(2, 0)]
+    with pytest.raises(NemoError, match="dataset 'nope' not found"):
+        find_frames(ds.parent, dataset="nope")
+    with pytest.raises(NemoError, match="no NEMO results"):
+        find_frames(ds / "summary")
+
+
+def test_load_frame_places_fields_on_the_right_mesh(demo):
+    fr = load_frame(demo["frames"][0]["dir"])
+    inner = fr.surfaces["inner"]
+    n = demo["n_vertices"]
+    assert len(inner.mesh.vertices) == n
+    assert {"intensity (a)", "S (a)", "intensity (b)", "H", "K", "thickness", "c (a-b)"} <= set(inner.fields)
+    assert fr.surfaces["outer"].fields == {}
+    z = (np.asarray(inner.mesh.vertices)[:, 2] - demo["centre"][2]) / demo["radius"]
+    np.testing.assert_allclose(inner.fields["intensity (a)"], 100 + 50 * z, atol=1e-5)
+    np.testing.assert_allclose(inner.fields["H"], (1 + 0.2 * z) / demo["radius"], rtol=1e-5)
+    assert np.isnan(inner.fields["thickness"]).any()  # no-hit NaN kept, never filled
+    assert inner.label("H") == "H [1/µm]" and inner.label("K") == "K [1/µm²]"
+    assert inner.label("thickness") == "thickness [µm]"
+    assert fr.layers["a"].surface == "inner" and len(fr.layers["a"].defects) == 4
+    assert fr.align_surface[("a", "b")] == "inner"
+
+
+def test_nemo_run_layout_is_readable(tmp_path):
+    truth = write_demo_results(tmp_path / "run", subdivisions=3, layout="run")
+    fr = load_frame(tmp_path / "run")
+    assert set(fr.files.meshes) == {"mesh", "inner"}
+    assert list(fr.layers) == ["layer"]
+    # layer.parquet has one row per inner vertex: it goes on mesh.inner.ply, not on mesh.ply
+    assert fr.layers["layer"].surface == "inner"
+    assert set(fr.surfaces["inner"].fields) >= {"intensity (layer)", "S (layer)", "H", "K"}
+    np.testing.assert_allclose(fr.layers["layer"].defects[["x", "y", "z"]], truth["frames"][0]["defects"])
+
+
+def test_missing_and_foreign_tables_are_skipped(demo, tmp_path):
+    src = demo["frames"][0]["dir"]
+    frame = tmp_path / "t0" / "c0"
+    shutil.copytree(src, frame)
+    (frame / "order_b.parquet").unlink()
+    (frame / "thickness.parquet").unlink()
+    write_table(pd.DataFrame({"vertex": [10**6], "H": [1.0], "K": [1.0]}), frame / "curvature.parquet")
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        fr = load_frame(frame)
+    assert any("beyond every mesh" in str(w.message) for w in rec)
+    inner = fr.surfaces["inner"]
+    assert "S (b)" not in inner.fields and "thickness" not in inner.fields and "H" not in inner.fields
+    assert fr.layers["b"].order is None and fr.layers["b"].intensity is not None
+    names = planned_figures(fr.files)
+    assert "surface_order_b.png" not in names and "surface_order_a.png" in names
+
+
+def test_discover_errors(tmp_path):
+    with pytest.raises(NemoError, match="does not exist"):
+        discover_frame(tmp_path / "missing")
+    (tmp_path / "layer_a.parquet").write_bytes(b"")
+    with pytest.raises(NemoError, match="no mesh"):
+        discover_frame(tmp_path)
+
+
+# ------------------------------------------------------------------------------ geometry
+
+
+def test_spherical_angles_and_chart_directions():
+    centre = np.array([3.0, -2.0, 5.0])
+    az_true = np.array([-150.0, -30.0, 0.0, 45.0, 120.0])
+    pol_true = np.array([20.0, 60.0, 90.0, 135.0, 170.0])
+    a, p = np.radians(az_true), np.radians(pol_true)
+    u = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=1)
+    az, pol = spherical_angles(centre + 7.0 * u, centre)
+    np.testing.assert_allclose(az, az_true, atol=1e-9)
+    np.testing.assert_allclose(pol, pol_true, atol=1e-9)
+    e_phi = np.stack([-np.sin(a), np.cos(a), np.zeros_like(a)], axis=1)
+    e_theta = np.stack([np.cos(p) * np.cos(a), np.cos(p) * np.sin(a), -np.sin(p)], axis=1)
+    np.testing.assert_allclose(chart_directions(centre + 7 * u, e_phi, centre), [[1, 0]] * 5, atol=1e-9)
+    np.testing.assert_allclose(chart_directions(centre + 7 * u, e_theta, centre), [[0, 1]] * 5, atol=1e-9)
+
+
+def test_spherical_grid_resamples_polar_angle(demo):
+    fr = load_frame(demo["frames"][0]["dir"])
+    mesh = fr.surfaces["inner"].mesh
+    centre = surface_centre(mesh)
+    np.testing.assert_allclose(centre, demo["centre"], atol=1e-6)
+    _, pol = spherical_angles(np.asarray(mesh.vertices), centre)
+    grid = spherical_grid(mesh.vertices, pol, centre, n_polar=90)
+    rows = (np.arange(90) + 0.5) * 2.0
+    # nearest vertex: error below the vertex spacing (642 vertices: ~8.5° apart)
+    assert np.abs(grid - rows[:, None]).max() < 8.0
+    assert np.abs(grid - rows[:, None]).mean() < 2.5  # rings of vertices: quantised, unbiased
+
+
+def test_spherical_map_puts_defects_at_their_angles(demo):
+    for k in (0, 2):
+        truth = demo["frames"][k]
+        fr = load_frame(truth["dir"])
+        fig = spherical_figure(fr, "a")
+        ax = fig.axes[0]
+        coll = next(c for c in ax.collections if c.get_gid() == "defects")
+        xy = np.asarray(coll.get_offsets())
+        np.testing.assert_allclose(xy[:, 0], truth["azimuth"], atol=1e-3)
+        np.testing.assert_allclose(xy[:, 1], truth["polar"], atol=1e-3)
+        texts = [t.get_text() for t in ax.texts]
+        assert texts.count("+1/2") == 4
+        labels = {a.get_ylabel() for a in fig.axes[1:]}  # the colour bars
+        assert {"intensity [a.u.]", "S", "charge m"} <= labels
+        assert ax.get_xlabel() == "azimuth φ [°]" and ax.get_ylabel() == "polar angle θ [°]"
+
+
+def test_spherical_map_directors_follow_the_field(demo):
+    """A glyph's chart direction is the analytic director mapped into the chart."""
+    truth = demo["frames"][0]
+    fr = load_frame(truth["dir"])
+    fig = spherical_figure(fr, "a")
+    q = next(c for c in fig.axes[0].collections if c.get_gid() == "directors")
+    az, pol = np.asarray(q.X), np.asarray(q.Y)
+    a, p = np.radians(az), np.radians(pol)
+    unit = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=1)
+    d_unit = (truth["defects"] - demo["centre"]) / demo["radius"]
+    n = defect_field(unit, d_unit, np.full(4, 0.5))
+    expect = chart_directions(demo["centre"] + demo["radius"] * unit, n, demo["centre"])
+    got = np.stack([q.U, q.V], axis=1)
+    cos = np.abs(np.einsum("ij,ij->i", got, expect))  # headless: n and -n are the same
+    assert np.median(cos) > 0.999
+
+
+# ------------------------------------------------------------------------------ figures
+
+
+def test_colour_bar_labels_have_units(demo):
+    fr = load_frame(demo["frames"][0]["dir"])
+    fig = morphology_figure(fr.surfaces["inner"])
+    labels = {a.get_ylabel() for a in fig.axes}
+    assert {"H [1/µm]", "K [1/µm²]", "thickness [µm]"} <= labels
+    fig = alignment_figure(fr, ("a", "b"))
+    assert "alignment c = cos 2Δθ" in _colour_labels(fig)
+    fig = distributions_figure(fr.surfaces["inner"].fields["S (a)"], fr.layers["a"].defects["charge"])
+    assert {"S", "charge m"} <= {a.get_xlabel() for a in fig.axes}
+    p = surface_plotter(fr.surfaces["inner"].mesh, scalars=fr.surfaces["inner"].fields["H"],
+                        label=field_label("H"), defects=(fr.layers["a"].defects[["x", "y", "z"]].to_numpy(),
+                                                         fr.layers["a"].defects["charge"].to_numpy()))
+    try:
+        assert {"H [1/µm]", "charge m"} <= set(p.scalar_bars.keys())
+    finally:
+        p.close()
+
+
+def test_distributions_histograms_are_densities(rng):
+    S = rng.uniform(0, 1, 5000)
+    fig = distributions_figure(S, [0.49, 0.51, -0.5])
+    ax_s, ax_q = fig.axes[:2]
+    heights = np.array([p.get_height() for p in ax_s.patches])
+    assert abs(heights.sum() * 1 / 40 - 1) < 1e-6  # density over 40 bins of width 1/40
+    assert abs(heights.mean() - 1) < 0.02  # uniform S
+    centres = np.array([p.get_x() + p.get_width() / 2 for p in ax_q.patches if p.get_height() > 0])
+    np.testing.assert_allclose(np.sort(centres), [-0.5, 0.5], atol=1e-9)
+
+
+def test_tracks_figure_follows_the_tracks(demo):
+    df = pd.read_parquet(demo["dataset_dir"] / "summary" / "defects.parquet")
+    centres = {(f["t"], 0): demo["centre"] for f in demo["frames"]}
+    fig = tracks_figure(df, "a", centres)
+    ax = fig.axes[0]
+    pts = np.concatenate([np.asarray(c.get_offsets()) for c in ax.collections])
+    expect = np.concatenate([[f["azimuth"][k], f["polar"][k]] for k in range(4) for f in demo["frames"]]).reshape(-1, 2)
+    assert len(pts) == 12
+    d = np.linalg.norm(pts[:, None] - expect[None], axis=2).min(axis=1)
+    assert d.max() < 1e-6
+    # right panel: great-circle distance (radius R) from each track's first position
+    dist_lines = fig.axes[1].get_lines()
+    assert len(dist_lines) == 4
+    for line, k in zip(dist_lines, range(4)):
+        u = np.array([(f["defects"][k] - demo["centre"]) / demo["radius"] for f in demo["frames"]])
+        great = np.arccos(np.clip(u @ u[0], -1, 1)) * demo["radius"]
+        assert great[-1] > 5.0  # the defects do move
+        np.testing.assert_allclose(line.get_ydata(), great, atol=1e-4)
+
+
+def test_render_frame_writes_every_planned_figure(demo, rendered):
+    out, figs = rendered
+    planned = planned_figures(discover_frame(demo["frames"][1]["dir"]))
+    assert {f.path.name for f in figs} == set(planned)
+    assert len(planned) == 15
+    manifest = json.loads((out / "figures.json").read_text())
+    for name, kind in planned.items():
+        assert manifest[name]["kind"] == kind and manifest[name]["caption"]
+        img = _png(out / name)
+        assert img.std() > 0.02, name
+        rgb = (img.reshape(-1, 3) * 255).astype(np.int64)
+        colours = np.unique(rgb[:, 0] * 65536 + rgb[:, 1] * 256 + rgb[:, 2])
+        assert len(colours) > 20, name
+    assert manifest["surface_order_a.png"]["parameters"]["order_a.parquet"]["radius"] == pytest.approx(5.0)
+    assert all("{" not in m["caption"] for m in manifest.values())
+
+
+def test_surface_render_shows_the_field(rendered):
+    """The intensity render is dark at the bottom (z low) and bright at the top: 50 … 150."""
+    out, _ = rendered
+    img = _png(out / "surface_intensity_a.png").mean(axis=2)
+    h, w = img.shape
+    left = img[:, : w // 2]
+    sphere = left[int(0.1 * h): int(0.85 * h)]
+    col = sphere[:, sphere.shape[1] // 2]
+    fg = col[col < 0.99]  # skip the white background
+    assert fg[: len(fg) // 4].mean() > fg[-len(fg) // 4:].mean() + 0.2
+
+
+def test_summary_figures(demo, tmp_path):
+    figs = render_summary(demo["dataset_dir"] / "summary", tmp_path)
+    assert sorted(f.path.name for f in figs) == ["frames.png", "tracks_a.png", "tracks_b.png"]
+    for f in figs:
+        assert _png(f.path).std() > 0.02
+
+
+def test_charge_text_and_captions():
+    assert [charge_text(q) for q in (0.49, -0.52, 1.02, 0.1, -1.0, 1.5)] == ["+1/2", "-1/2", "+1", "0", "-1", "+3/2"]
+    assert set(CAPTIONS) >= {"surface_intensity", "surface_order", "surface_defects", "distributions",
+                             "spherical", "surface_H", "surface_K", "surface_thickness",
+                             "morphology_map", "alignment", "tracks", "frames"}
+
+
+# ------------------------------------------------------------------------------ CLI
+
+
+def test_cli_list_and_render(demo, run_cli, tmp_path):
+    d = demo["frames"][0]["dir"]
+    code, out, _ = run_cli("render", d, "--list", "--layer", "a")
+    assert code == 0
+    assert out.split() == list(planned_figures(discover_frame(d), ["a"]))
+    files = [d / "mesh.inner.ply", d / "layer_a.parquet", d / "order_a.parquet", d / "defects_a.parquet"]
+    code, out, err = run_cli("render", *files, "-o", tmp_path, "--no-surfaces")
+    assert code == 0, err
+    written = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert written == ["distributions_a.png", "spherical_a.png"]
+    code, out, err = run_cli("render", "--summary", demo["dataset_dir"] / "summary", "-o", tmp_path)
+    assert code == 0 and (tmp_path / "tracks_a.png").exists()
+
+
+def test_cli_errors(demo, run_cli, tmp_path):
+    code, _, err = run_cli("render", tmp_path / "nothing", "-o", tmp_path)
+    assert code == 2 and "does not exist" in err and "Traceback" not in err
+    code, _, err = run_cli("render", demo["frames"][0]["dir"], "-o", tmp_path, "--layer", "zz")
+    assert code == 2 and "layer(s) zz have no tables" in err
+    code, _, err = run_cli("render", demo["frames"][0]["dir"])
+    assert code == 2 and "-o OUTDIR" in err
+    code, _, err = run_cli("render", "--summary", demo["frames"][0]["dir"], "-o", tmp_path)
+    assert code == 2 and "no summary tables" in err
+
+
+def test_warning_class_for_unreadable_table(demo, tmp_path):
+    frame = tmp_path / "f"
+    shutil.copytree(demo["frames"][0]["dir"], frame)
+    (frame / "order_a.parquet").write_bytes(b"not parquet")
+    with pytest.warns(NemoWarning, match="not a Parquet table"):
+        fr = load_frame(frame)
+    assert fr.layers["a"].order is None
