@@ -440,6 +440,7 @@ def curvature(
             "sampled": sampled,
         }
     )
+    df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp))
     # sampled vertices keep their own fitted principal values/directions
     df.loc[samples, "k1"] = out["k1"]
     df.loc[samples, "k2"] = out["k2"]
