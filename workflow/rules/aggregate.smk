@@ -4,21 +4,20 @@
 def _frame_records(name):
     d = DATA[name]
     records = []
-    for t, c in frames_of(name):
+    for t, c, layer in layer_frames(name):
         seg = f"{RESULTS}/{name}/t{t}/c{d['seg']}"
         frame = f"{RESULTS}/{name}/t{t}/c{c}"
-        for layer, spec in LAYERS.items():
-            surface = spec["surface"]
-            records.append({
-                "t": t, "c": c, "layer": layer, "surface": surface,
-                "measure": f"{seg}/measure_{surface}.json",
-                "curvature": f"{seg}/curvature_{surface}.parquet" if CURVATURE is not None else None,
-                "thickness": f"{seg}/thickness.parquet" if THICKNESS is not None else None,
-                "layer_table": f"{frame}/layer_{layer}.parquet",
-                "directors": f"{frame}/directors_{layer}.parquet",
-                "order": f"{frame}/order_{layer}.parquet",
-                "defects": f"{frame}/defects_{layer}.parquet",
-            })
+        surface = LAYERS[layer]["surface"]
+        records.append({
+            "t": t, "c": c, "layer": layer, "surface": surface,
+            "measure": f"{seg}/measure_{surface}.json",
+            "curvature": f"{seg}/curvature_{surface}.parquet" if CURVATURE is not None else None,
+            "thickness": f"{seg}/thickness.parquet" if THICKNESS is not None else None,
+            "layer_table": f"{frame}/layer_{layer}.parquet",
+            "directors": f"{frame}/directors_{layer}.parquet",
+            "order": f"{frame}/order_{layer}.parquet",
+            "defects": f"{frame}/defects_{layer}.parquet",
+        })
     return records
 
 
@@ -78,7 +77,7 @@ def _align_records(name):
     return [
         {"t": t, "c": c, "layer_a": a, "layer_b": b,
          "align": f"{RESULTS}/{name}/t{t}/c{c}/align_{a}_{b}.parquet"}
-        for t, c in frames_of(name) for a, b in ALIGN_PAIRS
+        for t, c, a, b in align_frames(name)
     ]
 
 

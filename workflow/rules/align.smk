@@ -5,6 +5,7 @@ rule align:
     input:
         a=FRAME + "/directors_{a}.parquet",
         b=FRAME + "/directors_{b}.parquet",
+        mesh=lambda wc: layer_mesh(wc, wc.a),
     output:
         FRAME + "/align_{a}_{b}.parquet",
     log:
@@ -18,4 +19,4 @@ rule align:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " align {input.a} {input.b} -o {output} > {log} 2>&1"
+        NEMO + " align {input.a} {input.b} --mesh {input.mesh} -o {output} > {log} 2>&1"

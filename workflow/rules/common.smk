@@ -144,6 +144,17 @@ def _check_layers():
     return sorted(needed)
 
 
+def _check_required():
+    """Options the commands need but that have no data-independent default."""
+    if config["directors"]["patch_radius"] is None and config["directors"]["patch_k"] is None:
+        config_error("directors.patch_radius", "give directors.patch_radius (µm) or directors.patch_k")
+    if config["order"]["radius"] is None:
+        config_error("order.radius", "the averaging radius (µm) is required, e.g. 2-3 x directors.patch_radius")
+    if CURVATURE is not None and CURVATURE["radius"] is None:
+        config_error("curvature.radius", "the fitting radius (µm) is required (or curvature: null)")
+
+
+_check_required()
 SURFACES = _check_layers()
 MEASURED = sorted(set(config["measure"]["surfaces"] or SURFACES))
 
@@ -219,6 +230,18 @@ def _datasets():
 DATA = _datasets()
 
 
+def _check_layer_channels():
+    analysed = "; ".join(f"{n}: {DATA[n]['c']}" for n in DATA)
+    for layer in LAYERS:
+        if not any(layer_channels(name, layer) for name in DATA):
+            config_error(f"layers.{layer}.channels",
+                         f"{LAYERS[layer]['channels']} holds none of the analysed channels ({analysed})")
+    for i, (a, b) in enumerate(ALIGN_PAIRS):
+        if not any(align_frames(name) for name in DATA):
+            config_error(f"alignment.{i}", f"layers '{a}' and '{b}' share no analysed channel")
+
+
+
 # ----------------------------------------------------------------------------- resources
 def res(rule, key):
     table = config["resources"]
@@ -259,22 +282,28 @@ def spacing_opt(wildcards):
     return "--spacing " + " ".join(str(v) for v in sp) if sp else ""
 
 
-def frames_of(name):
-    """(t, c) pairs analysed in a dataset."""
-    d = DATA[name]
-    return [(t, c) for t in d["t"] for c in d["c"]]
+def layer_channels(name, layer):
+    """Analysed channels of dataset ``name`` that hold ``layer``."""
+    chans = LAYERS[layer]["channels"]
+    return [c for c in DATA[name]["c"] if chans == "all" or c in chans]
 
 
-def per_frame(name, pattern, **kw):
-    return [pattern.format(dataset=name, t=t, c=c, **kw) for t, c in frames_of(name)]
+def layer_frames(name):
+    """(t, c, layer) triples analysed in a dataset."""
+    return [(t, c, layer) for t in DATA[name]["t"] for layer in LAYERS
+            for c in layer_channels(name, layer)]
 
 
-def per_segment(name, pattern, **kw):
-    d = DATA[name]
-    return [pattern.format(dataset=name, t=t, c=d["seg"], **kw) for t in d["t"]]
+def align_frames(name):
+    """(t, c, a, b): alignment pairs in the channels that hold both layers."""
+    return [(t, c, a, b) for t in DATA[name]["t"] for a, b in ALIGN_PAIRS
+            for c in layer_channels(name, a) if c in layer_channels(name, b)]
 
 
 def summary_targets(name):
     s = SUMMARY.format(dataset=name)
     return [f"{s}/frames.parquet", f"{s}/defects.parquet", f"{s}/tracks.parquet",
             f"{s}/alignment.parquet"]
+
+
+_check_layer_channels()

@@ -39,4 +39,4 @@ rule render:
 def render_targets(name):
     if not RENDER:
         return []
-    return [f for layer in LAYERS for f in per_frame(name, FRAME + "/figures/{layer}", layer=layer)]
+    return [FRAME.format(dataset=name, t=t, c=c) + f"/figures/{layer}" for t, c, layer in layer_frames(name)]

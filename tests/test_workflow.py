@@ -1,0 +1,395 @@
+"""The Snakemake workflow: dry runs, parse-time config errors, the real default run, reruns,
+tracking through the workflow, a multi-frame two-channel hyperstack, --keep-going, SLURM.
+
+Every run happens in a temporary working directory (``snakemake -s Snakefile -d TMP``) so the
+repository's own results/ is never touched.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SNAKEFILE = ROOT / "Snakefile"
+DEFAULT_CONFIG = ROOT / "config" / "config.yaml"
+SNAKEMAKE = [sys.executable, "-m", "snakemake"]
+
+FRAMES_COLUMNS = {"t", "c", "layer", "area", "volume", "S_mean", "thickness_mean", "H_mean",
+                  "K_mean", "n_defects", "charge_sum"}
+DEFECTS_COLUMNS = {"t", "c", "layer", "x", "y", "z", "charge", "charge_rounded", "S", "track_id"}
+TRACKS_COLUMNS = {"track_id", "layer", "charge", "first_t", "last_t", "length", "mean_speed"}
+
+
+# ----------------------------------------------------------------------------- helpers
+def smk(workdir: Path, *args, check: bool = True, timeout: float = 1200) -> subprocess.CompletedProcess:
+    """Run Snakemake on the NEMO Snakefile in ``workdir``."""
+    cmd = [*SNAKEMAKE, "-s", str(SNAKEFILE), "-d", str(workdir), *map(str, args)]
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake {' '.join(map(str, args))} failed ({proc.returncode}):\n"
+                             f"{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}")
+    return proc
+
+
+def job_counts(proc: subprocess.CompletedProcess) -> dict[str, int]:
+    """Jobs per rule from a (dry) run's 'Job stats' table; {} when nothing is to be done."""
+    text = proc.stdout + proc.stderr
+    if "Job stats:" not in text:
+        assert "Nothing to be done" in text, text[-3000:]
+        return {}
+    table = text.split("Job stats:", 1)[1].split("total", 1)[0]
+    counts = {}
+    for line in table.splitlines():
+        m = re.match(r"^(\S+)\s+(\d+)\s*$", line.strip())
+        if m:
+            counts[m.group(1)] = int(m.group(2))
+    return counts
+
+
+def write_config(path: Path, cfg: dict) -> Path:
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+def default_config() -> dict:
+    return yaml.safe_load(DEFAULT_CONFIG.read_text())
+
+
+def read_truth(path: Path) -> dict:
+    return json.loads(Path(path).read_text())
+
+
+def truth_defects(truth: dict) -> pd.DataFrame:
+    return pd.DataFrame(truth["defects"])
+
+
+# ----------------------------------------------------------------------------- dry runs and config errors
+def test_dry_run_default_config(tmp_path):
+    proc = smk(tmp_path, "-n", "--cores", "2")
+    counts = job_counts(proc)
+    cfg = default_config()
+    frames = cfg["datasets"]["demo"]["synthetic"]["frames"]
+    n_layers = len(cfg["layers"])
+    assert counts["synth_demo"] == 1
+    assert counts["mesh"] == frames
+    for rule in ("peel", "directors", "order", "defects"):
+        assert counts[rule] == frames * n_layers, rule
+    assert counts["align"] == frames * len(cfg["alignment"])
+    assert counts["track"] == counts["aggregate_frames"] == counts["aggregate_defects"] == 1
+    assert not (tmp_path / "results").exists(), "a dry run must not write results"
+
+
+def test_default_profile_paths_exist():
+    # both documented locations of the profiles work (profiles/ points to workflow/profiles/)
+    for name in ("local", "slurm"):
+        top = ROOT / "profiles" / name / "config.yaml"
+        assert top.exists() and top.resolve() == (ROOT / "workflow/profiles" / name / "config.yaml").resolve()
+        prof = yaml.safe_load(top.read_text())
+        assert isinstance(prof, dict)
+    assert yaml.safe_load((ROOT / "profiles/slurm/config.yaml").read_text())["executor"] == "slurm"
+
+
+@pytest.fixture(scope="module")
+def tiny_stack(tmp_path_factory):
+    """A real (tiny) 2-frame, 1-channel hyperstack for header checks at parse time."""
+    from nemo.io import write_hyperstack
+
+    d = tmp_path_factory.mktemp("stack")
+    data = np.zeros((2, 8, 1, 16, 16), dtype=np.uint8)
+    write_hyperstack(d / "stack.tif", data, spacing=(1, 1, 1), axes="TZCYX")
+    return d / "stack.tif"
+
+
+def _bad(cfg_edit, tiny_stack=None):
+    cfg = default_config()
+    if tiny_stack is not None:
+        cfg["datasets"] = {"cells": {"path": str(tiny_stack)}}
+    cfg_edit(cfg)
+    return cfg
+
+
+BAD_CONFIGS = {
+    "order.radius": (lambda c: c["order"].update(radius=-5), "order.radius"),
+    "layer range": (lambda c: c["layers"]["apical"].update(range=[10, 6]), "layers.apical.range"),
+    "unknown layer": (lambda c: c.update(alignment=[["basal", "nope"]]), "alignment.0"),
+    "typo key": (lambda c: c["mesh"].update(stepp=2), "mesh"),
+    "threshold": (lambda c: c["mesh"].update(threshold="median"), "mesh.threshold"),
+    "split none": (lambda c: c["mesh"].update(split="none"), "mesh.split"),
+    "missing file": (lambda c: c["datasets"]["demo"].update(path="nothere.tif", synthetic=None),
+                     "datasets.demo.path"),
+    "shift": (lambda c: c["layers"]["apical"].update(shift=0.2, surface="outer"), "layers.apical.shift"),
+    "no datasets": (lambda c: c.update(datasets={}), "datasets"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_CONFIGS))
+def test_bad_config_fails_before_any_job_naming_the_key(tmp_path, name):
+    edit, key = BAD_CONFIGS[name]
+    cfg = write_config(tmp_path / "bad.yaml", _bad(edit))
+    proc = smk(tmp_path, "--cores", "1", "--configfile", cfg, check=False)
+    assert proc.returncode != 0
+    err = proc.stderr
+    assert f"config key '{key}" in err, err[-2000:]
+    assert "Traceback" not in err
+    assert not (tmp_path / "results").exists() and not (tmp_path / "resources").exists()
+
+
+@pytest.mark.parametrize(
+    "edit, key, words",
+    [
+        (lambda d: d.update(c=[0, 1]), "datasets.cells.c", "1 channel"),
+        (lambda d: d.update(t=[0, 5]), "datasets.cells.t", "2 time points"),
+        (lambda d: d.update(segment_channel=2), "datasets.cells.segment_channel", "channel 2"),
+    ],
+    ids=["channel", "time", "segment-channel"],
+)
+def test_hyperstack_header_checked_at_parse_time(tmp_path, tiny_stack, edit, key, words):
+    cfg = _bad(lambda c: edit(c["datasets"]["cells"]), tiny_stack)
+    proc = smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c.yaml", cfg), check=False)
+    assert proc.returncode != 0
+    assert f"config key '{key}'" in proc.stderr and words in proc.stderr, proc.stderr[-2000:]
+    # the same file with valid keys parses and plans one mesh per frame
+    ok = _bad(lambda c: None, tiny_stack)
+    counts = job_counts(smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "ok.yaml", ok)))
+    assert counts["mesh"] == 2
+
+
+def test_not_a_tiff_named_at_parse_time(tmp_path):
+    (tmp_path / "junk.tif").write_text("not an image")
+    cfg = _bad(lambda c: c.update(datasets={"x": {"path": str(tmp_path / "junk.tif")}}))
+    proc = smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c.yaml", cfg), check=False)
+    assert proc.returncode != 0 and "config key 'datasets.x.path'" in proc.stderr
+
+
+# ----------------------------------------------------------------------------- the real default run
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory):
+    """`snakemake --cores 2` on the bundled default config, once per test session."""
+    work = tmp_path_factory.mktemp("demo")
+    start = time.perf_counter()
+    smk(work, "--cores", "2")
+    elapsed = time.perf_counter() - start
+    print(f"\ndefault workflow: {elapsed:.0f} s with --cores 2")
+    return work
+
+
+def _summary(work: Path, name: str, dataset: str = "demo") -> pd.DataFrame:
+    from nemo.tables import read_table
+
+    return read_table(work / "results" / dataset / "summary" / f"{name}.parquet")
+
+
+def test_default_run_summaries(demo_run):
+    cfg = default_config()
+    frames = cfg["datasets"]["demo"]["synthetic"]["frames"]
+    f = _summary(demo_run, "frames")
+    assert FRAMES_COLUMNS <= set(f.columns)
+    assert len(f) == frames * len(cfg["layers"])
+    R = cfg["datasets"]["demo"]["synthetic"]["radius"]
+    # inner wall of the synthetic shell: a sphere of radius R
+    assert np.allclose(f["area"], 4 * np.pi * R**2, rtol=0.03)
+    assert np.allclose(f["volume"], 4 / 3 * np.pi * R**3, rtol=0.03)
+    assert np.allclose(f["H_mean"], 1 / R, rtol=0.05)
+    shell = read_truth(demo_run / "resources/demo/vesicle.truth.json")["shell_thickness"]
+    assert np.allclose(f["thickness_mean"], shell, atol=2.0)
+    # Σ charge = χ = 2 on the closed vesicle, 4 × +½ in every frame and layer
+    assert (f["n_defects"] == 4).all(), f[["t", "layer", "n_defects"]]
+    assert np.allclose(f["charge_sum"], 2.0, atol=0.1)
+    assert (f["S_mean"] > 0.5).all()
+
+
+def test_default_run_defects_match_truth_and_track(demo_run):
+    truth = read_truth(demo_run / "resources/demo/vesicle.truth.json")
+    td = truth_defects(truth)
+    d = _summary(demo_run, "defects")
+    assert DEFECTS_COLUMNS <= set(d.columns)
+    assert (d["charge_rounded"] == 0.5).all()
+    # every detected defect lies close to a true defect of its frame
+    for t, group in d.groupby("t"):
+        true = td[(td["t"] == t) & (td["layer"] == 0)][["x", "y", "z"]].to_numpy()
+        dist = np.linalg.norm(group[["x", "y", "z"]].to_numpy()[:, None] - true[None], axis=2).min(axis=1)
+        assert dist.max() < 6.0, (t, dist)  # µm, at 2 µm voxels
+    tr = _summary(demo_run, "tracks")
+    assert TRACKS_COLUMNS <= set(tr.columns)
+    frames = truth["shape"]["T"]
+    # one track per true defect and layer, over all frames, with the right charge
+    assert len(tr) == 4 * 2
+    assert (tr["first_t"] == 0).all() and (tr["last_t"] == frames - 1).all()
+    assert (tr["charge_rounded"] == 0.5).all() and (tr["length"] == frames).all()
+    # speed: the defects rotate by frame_rotation about the y axis
+    rot = np.deg2rad(truth["parameters"]["frame_rotation"])
+    true_steps = []
+    for k in range(4):
+        p = td[(td["layer"] == 0)].groupby("t").nth(k)[["x", "y", "z"]].to_numpy()
+        true_steps.append(np.linalg.norm(np.diff(p, axis=0), axis=1).mean())
+    assert tr["mean_speed"].max() < max(true_steps) + 3.0
+    assert np.isclose(np.sort(true_steps)[-1], 2 * 100 * np.sin(rot / 2), rtol=0.5)
+
+
+def test_default_run_alignment_orthogonal_layers(demo_run):
+    a = _summary(demo_run, "alignment")
+    assert set(a["layer_a"]) == {"basal"} and set(a["layer_b"]) == {"apical"}
+    assert (a["c_mean"] <= -0.85).all(), a  # second layer rotated by 90°: c = cos 2·90° = −1
+
+
+def test_nothing_reruns_after_a_complete_run(demo_run):
+    assert job_counts(smk(demo_run, "-n", "--cores", "2")) == {}
+
+
+def _rerun_counts(work: Path, tmp_path: Path, edit) -> dict[str, int]:
+    cfg = default_config()
+    edit(cfg)
+    return job_counts(smk(work, "-n", "--cores", "2", "--configfile", write_config(tmp_path / "c.yaml", cfg)))
+
+
+def test_changing_the_averaging_radius_reruns_only_order_and_below(demo_run, tmp_path):
+    counts = _rerun_counts(demo_run, tmp_path, lambda c: c["order"].update(radius=c["order"]["radius"] + 5))
+    n = default_config()["datasets"]["demo"]["synthetic"]["frames"] * 2
+    assert counts.pop("order") == n and counts.pop("defects") == n
+    assert set(counts) <= {"aggregate_frames", "aggregate_defects", "track", "all"}, counts
+
+
+def test_changing_one_layer_reruns_that_layer_only(demo_run, tmp_path):
+    counts = _rerun_counts(demo_run, tmp_path, lambda c: c["layers"]["apical"].update(range=[6, 11]))
+    frames = default_config()["datasets"]["demo"]["synthetic"]["frames"]
+    for rule in ("peel", "directors", "order", "defects", "align"):
+        assert counts.get(rule) == frames, (rule, counts)
+    assert not {"mesh", "synth_demo", "curvature", "thickness", "measure"} & set(counts), counts
+
+
+def test_changing_tracking_reruns_only_tracking(demo_run, tmp_path):
+    counts = _rerun_counts(demo_run, tmp_path, lambda c: c["tracking"].update(max_distance=30))
+    assert set(counts) == {"track", "all"}, counts
+
+
+# ----------------------------------------------------------------------------- slow: real-looking data, failures, SLURM
+def _movie_config(path: Path, frames: int) -> dict:
+    cfg = default_config()
+    cfg["datasets"] = {"movie": {"path": str(path), "t": "all", "c": "all"}}
+    cfg["segment_channel"] = 0
+    cfg["layers"]["basal"]["channels"] = [0]
+    cfg["layers"]["apical"]["channels"] = [1]
+    cfg["layers"]["apical"]["range"] = [6, 11]
+    cfg["alignment"] = []
+    return cfg
+
+
+@pytest.mark.slow
+def test_multiframe_two_channel_hyperstack(tmp_path):
+    """T = 6, C = 2, anisotropic voxels (dz = 2 dx), noise: each layer in its own channel."""
+    from nemo.cli import main as nemo_main
+
+    movie = tmp_path / "movie.tif"
+    assert nemo_main(["synth", str(movie), "--radius", "60", "--spacing", "2", "1", "1",
+                      "--frames", "6", "--frame-rotation", "5", "--channels", "2",
+                      "--second-layer-depth", "8.5", "--second-layer-channel", "1",
+                      "--noise", "8", "--rotate-random", "4", "--seed", "2"]) == 0
+    cfg = _movie_config(movie, 6)
+    cfg["curvature"]["radius"] = 10
+    cfg["directors"]["patch_radius"] = 10
+    cfg["order"]["radius"] = 20
+    cfg["defects"]["min_distance"] = 20
+    cfg["defects"]["contour_radius"] = 12
+    smk(tmp_path, "--cores", "2", "--configfile", write_config(tmp_path / "movie.yaml", cfg))
+    f = _summary(tmp_path, "frames", "movie")
+    assert len(f) == 6 * 2 and set(zip(f["c"], f["layer"])) == {(0, "basal"), (1, "apical")}
+    assert np.allclose(f["charge_sum"], 2.0, atol=0.15)
+    tr = _summary(tmp_path, "tracks", "movie")
+    full = tr[(tr["first_t"] == 0) & (tr["last_t"] == 5)]
+    assert len(full) == 8, tr  # 4 defects × 2 layers followed over all frames
+    assert (full["charge_rounded"] == 0.5).all()
+
+
+@pytest.mark.slow
+def test_failing_frame_does_not_corrupt_others(tmp_path):
+    """A dark frame fails its mesh; --keep-going completes the other frame, no partial files."""
+    from nemo.io import read_stack, write_hyperstack
+    from nemo.cli import main as nemo_main
+
+    src = tmp_path / "src.tif"
+    assert nemo_main(["synth", str(src), "--radius", "40", "--spacing", "2", "2", "2",
+                      "--frames", "2", "--frame-rotation", "5"]) == 0
+    frames = [read_stack(src, t=t, c=0)[0] for t in range(2)]
+    frames[1][:] = 0  # t = 1 is empty: nemo mesh fails with a clear message
+    data = np.stack(frames)[:, :, None]
+    write_hyperstack(tmp_path / "broken.tif", data, spacing=(2, 2, 2), axes="TZCYX")
+    cfg = default_config()
+    cfg["datasets"] = {"broken": {"path": str(tmp_path / "broken.tif")}}
+    for layer in cfg["layers"].values():
+        layer["channels"] = "all"
+    cfg["curvature"]["radius"] = 8
+    cfg["directors"].update(patch_radius=8, n_patches=800)
+    cfg["order"]["radius"] = 15
+    cfg["defects"].update(min_distance=15, contour_radius=10)
+    proc = smk(tmp_path, "--cores", "2", "--keep-going", "--configfile",
+               write_config(tmp_path / "b.yaml", cfg), check=False)
+    assert proc.returncode != 0
+    good = tmp_path / "results/broken/t0/c0"
+    bad = tmp_path / "results/broken/t1/c0"
+    for layer in ("basal", "apical"):
+        assert (good / f"defects_{layer}.parquet").exists()
+    assert not (bad / "mesh.ply").exists()
+    leftovers = [p for p in (tmp_path / "results").rglob("*") if ".tmp" in p.name]
+    assert not leftovers, leftovers
+    log = (tmp_path / "results/broken/logs/mesh/t1_c0.log").read_text()
+    assert "error" in log.lower()
+
+
+def _slurm_up() -> bool:
+    return shutil.which("scontrol") is not None and subprocess.run(
+        ["scontrol", "ping"], capture_output=True).returncode == 0
+
+
+@pytest.fixture(scope="module")
+def slurm_cluster():
+    """A real single-node SLURM (brought up by tests/slurm/slurm-up.sh unless already up)."""
+    started = False
+    if not _slurm_up():
+        if os.geteuid() != 0:
+            pytest.skip("bringing up SLURM needs root (apt-get, daemons)")
+        subprocess.run(["bash", str(ROOT / "tests/slurm/slurm-up.sh")], check=True, timeout=1800)
+        started = True
+    try:
+        import snakemake_executor_plugin_slurm  # noqa: F401
+    except ImportError:
+        pytest.skip("snakemake-executor-plugin-slurm is not installed (pip install '.[slurm]')")
+    yield
+    if started:
+        subprocess.run(["bash", str(ROOT / "tests/slurm/slurm-down.sh")], check=False)
+
+
+@pytest.mark.slow
+def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_run, tmp_path):
+    start = time.strftime("%Y-%m-%dT%H:%M:%S")
+    t0 = time.perf_counter()
+    smk(tmp_path, "--profile", ROOT / "profiles" / "slurm", timeout=3600)
+    print(f"\nSLURM run of the default workflow: {time.perf_counter() - t0:.0f} s")
+    # the jobs really ran under SLURM: sacct knows them (the plugin stores the rule in the comment)
+    sacct = subprocess.run(["sacct", "-X", "-n", "-P", "-S", start, "-o", "JobID,State,Comment,WorkDir"],
+                           capture_output=True, text=True, check=True).stdout
+    rows = [line.split("|") for line in sacct.splitlines() if line.strip()]
+    ours = [r for r in rows if Path(r[3]).resolve() == tmp_path.resolve()]
+    local_jobs = job_counts(smk(tmp_path, "-n", "--forceall", "--cores", "1"))
+    n_jobs = sum(v for k, v in local_jobs.items() if k != "all")
+    assert len(ours) >= n_jobs, (len(ours), n_jobs, sacct[-2000:])
+    assert all(r[1] == "COMPLETED" for r in ours), ours
+    for rule in ("mesh", "peel", "defects", "track"):
+        assert any(rule in r[2] for r in ours), (rule, ours[:5])
+    # and gave the same summaries as the local run
+    for name in ("frames", "defects", "tracks", "alignment"):
+        local = _summary(demo_run, name)
+        remote = _summary(tmp_path, name)
+        pd.testing.assert_frame_equal(local, remote, check_exact=False, rtol=1e-6, atol=1e-9)
