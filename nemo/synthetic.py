@@ -791,7 +791,9 @@ def vesicle(
         spec["n_fibres"] = n_seeds
 
     data = np.zeros((frames, shape[0], channels, shape[1], shape[2]), np.uint8)
-    sigma_vox = tuple(blur / d for d in sp)
+    # trilinear splatting already spreads a fibre by a hat kernel of variance d^2/6 per axis:
+    # blur by the rest so that the total is the requested isotropic physical sigma
+    sigma_vox = tuple(np.sqrt(max(blur**2 - d * d / 6.0, 0.0)) / d for d in sp)
     norm = 2 * np.pi * blur**2 if blur > 0 else float(np.prod(sp)) ** (2.0 / 3.0)
     weight = step_um / float(np.prod(sp))  # fibre length per voxel volume (µm / µm³)
     # analytic blurred-shell profile on a fine radial grid (exact formula, interpolated)
@@ -817,7 +819,7 @@ def vesicle(
                     for i in mine:
                         xyz = traced[i] @ frame_rot[t].T + centre
                         _splat(xyz, weight, shape, sp, vol)
-                    if blur > 0:
+                    if max(sigma_vox) > 0:
                         ndimage.gaussian_filter(vol, sigma_vox, output=vol, mode="constant", truncate=4.0)
                     vol *= scale
                 nrng = noise_rngs[t * channels + c]
