@@ -1,0 +1,273 @@
+"""Directors and tangent frames against analytic fields (flat, cylinder, sphere, vesicle)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import orientationpy
+import pandas as pd
+import pytest
+import trimesh
+from scipy.spatial import Delaunay
+
+from nemo.directors import default_n_patches, directors, fibre_angle, structure_tensor_centre
+from nemo.errors import NemoError, NemoWarning
+from nemo.frames import axis_frames, tangent_frames
+from nemo.mesh import make_mesh, mean_edge_length, save_mesh
+from nemo.tables import read_table, write_table
+
+WAVELENGTH = 6.0  # stripe period (µm); meshes have ~1 µm edges
+
+
+def angle_between_deg(n, e):
+    """Unsigned nematic angle (degrees) between rows of n and e."""
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    e = e / np.linalg.norm(e, axis=1, keepdims=True)
+    return np.rad2deg(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", n, e)), 0, 1)))
+
+
+# ------------------------------------------------------------------ structure tensor vs OrientationPy
+
+
+def _stripes(shape, alpha, period, rng, noise=0.3):
+    """Stripes along (cos α, sin α) in (column, row) coordinates, plus noise."""
+    r, c = np.mgrid[0 : shape[0], 0 : shape[1]].astype(float)
+    img = np.cos(2 * np.pi * (-np.sin(alpha) * c + np.cos(alpha) * r) / period)
+    return img + noise * rng.standard_normal(shape)
+
+
+@pytest.mark.parametrize("shape,sigma", [((41, 41), 5.0), ((30, 37), 2.0), ((25, 25), 8.0)])
+def test_structure_tensor_agrees_with_orientationpy(shape, sigma, rng):
+    alphas = np.deg2rad(np.arange(-85, 91, 7.5))
+    images = np.stack([_stripes(shape, a, 5.0, rng) for a in alphas])
+    images[-1] = rng.standard_normal(shape)  # one isotropic image as well
+    theta, coherency = fibre_angle(structure_tensor_centre(images, sigma))
+    for k, img in enumerate(images):
+        grad = orientationpy.computeGradient(img, mode="gaussian")
+        st = orientationpy.computeStructureTensor(grad, sigma=sigma)
+        cy, cx = shape[0] // 2, shape[1] // 2
+        th_opy = orientationpy.computeOrientation(st)["theta"][cy, cx]
+        diff = (np.rad2deg(theta[k]) + th_opy + 90.0) % 180.0 - 90.0  # OrientationPy's y is up
+        assert abs(diff) < 0.5, (k, th_opy, np.rad2deg(theta[k]))
+        j = st[:, cy, cx]
+        np.testing.assert_allclose(structure_tensor_centre(img, sigma)[0], j, rtol=1e-9, atol=1e-12)
+    # and the angles are the stripes' (ground truth), coherency high for stripes
+    clean = np.stack([_stripes(shape, a, 5.0, rng, noise=0.05) for a in alphas])
+    theta, coherency = fibre_angle(structure_tensor_centre(clean, sigma))
+    err = (np.rad2deg(theta - alphas) + 90) % 180 - 90
+    assert np.abs(err).max() < 1.0
+    assert coherency.min() > 0.8
+
+
+# ------------------------------------------------------------------ meshes
+
+
+def flat_mesh(size=60.0, spacing=1.0, seed=0):
+    rng = np.random.default_rng(seed)
+    g = np.arange(0, size + 1e-9, spacing)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    xy = xy + 0.3 * spacing * rng.uniform(-1, 1, xy.shape)  # irregular triangulation
+    tri = Delaunay(xy)
+    return make_mesh(np.c_[xy, np.zeros(len(xy))], tri.simplices, orient_outward=False)
+
+
+def cylinder_mesh(radius=15.0, length=60.0, spacing=1.0):
+    n_phi = int(round(2 * np.pi * radius / spacing))
+    n_z = int(round(length / spacing)) + 1
+    phi = np.arange(n_phi) * 2 * np.pi / n_phi
+    z = np.linspace(0, length, n_z)
+    P, Z = np.meshgrid(phi, z)
+    V = np.c_[radius * np.cos(P.ravel()), radius * np.sin(P.ravel()), Z.ravel()]
+    idx = np.arange(n_z * n_phi).reshape(n_z, n_phi)
+    a, b = idx[:-1], np.roll(idx, -1, axis=1)[:-1]
+    c, d = idx[1:], np.roll(idx, -1, axis=1)[1:]
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    return make_mesh(V, faces, orient_outward=False)
+
+
+def sphere_mesh(radius=30.0, subdivisions=5):
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return make_mesh(ico.vertices, ico.faces)
+
+
+@pytest.mark.parametrize("alpha_deg", [0.0, 30.0, 72.0, 90.0, 135.0])
+def test_flat_stripes_known_angle(alpha_deg):
+    mesh = flat_mesh()
+    v = mesh.vertices
+    a = np.deg2rad(alpha_deg)
+    e = np.array([np.cos(a), np.sin(a), 0.0])
+    intensity = np.cos(2 * np.pi * (v @ np.array([-np.sin(a), np.cos(a), 0.0])) / WAVELENGTH)
+    inner = np.flatnonzero(np.all((v[:, :2] > 15) & (v[:, :2] < 45), axis=1))
+    centres = inner[:: max(1, len(inner) // 150)]
+    df = directors(mesh, intensity, patch_radius=6.0, centres=centres)
+    assert len(df) == len(centres) and (df["vertex"].to_numpy() == centres).all()
+    err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), np.tile(e, (len(df), 1)))
+    assert err.max() < 2.0, err.max()
+    assert df["coherency"].median() > 0.8
+    np.testing.assert_allclose(np.linalg.norm(df[["nx", "ny", "nz"]], axis=1), 1.0)
+    np.testing.assert_allclose(df[["x", "y", "z"]].to_numpy(), v[centres])
+
+
+@pytest.mark.parametrize("alpha_deg", [0.0, 40.0, 90.0])
+def test_cylinder_helical_stripes(alpha_deg):
+    rc = 15.0
+    mesh = cylinder_mesh(radius=rc)
+    v = mesh.vertices
+    a = np.deg2rad(alpha_deg)
+    phi = np.arctan2(v[:, 1], v[:, 0])
+    s = rc * phi  # arc length around the cylinder
+    # stripes along e = cos α ẑ + sin α e_φ on the unrolled surface (u = s, w = z)
+    intensity = np.cos(2 * np.pi * (np.cos(a) * s - np.sin(a) * v[:, 2]) / WAVELENGTH)
+    ok = (np.abs(phi) < 2.0) & (v[:, 2] > 15) & (v[:, 2] < 45)  # away from the seam and the ends
+    centres = np.flatnonzero(ok)[::5]
+    df = directors(mesh, intensity, patch_radius=5.0, centres=centres)
+    p = df[["x", "y", "z"]].to_numpy()
+    e_phi = np.c_[-p[:, 1], p[:, 0], np.zeros(len(p))] / rc
+    expect = np.cos(a) * np.array([0, 0, 1.0]) + np.sin(a) * e_phi
+    err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), expect)
+    assert np.median(err) < 1.0 and err.max() < 2.0, (np.median(err), err.max())
+    normals = p / np.linalg.norm(p, axis=1, keepdims=True) * np.array([1, 1, 0])
+    assert np.abs(np.einsum("ij,ij->i", df[["nx", "ny", "nz"]].to_numpy(), normals)).max() < 0.05
+
+
+def test_sphere_latitude_circles_and_meridians():
+    R = 30.0
+    mesh = sphere_mesh(R)
+    v = mesh.vertices
+    lat = np.arcsin(np.clip(v[:, 2] / R, -1, 1))
+    centres = np.flatnonzero(np.abs(v[:, 2]) < 0.8 * R)[::7]
+    for field, along_phi in ((np.cos(2 * np.pi * lat * R / WAVELENGTH), True),
+                             (np.cos(2 * np.pi * np.arctan2(v[:, 1], v[:, 0]) * 12 / (2 * np.pi)), False)):
+        df = directors(mesh, field, patch_radius=5.0, centres=centres)
+        p = df[["x", "y", "z"]].to_numpy()
+        e_phi = np.c_[-p[:, 1], p[:, 0], np.zeros(len(p))]
+        r_hat = p / R
+        e_theta = np.cross(e_phi, r_hat)
+        expect = e_phi if along_phi else e_theta
+        err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), expect)
+        assert np.median(err) < 1.0 and np.percentile(err, 95) < 2.0, (along_phi, np.median(err), err.max())
+
+
+def test_patch_k_and_defaults():
+    mesh = sphere_mesh(30.0, subdivisions=4)
+    v = mesh.vertices
+    lat = np.arcsin(np.clip(v[:, 2] / 30.0, -1, 1))
+    intensity = np.cos(2 * np.pi * lat * 30.0 / 8.0)
+    df = directors(mesh, intensity, patch_k=80, rng=1)
+    assert len(df) > 100
+    p = df[["x", "y", "z"]].to_numpy()
+    keep = np.abs(p[:, 2]) < 0.8 * 30
+    e_phi = np.c_[-p[:, 1], p[:, 0], np.zeros(len(p))]
+    assert np.median(angle_between_deg(df[["nx", "ny", "nz"]].to_numpy()[keep], e_phi[keep])) < 2.0
+    # default patch count follows the area: 30 per patch area, capped by N
+    r = 10 * mean_edge_length(mesh)
+    assert default_n_patches(mesh.area, r, len(v)) == min(len(v), round(30 * mesh.area / (np.pi * r**2)))
+    assert default_n_patches(4 * np.pi * 200.0**2, 20.0, 10**6) == 12000  # the paper's numbers
+    df_default = directors(mesh, intensity, rng=2)
+    assert len(df_default) == default_n_patches(mesh.area, 10 * mean_edge_length(mesh), len(v))
+    # same seed, same result; different seed, other centres
+    a = directors(mesh, intensity, patch_radius=6.0, n_patches=50, rng=3)
+    b = directors(mesh, intensity, patch_radius=6.0, n_patches=50, rng=3)
+    pd.testing.assert_frame_equal(a, b)
+    assert not np.array_equal(a["vertex"], directors(mesh, intensity, patch_radius=6.0, n_patches=50, rng=4)["vertex"])
+
+
+def test_frames_axis_and_smooth_and_independence():
+    mesh = sphere_mesh(30.0, subdivisions=4)
+    normals = np.asarray(mesh.vertex_normals)
+    for method in ("axis", "smooth"):
+        t1, t2 = tangent_frames(mesh, method)
+        np.testing.assert_allclose(np.linalg.norm(t1, axis=1), 1, atol=1e-9)
+        np.testing.assert_allclose(np.einsum("ij,ij->i", t1, t2), 0, atol=1e-9)
+        np.testing.assert_allclose(np.cross(t1, t2), normals, atol=1e-6)
+    # the smooth frame varies slowly between neighbouring vertices (away from its singularity)
+    t1s, _ = tangent_frames(mesh, "smooth")
+    e = mesh.edges_unique
+    far = (mesh.vertices[e[:, 0], 2] > -20) & (mesh.vertices[e[:, 0], 2] < 20)
+    turn = np.rad2deg(np.arccos(np.clip(np.einsum("ij,ij->i", t1s[e[:, 0]], t1s[e[:, 1]]), -1, 1)))
+    assert np.percentile(turn[far], 99) < 15
+    # 3D directors do not depend on the frames
+    lat = np.arcsin(np.clip(mesh.vertices[:, 2] / 30.0, -1, 1))
+    intensity = np.cos(2 * np.pi * lat * 30.0 / 7.0 + 0.3 * np.sin(np.arctan2(mesh.vertices[:, 1], mesh.vertices[:, 0]) * 3))
+    a = directors(mesh, intensity, patch_radius=6.0, n_patches=300, rng=0, frames="axis")
+    b = directors(mesh, intensity, patch_radius=6.0, n_patches=300, rng=0, frames="smooth")
+    assert np.median(angle_between_deg(a[["nx", "ny", "nz"]].to_numpy(), b[["nx", "ny", "nz"]].to_numpy())) < 0.5
+    # big meshes fall back to axis frames with a warning, never minutes of potpourri3d
+    with pytest.warns(NemoWarning, match="smooth tangent frames skipped"):
+        t1f, _ = tangent_frames(mesh, "smooth", max_vertices=100)
+    np.testing.assert_allclose(t1f, axis_frames(normals)[0])
+    # axis frames where N ∥ x̂ use ŷ
+    t1x, t2x = axis_frames(np.array([[1.0, 0, 0], [0, 0, 1.0]]))
+    np.testing.assert_allclose(np.cross(t1x, t2x), [[1, 0, 0], [0, 0, 1]], atol=1e-12)
+
+
+def test_isotropic_noise_has_no_preferred_direction(rng):
+    from scipy import ndimage
+
+    mesh = flat_mesh(size=120.0)
+    noise = ndimage.gaussian_filter(rng.standard_normal((140, 140)), 1.5)
+    intensity = ndimage.map_coordinates(noise, (mesh.vertices[:, 1] + 10, mesh.vertices[:, 0] + 10), order=1)
+    df = directors(mesh, intensity, patch_radius=4.0, n_patches=3000, rng=0)
+    theta = np.arctan2(df["ny"], df["nx"])
+    assert abs(np.mean(np.exp(2j * theta))) < 0.1
+    assert df["coherency"].median() < 0.6
+
+
+def test_synthetic_vesicle_directors_match_analytic_field():
+    from nemo.peel import peel
+    from nemo.surface import reconstruct, split_mesh
+    from nemo.synthetic import truth_directors, vesicle
+
+    data, truth = vesicle(radius=50.0, seed=0)
+    vol = data[0, :, 0]
+    whole = reconstruct(vol, (1.0, 1.0, 1.0), step=2, keep="all")
+    inner, _ = split_mesh(whole, by="centre")
+    intensity = peel(vol, (1, 1, 1), inner.vertices, np.asarray(inner.vertex_normals), 0, 5, 11)
+    df = directors(inner, intensity, patch_radius=10.0, rng=0)
+    p = df[["x", "y", "z"]].to_numpy()
+    err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), truth_directors(truth, p))
+    dirs = np.array([[d["x"], d["y"], d["z"]] for d in truth["defects"] if d["layer"] == 0])
+    far = np.min(np.linalg.norm(p[:, None] - dirs[None], axis=2), axis=1) > 10.0
+    assert np.median(err[far]) < 5.0 and np.percentile(err[far], 90) < 15.0, (np.median(err[far]), np.percentile(err[far], 90))
+
+
+def test_bad_input():
+    mesh = sphere_mesh(30.0, subdivisions=3)
+    n = len(mesh.vertices)
+    with pytest.raises(NemoError, match="peel the layer on this mesh"):
+        directors(mesh, np.zeros(n + 1), patch_radius=5)
+    with pytest.raises(NemoError, match="not both"):
+        directors(mesh, np.zeros(n), patch_radius=5, patch_k=20)
+    with pytest.raises(NemoError, match="NaN everywhere"):
+        directors(mesh, np.full(n, np.nan), patch_radius=5)
+    with pytest.raises(NemoError, match="smaller than 2 micro-image pixels"):
+        directors(mesh, np.zeros(n), patch_radius=0.5, pixel=1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        flat = directors(mesh, np.ones(n), patch_radius=8, n_patches=20, rng=0)
+    assert len(flat) == 0  # a constant layer has no orientation: no director, not garbage
+
+
+def test_cli_directors(tmp_path, run_cli):
+    mesh = sphere_mesh(30.0, subdivisions=4)
+    v = mesh.vertices
+    lat = np.arcsin(np.clip(v[:, 2] / 30.0, -1, 1))
+    mpath = tmp_path / "s.ply"
+    save_mesh(mesh, mpath)
+    lpath = tmp_path / "layer.parquet"
+    write_table(pd.DataFrame({"vertex": np.arange(len(v)), "intensity": np.cos(2 * np.pi * lat * 30 / 7.0)}), lpath)
+    out = tmp_path / "d.parquet"
+    code, stdout, err = run_cli("directors", mpath, lpath, "-o", out, "--patch-radius", "6", "--n-patches", "200", "--seed", "1")
+    assert code == 0, err
+    df = read_table(out, kind="directors")
+    assert len(df) == 200 and "median coherency" in stdout
+    code, _, err = run_cli("directors", mpath, lpath, "-o", out, "--patch-k", "60", "--frames", "smooth")
+    assert code == 0, err
+    with pytest.raises(SystemExit) as exit_info:  # argparse: --patch-radius or --patch-k required
+        run_cli("directors", mpath, lpath, "-o", out)
+    assert exit_info.value.code == 2
+    small = tmp_path / "small.ply"
+    save_mesh(sphere_mesh(30.0, subdivisions=2), small)
+    code, _, err = run_cli("directors", small, lpath, "-o", out, "--patch-radius", "6")
+    assert code == 2 and "another mesh" in err and "Traceback" not in err
