@@ -369,17 +369,24 @@ def field_selector(napari_viewer):
     def surfaces(*_):
         return [lay.name for lay in napari_viewer.layers if "nemo_fields" in lay.metadata]
 
-    surf = ComboBox(label="surface", choices=surfaces)
-    fld = ComboBox(label="field", choices=[])
-    info = Label(value="")
-
     def current_layer():
-        return napari_viewer.layers[surf.value] if surf.value in napari_viewer.layers else None
+        name = surf.value if surf is not None else None
+        return napari_viewer.layers[name] if name in napari_viewer.layers else None
+
+    def field_names(*_):
+        lay = current_layer()
+        return list(lay.metadata["nemo_fields"]) if lay is not None else []
+
+    surf = None
+    surf = ComboBox(label="surface", choices=surfaces)
+    # callable choices: napari calls reset_choices() on docked magicgui widgets
+    fld = ComboBox(label="field", choices=field_names)
+    info = Label(value="")
 
     def refresh_fields(*_):
         lay = current_layer()
-        names = list(lay.metadata["nemo_fields"]) if lay is not None else []
-        fld.choices = names
+        fld.reset_choices()
+        names = list(fld.choices)
         if lay is not None and lay.metadata.get("nemo_field") in names:
             fld.value = lay.metadata["nemo_field"]
         show_info()
