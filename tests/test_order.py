@@ -1,0 +1,248 @@
+"""Tangential Q-tensor average and inter-layer alignment against analytic fields."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import trimesh
+
+from nemo.errors import NemoError, NemoWarning
+from nemo.frames import axis_frames
+from nemo.mesh import make_mesh, save_mesh
+from nemo.order import alignment, lift_q, order, tangential_eig
+from nemo.tables import read_table, write_table
+
+R = 30.0
+
+
+def sphere_mesh(radius=R, subdivisions=4):
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return make_mesh(ico.vertices, ico.faces)
+
+
+def e_phi(p):
+    e = np.c_[-p[:, 1], p[:, 0], np.zeros(len(p))]
+    return e / np.linalg.norm(e, axis=1, keepdims=True)
+
+
+def directors_table(mesh, vertices, n):
+    p = mesh.vertices[vertices]
+    return pd.DataFrame({"vertex": vertices, "x": p[:, 0], "y": p[:, 1], "z": p[:, 2],
+                         "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], "coherency": 1.0})
+
+
+def tangent_angle_field(mesh, vertices, theta):
+    """Directors cos θ t1 + sin θ t2 in the axis frames of the given vertices."""
+    t1, t2 = axis_frames(np.asarray(mesh.vertex_normals)[vertices])
+    return np.cos(theta)[:, None] * t1 + np.sin(theta)[:, None] * t2
+
+
+def nematic_angle_deg(a, b):
+    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    return np.rad2deg(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", a, b)), 0, 1)))
+
+
+def test_lift_q_is_tangential_traceless_and_frame_free(rng):
+    normals = rng.standard_normal((50, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    t1, t2 = axis_frames(normals)
+    theta = rng.uniform(-np.pi, np.pi, 50)
+    n = np.cos(theta)[:, None] * t1 + np.sin(theta)[:, None] * t2
+    q6 = lift_q(n, normals)
+    q = np.zeros((50, 3, 3))
+    for k, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        q[:, i, j] = q[:, j, i] = q6[:, k]
+    np.testing.assert_allclose(np.trace(q, axis1=1, axis2=2), 0, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("tij,tj->ti", q, normals), 0, atol=1e-12)
+    # equals q_ij t_i ⊗ t_j with q = n nᵀ − ½ I₂ in the local basis (paper eq. Q_lifted)
+    c, s = np.cos(theta), np.sin(theta)
+    q2 = np.stack([np.stack([c * c - 0.5, c * s], -1), np.stack([c * s, s * s - 0.5], -1)], -2)
+    basis = np.stack([t1, t2], 1)  # (P, 2, 3)
+    np.testing.assert_allclose(np.einsum("pab,pai,pbj->pij", q2, basis, basis), q, atol=1e-12)
+    # head-tail symmetry
+    np.testing.assert_array_equal(lift_q(-n, normals), q6)
+    s_val, n_avg = tangential_eig(q6, normals)
+    np.testing.assert_allclose(s_val, 1.0, atol=1e-12)
+    assert nematic_angle_deg(n_avg, n).max() < 1e-5
+
+
+@pytest.mark.parametrize("spread_deg", [0.0, 20.0, 45.0, 80.0])
+def test_order_parameter_of_a_known_angle_distribution(spread_deg, rng):
+    """Angles uniform in ±Δ around a mean: S = sin(2Δ)/(2Δ), director along the mean."""
+    mesh = sphere_mesh(subdivisions=5)
+    nv = len(mesh.vertices)
+    d = np.deg2rad(spread_deg)
+    vert = np.arange(nv)
+    theta0 = 0.7
+    # a deterministic, evenly spread set of angles per neighbourhood (low-discrepancy sequence)
+    frac = (vert * 0.6180339887498949) % 1.0
+    theta = theta0 + (2 * frac - 1) * d
+    n = tangent_angle_field(mesh, vert, theta)
+    # the directors only share a reference direction in a region where the axis frame is smooth
+    target = int(np.argmin(np.linalg.norm(mesh.vertices - np.array([0, 0, R]), axis=1)))
+    out = order(mesh, directors_table(mesh, vert, n), radius=4.0, targets=np.array([target]))
+    expect = 1.0 if d == 0 else np.sin(2 * d) / (2 * d)
+    assert out["S"].iloc[0] == pytest.approx(expect, abs=0.03)
+    ref = tangent_angle_field(mesh, np.array([target]), np.array([theta0]))
+    if spread_deg < 80:
+        assert nematic_angle_deg(out[["nx", "ny", "nz"]].to_numpy(), ref)[0] < 2.0
+
+
+def test_latitude_circles_give_s_one_along_e_phi():
+    mesh = sphere_mesh()
+    rng = np.random.default_rng(0)
+    vert = np.sort(rng.choice(len(mesh.vertices), 1500, replace=False))
+    n = e_phi(mesh.vertices[vert])
+    flip = rng.random(len(vert)) < 0.5
+    n[flip] *= -1  # head-tail symmetry: signs must not matter
+    out = order(mesh, directors_table(mesh, vert, n), radius=6.0)
+    assert len(out) == len(mesh.vertices)
+    p = out[["x", "y", "z"]].to_numpy()
+    band = np.abs(p[:, 2]) < 0.8 * R
+    # e_φ turns by ~ r tan(latitude) / R across a disc: S ≈ 1 near the equator, a bit less
+    # towards the +1 defects at the poles
+    assert out["S"][np.abs(p[:, 2]) < 0.5 * R].min() > 0.97
+    assert out["S"][band].min() > 0.9
+    err = nematic_angle_deg(out[["nx", "ny", "nz"]].to_numpy(), e_phi(p))
+    assert err[np.abs(p[:, 2]) < 0.5 * R].max() < 2.0 and np.median(err[band]) < 1.0
+    # the +1 defects at the poles show as low S
+    pole = np.abs(p[:, 2]) > 0.999 * R
+    assert out["S"][pole].max() < 0.5
+    # same result with all signs flipped
+    again = order(mesh, directors_table(mesh, vert, -n), radius=6.0)
+    np.testing.assert_allclose(again["S"], out["S"], atol=1e-12)
+
+
+def test_isotropic_directors_have_low_order(rng):
+    mesh = sphere_mesh()
+    vert = np.arange(len(mesh.vertices))
+    n = tangent_angle_field(mesh, vert, rng.uniform(0, np.pi, len(vert)))
+    out = order(mesh, directors_table(mesh, vert, n), radius=10.0, targets="directors")
+    assert out["count"].min() > 60
+    assert out["S"].median() < 0.2 and np.percentile(out["S"], 95) < 0.3
+
+
+def test_isotropic_noise_layer_has_low_order(rng):
+    """Directors measured on smooth isotropic noise, averaged over many patches: S < 0.2."""
+    from scipy import ndimage
+    from scipy.spatial import Delaunay
+
+    from nemo.directors import directors
+
+    g = np.arange(0, 160.0 + 1e-9, 1.0)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + 0.3 * rng.uniform(-1, 1, (len(g) ** 2, 2))
+    mesh = make_mesh(np.c_[xy, np.zeros(len(xy))], Delaunay(xy).simplices, orient_outward=False)
+    noise = ndimage.gaussian_filter(rng.standard_normal((180, 180)), 1.5)
+    intensity = ndimage.map_coordinates(noise, (xy[:, 1] + 10, xy[:, 0] + 10), order=1)
+    dirs = directors(mesh, intensity, patch_radius=4.0, rng=0)
+    out = order(mesh, dirs, radius=24.0, targets="directors")
+    inner = np.all((out[["x", "y"]].to_numpy() > 30) & (out[["x", "y"]].to_numpy() < 130), axis=1)
+    assert out["S"][inner].median() < 0.2
+
+
+def test_empty_neighbourhoods_are_nan_and_bad_input():
+    mesh = sphere_mesh()
+    vert = np.flatnonzero(mesh.vertices[:, 2] > 0.9 * R)
+    table = directors_table(mesh, vert, e_phi(mesh.vertices[vert] + [1e-3, 0, 0]))
+    with pytest.warns(NemoWarning, match="no director within"):
+        out = order(mesh, table, radius=3.0)
+    south = mesh.vertices[:, 2] < 0
+    assert out["S"][south].isna().all() and (out["count"][south] == 0).all()
+    assert out["S"][~south].notna().any()
+    with pytest.raises(NemoError, match="radius"):
+        order(mesh, table, radius=0)
+    with pytest.raises(NemoError, match="another mesh"):
+        order(sphere_mesh(subdivisions=2), table, radius=3.0)
+    with pytest.raises(NemoError, match="targets"):
+        order(mesh, table, radius=3.0, targets="some")
+
+
+def test_alignment_parallel_orthogonal_and_45(rng):
+    mesh = sphere_mesh()
+    va = np.sort(rng.choice(len(mesh.vertices), 800, replace=False))
+    vb = np.sort(rng.choice(len(mesh.vertices), 900, replace=False))
+    theta_a = rng.uniform(0, np.pi, len(mesh.vertices))  # an arbitrary field θ(vertex)
+    a = directors_table(mesh, va, tangent_angle_field(mesh, va, theta_a[va]))
+    for delta, expect in ((0.0, 1.0), (np.pi / 2, -1.0), (np.pi / 4, 0.0)):
+        # B: the same field rotated by delta, at A's vertices and others, moved radially 6 µm
+        # out and tilted out of A's tangent plane (the projection must remove the tilt); the
+        # nearest B of each A director is then the one right above it
+        vbb = np.union1d(va, vb)
+        nb = tangent_angle_field(mesh, vbb, theta_a[vbb] + delta)
+        b_full = directors_table(mesh, vbb, nb + 0.3 * np.asarray(mesh.vertex_normals)[vbb])
+        b_full[["x", "y", "z"]] = mesh.vertices[vbb] * (R + 6) / R
+        out = alignment(a, b_full, mesh_a=mesh)
+        assert len(out) == len(a) and (out["vertex"].to_numpy() == va).all()
+        np.testing.assert_allclose(out["c"], expect, atol=1e-9)
+        assert np.allclose(out["distance"], 6.0)
+        # head-tail symmetric
+        flipped = b_full.copy()
+        flipped[["nx", "ny", "nz"]] *= -1
+        np.testing.assert_allclose(alignment(a, flipped, mesh_a=mesh)["c"], expect, atol=1e-9)
+
+
+def _two_layer_vesicle(rotation):
+    from nemo.peel import peel
+    from nemo.surface import reconstruct, split_mesh
+    from nemo.synthetic import vesicle
+
+    data, truth = vesicle(radius=50.0, layer_depth=3.0, second_layer_depth=9.0,
+                          second_layer_rotation=rotation, seed=1)
+    vol = data[0, :, 0]
+    assert data.shape[2] == 1  # both layers in one channel
+    whole = reconstruct(vol, (1.0, 1.0, 1.0), step=2, keep="all")
+    inner, _ = split_mesh(whole, by="centre")
+    normals = np.asarray(inner.vertex_normals)
+    low = peel(vol, (1, 1, 1), inner.vertices, normals, 0.5, 5.5, 11)
+    high = peel(vol, (1, 1, 1), inner.vertices, normals, 6.5, 11.5, 11)
+    return inner, low, high
+
+
+@pytest.mark.parametrize("rotation,sign", [(90.0, -1), (0.0, +1)])
+def test_two_fibre_layers_in_one_channel(rotation, sign):
+    """Two layers 6 µm apart in one channel, peeled at two depths: mean c ≤ −0.9 / ≥ +0.9."""
+    from nemo.directors import directors
+
+    inner, low, high = _two_layer_vesicle(rotation)
+    da = directors(inner, low, patch_radius=10.0, rng=0)
+    db = directors(inner, high, patch_radius=10.0, rng=1)  # other centres than A
+    c = alignment(da, db, mesh_a=inner)["c"].to_numpy()
+    if sign < 0:
+        assert c.mean() <= -0.9, c.mean()
+    else:
+        assert c.mean() >= 0.9, c.mean()
+
+
+def test_cli_order_and_align(tmp_path, run_cli):
+    mesh = sphere_mesh()
+    mpath = tmp_path / "s.ply"
+    save_mesh(mesh, mpath)
+    vert = np.arange(0, len(mesh.vertices), 3)
+    da = directors_table(mesh, vert, e_phi(mesh.vertices[vert] + [1e-3, 0, 0]))
+    db = da.copy()
+    db[["nx", "ny", "nz"]] = np.cross(mesh.vertices[vert] / R, da[["nx", "ny", "nz"]].to_numpy())  # ⟂ in-plane
+    pa, pb = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    write_table(da, pa)
+    write_table(db, pb)
+    out = tmp_path / "order.parquet"
+    code, stdout, err = run_cli("order", mpath, pa, "-o", out, "--radius", "5")
+    assert code == 0, err
+    o = read_table(out, kind="order")
+    assert len(o) == len(mesh.vertices) and "S mean" in stdout
+    code, stdout, err = run_cli("order", mpath, pa, "-o", out, "--radius", "5", "--targets", "directors")
+    assert code == 0 and len(read_table(out, kind="order")) == len(vert)
+    al = tmp_path / "align.parquet"
+    code, stdout, err = run_cli("align", pa, pb, "-o", al, "--mesh", mpath)
+    assert code == 0, err
+    assert "mean c = -1.000" in stdout and "[-1.0, -0.8)" in stdout
+    assert np.allclose(read_table(al, kind="align")["c"], -1.0)
+    code, stdout, err = run_cli("align", pa, pa, "-o", al)
+    assert code == 0 and "mean c = +1.000" in stdout
+    code, _, err = run_cli("order", mpath, tmp_path / "nothing.parquet", "-o", out, "--radius", "5")
+    assert code == 2 and "not found" in err
+    layer = tmp_path / "layer.parquet"
+    write_table(pd.DataFrame({"vertex": [0], "intensity": [1.0]}), layer)
+    code, _, err = run_cli("order", mpath, layer, "-o", out, "--radius", "5")
+    assert code == 2 and "lacks column" in err
