@@ -51,7 +51,7 @@ MIN_DEFAULT_SAMPLES = 20_000
 #: The quartic fit needs at least this many neighbours, else that sample uses the quadratic fit.
 QUARTIC_MIN_NEIGHBOURS = 30
 #: ``fit="auto"`` picks the quartic fit when the median sample has at least this many neighbours.
-AUTO_QUARTIC_NEIGHBOURS = 100
+AUTO_QUARTIC_NEIGHBOURS = 60
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 

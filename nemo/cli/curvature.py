@@ -17,8 +17,8 @@ H = +1/R and K = +1/R² (units 1/µm, 1/µm²).
 
 Fits (--fit): 'quadric' is the paper's z = aξ² + bη² + cξη; 'quadratic' adds linear and
 constant terms (insensitive to normal errors); 'quartic' fits all terms up to 4th order
-(no r²/R² bias, needs ~100 neighbours); 'auto' (default) takes quartic when the median
-vertex has at least 100 neighbours within the radius, else quadratic.
+(no r²/R² bias, needs ~60 neighbours); 'auto' (default) takes quartic when the median
+vertex has at least 60 neighbours within the radius, else quadratic.
 
 Output columns: vertex, H, K, k1, k2 (principal curvatures, k1 >= k2), d1x..d1z, d2x..d2z
 (principal directions), sampled (fit done at that vertex). NaN where the radius held fewer
