@@ -835,6 +835,8 @@ def vesicle(
                     np.clip(img, 0.0, 255.0, out=img)
                     data[t, z, c] = np.rint(img).astype(np.uint8)
 
+    params.update(fibre_length=fibre_length, step_size=step_um, margin=margin, size=list(shape),
+                  channels=channels, frames=frames)
     truth = _make_truth(R, centre, sp, shape, frames, channels, specs, frame_rot, g,
                         shell_thickness, params)
     return data, truth

@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.io import read_info, read_stack
 from nemo.synthetic import (
     PRESETS,
@@ -365,12 +365,30 @@ def test_rotate_random_moves_defects():
     np.testing.assert_allclose(u1, u0 @ Rotation.random(random_state=11).as_matrix().T, atol=1e-12)
 
 
-def test_default_size_follows_paper():
-    """Default geometry: R = 200 µm, 1 µm voxels, 450^3 (checked without generating)."""
+def test_volume_must_fit():
     with pytest.raises(NemoError, match="needs"):
         vesicle(size=(400, 450, 450))
-    # the size rule: 2 (R + shell + margin) / spacing with margin = 0.075 R
-    assert int(np.ceil(2 * (200 + 10 + 0.075 * 200))) == 450
+    with pytest.warns(NemoWarning, match="outside the 8 µm background shell"):
+        vesicle(**SMALL, layer_depth=9.0)
+
+
+@pytest.mark.slow
+def test_paper_default():
+    """The default is the paper's vesicle: R = 200 µm, 1 µm voxels, 450^3, 4 x +1/2 tetrahedron."""
+    data, truth = vesicle()
+    assert data.shape == (1, 450, 1, 450, 450) and data.dtype == np.uint8
+    assert truth["radius"] == 200.0 and truth["spacing"] == [1.0, 1.0, 1.0]
+    np.testing.assert_allclose(truth["centre"], 224.5)
+    u = np.array([[r["ux"], r["uy"], r["uz"]] for r in truth["defects"]])
+    cos = u @ u.T
+    np.testing.assert_allclose(cos[~np.eye(4, dtype=bool)], -1 / 3, atol=1e-12)  # regular tetrahedron
+    assert [r["charge"] for r in truth["defects"]] == [0.5] * 4
+    assert 0 <= truth["layers"][0]["depth"] <= 5
+    vol = data[0, :, 0]
+    # along +x from the centre (r = index - 0.5): empty inside, shell background (+ fibres) for
+    # R + 2.5 sigma <= r <= R + shell - 2.5 sigma, empty outside
+    line = vol[224, 224, 224:]
+    assert line[:190].max() == 0 and line[215:].max() == 0 and line[203:208].min() >= 0.25 * 255 - 1
 
 
 def test_write_truth_round_trip_and_read_frames(tmp_path):
