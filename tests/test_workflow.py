@@ -177,12 +177,27 @@ def test_not_a_tiff_named_at_parse_time(tmp_path):
 # ----------------------------------------------------------------------------- the real default run
 @pytest.fixture(scope="session")
 def demo_run(tmp_path_factory):
-    """`snakemake --cores 2` on the bundled default config, once per test session."""
-    work = tmp_path_factory.mktemp("demo")
-    start = time.perf_counter()
-    smk(work, "--cores", "2")
-    elapsed = time.perf_counter() - start
-    print(f"\ndefault workflow: {elapsed:.0f} s with --cores 2")
+    """`snakemake --cores 2` on the bundled default config, once per test run.
+
+    Shared between pytest-xdist workers through a lock file in the common temporary folder,
+    so `pytest -n 2` does not run the workflow twice.
+    """
+    import fcntl
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent
+    work = base / "demo-run"
+    with open(base / "demo-run.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (work / "done").exists():
+            shutil.rmtree(work, ignore_errors=True)
+            work.mkdir()
+            start = time.perf_counter()
+            smk(work, "--cores", "2")
+            (work / "done").write_text(f"{time.perf_counter() - start:.1f}")
+        fcntl.flock(lock, fcntl.LOCK_UN)
+    print(f"\ndefault workflow: {(work / 'done').read_text()} s with --cores 2")
     return work
 
 
@@ -246,13 +261,14 @@ def test_default_run_alignment_orthogonal_layers(demo_run):
 
 
 def test_nothing_reruns_after_a_complete_run(demo_run):
-    assert job_counts(smk(demo_run, "-n", "--cores", "2")) == {}
+    assert job_counts(smk(demo_run, "-n", "--nolock", "--cores", "2")) == {}
 
 
 def _rerun_counts(work: Path, tmp_path: Path, edit) -> dict[str, int]:
     cfg = default_config()
     edit(cfg)
-    return job_counts(smk(work, "-n", "--cores", "2", "--configfile", write_config(tmp_path / "c.yaml", cfg)))
+    return job_counts(smk(work, "-n", "--nolock", "--cores", "2", "--configfile",
+                          write_config(tmp_path / "c.yaml", cfg)))
 
 
 def test_changing_the_averaging_radius_reruns_only_order_and_below(demo_run, tmp_path):
@@ -375,7 +391,9 @@ def slurm_cluster():
 def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_run, tmp_path):
     start = time.strftime("%Y-%m-%dT%H:%M:%S")
     t0 = time.perf_counter()
-    smk(tmp_path, "--profile", ROOT / "profiles" / "slurm", timeout=3600)
+    # poll SLURM every few seconds (the profile's defaults are gentler, for real clusters)
+    smk(tmp_path, "--profile", ROOT / "profiles" / "slurm", "--seconds-between-status-checks", "3",
+        "--slurm-init-seconds-before-status-checks", "2", timeout=3600)
     print(f"\nSLURM run of the default workflow: {time.perf_counter() - t0:.0f} s")
     # the jobs really ran under SLURM: sacct knows them (the plugin stores the rule in the comment)
     sacct = subprocess.run(["sacct", "-X", "-n", "-P", "-S", start, "-o", "JobID,State,Comment,WorkDir"],
