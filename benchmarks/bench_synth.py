@@ -59,9 +59,9 @@ def main() -> None:
             ("paper default: R=200 µm, 1 µm voxels, 450^3, 1 layer", {}),
             ("R=200 + noise 10", dict(noise=10.0)),
             ("R=200, dz=2 µm (450x450x225)", dict(spacing=(2.0, 1.0, 1.0))),
-            ("R=200, two layers in one channel", dict(second_layer_depth=8.5)),
+            ("R=200, two layers in one channel", dict(second_layer_depth=9.0)),
             ("R=100, 3 frames x 2 channels, 2 layers", dict(radius=100.0, frames=3, frame_rotation=5.0,
-                                                           second_layer_depth=8.5, second_layer_channel=1)),
+                                                           second_layer_depth=9.0, second_layer_channel=1)),
         ]
     print(f"{'case':55s} {'voxels':>12s} {'trace s':>8s} {'raster s':>9s} {'total s':>8s} {'peak MB':>8s}")
     for name, kw in cases:

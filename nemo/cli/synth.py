@@ -23,9 +23,9 @@ Defects: --preset tetrahedron (4 x +1/2), five-one (5 x +1/2 + 1 x -1/2), two-pl
 examples:
   nemo synth vesicle.tif                                   # the paper's R = 200 µm, 450^3 vesicle
   nemo synth small.tif --radius 60 --spacing 2 1 1 --noise 10 --rotate-random 3
-  nemo synth two.tif --radius 100 --second-layer-depth 8.5 --second-layer-rotation 90
+  nemo synth two.tif --radius 100 --second-layer-depth 9 --second-layer-rotation 90
   nemo synth movie.tif --radius 100 --frames 5 --frame-rotation 6 --channels 2 \\
-      --second-layer-depth 8.5 --second-layer-channel 1
+      --second-layer-depth 9 --second-layer-channel 1
   nemo synth minus.tif --radius 80 --defects "0,0,1:-1/2;1,0,0:1/2;0,1,0:1/2;-1,0,0:1/2;0,-1,0:1/2;0,0,-1:1/2\""""
 
 
