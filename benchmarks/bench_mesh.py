@@ -99,17 +99,20 @@ def main() -> None:
     print(f"input: {truth['source']}, cores available: {len(os.sched_getaffinity(0))}")
     times = []
     for i in range(args.repeat):
-        before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         dt = time.perf_counter() - t0
-        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        peak = after.ru_maxrss
+        cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+        inside = next((line.split("done in ")[1] for line in proc.stdout.splitlines() if "done in" in line), "?")
         if proc.returncode:
             print(proc.stdout, proc.stderr)
             raise SystemExit(f"nemo mesh failed with exit {proc.returncode}")
         times.append(dt)
-        print(f"run {i + 1}: {dt:.2f} s wall, peak RSS {peak / 1024:.0f} MB"
-              + ("" if peak > before else " (max over runs)"))
+        print(f"run {i + 1}: {dt:.2f} s wall ({inside} after start-up and imports), {cpu:.2f} s CPU, "
+              f"peak RSS {peak / 1024:.0f} MB" + ("" if peak > before.ru_maxrss else " (max over runs)"))
     spheres = json.loads(mesh.with_name(mesh.stem + ".sphere.json").read_text())
     inner = spheres["inner"]
     print(proc.stdout.strip())
@@ -118,7 +121,8 @@ def main() -> None:
     centre_err = np.linalg.norm(np.subtract(inner["centre"], truth["centre"]))
     print(f"inner sphere radius {inner['radius']:.3f} (truth {truth['radius']}, error {err:+.3f} µm), "
           f"centre error {centre_err:.3f} µm, rms residual {inner['rms_residual']:.3f} µm")
-    print(f"nemo mesh 450^3: best {min(times):.2f} s, median {np.median(times):.2f} s (target <= 8 s)")
+    print(f"nemo mesh 450^3: best {min(times):.2f} s, median {np.median(times):.2f} s (target <= 8 s); "
+          f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     if not args.keep:
         for p in OUT.glob("bench_mesh*"):
             p.unlink()
