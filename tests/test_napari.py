@@ -220,6 +220,9 @@ def _start_xvfb() -> str:
         proc.kill()
         pytest.skip("Xvfb did not start")
     _XVFB["proc"] = proc
+    # Xvfb outlives the tests (Qt keeps its connection until exit) and ends with -terminate;
+    # mark it reaped so Popen.__del__ does not warn at interpreter exit
+    proc.returncode = 0
     _XVFB["display"] = f":{number}"
     return _XVFB["display"]
 

@@ -113,7 +113,7 @@ def _image_layer(frames: list[Frame], c: int, stacked: bool, spacing) -> tuple |
         scale = sp
     lo, hi = float(np.min(data[0] if stacked else data)), float(np.max(data[0] if stacked else data))
     return (data, {"name": f"image c{c}", "scale": scale, "colormap": "gray", "blending": "additive",
-                   "rendering": "mip", "contrast_limits": (lo, hi if hi > lo else lo + 1),
+                   "rendering": "mip", "opacity": 0.5, "contrast_limits": (lo, hi if hi > lo else lo + 1),
                    "metadata": {"nemo": {"kind": "image", "path": str(path), "spacing": sp}}},
             "image")
 
@@ -310,6 +310,10 @@ def layer_data(
     out += _surface_layers(frames, stacked, first, shown)
     out += _vector_layers(frames, stacked, max_vectors, first)
     out += _points_layers(frames, stacked, first)
+    unit = "um" if next(iter(frames[0].surfaces.values())).unit in ("um", "µm", "micron") else "pixel"
+    units = (("pixel",) if stacked else ()) + (unit,) * 3  # the scale bar shows µm
+    for _, kwargs, _ in out:
+        kwargs.setdefault("units", units)
     return out
 
 
