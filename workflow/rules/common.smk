@@ -89,9 +89,13 @@ wildcard_constraints:
 
 # ----------------------------------------------------------------------------- options
 def cli_opts(options, skip=()):
-    """``{key: value}`` -> ``--key value`` (None/False omitted, True = flag, lists spread)."""
+    """``{key: value}`` -> ``--key value`` (None/False omitted, True = flag, lists spread).
+
+    Keys are sorted, so the order of keys in a config file never changes a command line
+    (Snakemake reruns a job when its params change).
+    """
     parts = []
-    for key, value in options.items():
+    for key, value in sorted(options.items()):
         if key in skip or value is None or value is False:
             continue
         flag = "--" + str(key).replace("_", "-")
@@ -290,14 +294,15 @@ def layer_channels(name, layer):
 
 def layer_frames(name):
     """(t, c, layer) triples analysed in a dataset."""
-    return [(t, c, layer) for t in DATA[name]["t"] for layer in LAYERS
-            for c in layer_channels(name, layer)]
+    # sorted: params built from this list must not depend on the order of keys in the config
+    return sorted((t, c, layer) for t in DATA[name]["t"] for layer in LAYERS
+                  for c in layer_channels(name, layer))
 
 
 def align_frames(name):
     """(t, c, a, b): alignment pairs in the channels that hold both layers."""
-    return [(t, c, a, b) for t in DATA[name]["t"] for a, b in ALIGN_PAIRS
-            for c in layer_channels(name, a) if c in layer_channels(name, b)]
+    return sorted((t, c, a, b) for t in DATA[name]["t"] for a, b in ALIGN_PAIRS
+                  for c in layer_channels(name, a) if c in layer_channels(name, b))
 
 
 def summary_targets(name):
