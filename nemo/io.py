@@ -308,19 +308,19 @@ def write_hyperstack(
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     if ome:
+        ome_unit = "µm" if unit in ("um", "µm", "μm", "micron") else unit
         tifffile.imwrite(
             tmp, data, ome=True, photometric="minisblack", compression=compression,
             metadata={
                 "axes": axes, "PhysicalSizeX": dx, "PhysicalSizeY": dy, "PhysicalSizeZ": dz,
-                "PhysicalSizeXUnit": "µm" if unit == "um" else unit,
-                "PhysicalSizeYUnit": "µm" if unit == "um" else unit,
-                "PhysicalSizeZUnit": "µm" if unit == "um" else unit,
+                "PhysicalSizeXUnit": ome_unit, "PhysicalSizeYUnit": ome_unit, "PhysicalSizeZUnit": ome_unit,
             },
         )
     else:
         if not re.fullmatch("T?Z?C?YX", axes):
             raise NemoError(f"ImageJ hyperstacks need axes in the order TZCYX, got {axes!r}")
-        md = {"axes": axes, "spacing": dz, "unit": "micron" if unit == "um" else unit}
+        ij_unit = "micron" if unit in ("um", "µm", "μm", "micron") else unit  # ImageJ metadata is ASCII
+        md = {"axes": axes, "spacing": dz, "unit": ij_unit}
         if metadata:
             md["Info"] = json.dumps(metadata)
         tifffile.imwrite(

@@ -77,19 +77,31 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
 def orient_outward_(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """Make the winding consistent and outward, in place.
 
-    Consistency comes from trimesh's face-adjacency repair; for each connected component the
-    winding is flipped when its signed volume is negative. Components that are open are oriented
-    by the same rule applied to their closed hull's side (good enough for the split halves of a
-    closed surface, which keep their parent's winding anyway).
+    Winding consistency comes from trimesh's face-adjacency repair. Each connected component is
+    then oriented by how many other closed components enclose it: an even depth (an outer wall)
+    gets positive signed volume, an odd depth (the wall of a cavity, e.g. the inner wall of a
+    hollow shell) negative, so that normals point out of the solid everywhere.
     """
     if not mesh.is_winding_consistent:
         trimesh.repair.fix_winding(mesh)
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
     faces = mesh.faces.copy()
-    for label in np.unique(labels):
-        sel = labels == label
-        if signed_volume(mesh.vertices, faces[sel]) < 0:
-            faces[sel] = faces[sel][:, ::-1]
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(faces))
+    comps = np.unique(labels)
+    if len(comps) == 1:
+        if signed_volume(mesh.vertices, faces) < 0:
+            faces = faces[:, ::-1]
+    else:
+        parts = {k: trimesh.Trimesh(mesh.vertices, faces[labels == k], process=False) for k in comps}
+        probes = {k: mesh.vertices[faces[labels == k][0, 0]] for k in comps}
+        for k in comps:
+            depth = sum(
+                bool(parts[j].is_watertight and parts[j].contains([probes[k]])[0])
+                for j in comps if j != k
+            )
+            want = 1.0 if depth % 2 == 0 else -1.0
+            sel = labels == k
+            if np.sign(signed_volume(mesh.vertices, faces[sel])) != want:
+                faces[sel] = faces[sel][:, ::-1]
     mesh.faces = faces
     return mesh
 
@@ -143,10 +155,16 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
     mesh.units = match.group(1).decode() if match else "um"
     ply_raw = loaded.metadata.get("_ply_raw", {})
     vertex_data = ply_raw.get("vertex", {}).get("data")
-    if vertex_data is not None and getattr(vertex_data, "dtype", None) is not None and vertex_data.dtype.names:
-        for name in vertex_data.dtype.names:
-            if name not in _PLY_SKIP:
-                mesh.vertex_attributes[name] = np.asarray(vertex_data[name], dtype=np.float64).ravel()
+    if isinstance(vertex_data, dict):  # ASCII PLY: trimesh returns a dict of arrays
+        items = vertex_data.items()
+    elif vertex_data is not None and getattr(vertex_data, "dtype", None) is not None and vertex_data.dtype.names:
+        items = ((n, vertex_data[n]) for n in vertex_data.dtype.names)
+    else:
+        items = ()
+    for name, values in items:
+        values = np.asarray(values, dtype=np.float64).ravel()
+        if name not in _PLY_SKIP and len(values) == len(mesh.vertices):
+            mesh.vertex_attributes[name] = values
     return mesh
 
 

@@ -87,8 +87,6 @@ def test_foreign_ply_with_normals_and_colours(tmp_path):
     assert not {"nx", "ny", "nz", "red", "green", "blue"} & set(back.vertex_attributes)
 
 
-@pytest.mark.xfail(strict=True, reason="nemo.mesh._load_ply ignores ASCII PLY vertex properties "
-                   "(trimesh gives them as a dict, not a structured array); fix requested from the lead")
 def test_foreign_ascii_ply_keeps_extra_vertex_fields(tmp_path):
     path, v, _ = _meshlab_ply(tmp_path)
     back = load_mesh(path)
