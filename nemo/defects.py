@@ -48,7 +48,18 @@ ordered: the median ``S`` on its contour must reach ``s_ordered`` (default: the 
 ``s_threshold`` and three times the ``S`` of ``N`` randomly oriented directors,
 3·sqrt(π / 4N), with ``N`` the number of raw directors within the averaging radius). It must
 also have a resolved, non-zero charge: every step of the winding below 60° and
-``|charge − charge_rounded| ≤ charge_tolerance``, ``charge_rounded ≠ 0``. Rejections are logged.
+``|charge − charge_rounded| ≤ charge_tolerance``, ``charge_rounded ≠ 0`` (with
+``curvature_correction=False`` the raw winding is biased by design, so the tolerance test is
+skipped). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged.
+
+Integer defects
+---------------
+The averaged Q-tensor of an |m| = 1 defect vanishes quadratically, and any noise splits that
+zero into two ±½ zeros a few µm apart inside one dip of S. Candidates are therefore grouped
+into dips (connected components of ``S < s_threshold``); the lowest centre of a dip is measured
+first with a contour of 1.5 × the averaging radius (grown to 2.5× when S on it is still low),
+and further centres of the same dip inside that contour belong to it. Contours never reach
+another dip (radius ≤ 0.45 × the distance to it).
 
 Euler check
 -----------
@@ -100,7 +111,8 @@ def geodesic_ball(graph: sparse.csr_matrix, source: int, limit: float) -> tuple[
     idx : ndarray of int, shape (M,)
     dist : ndarray of float, shape (M,)
     """
-    d = dijkstra(graph, directed=False, indices=int(source), limit=float(limit))
+    # the graph is symmetric: directed=True gives the same distances without a transposed copy
+    d = dijkstra(graph, directed=True, indices=int(source), limit=float(limit))
     idx = np.flatnonzero(np.isfinite(d))
     return idx, d[idx]
 
@@ -133,7 +145,8 @@ def _project_tangent(vec: np.ndarray, normals: np.ndarray) -> np.ndarray:
         return v / norm
 
 
-def boundary_loop(faces: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+def boundary_loop(faces: np.ndarray, inside: np.ndarray,
+                  candidates: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
     """Outer boundary loop of the faces whose three vertices are ``inside``.
 
     Parameters
@@ -141,6 +154,8 @@ def boundary_loop(faces: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray | N
     faces : ndarray, shape (F, 3)
         Outward-wound faces.
     inside : ndarray of bool, shape (N,)
+    candidates : ndarray of int, optional
+        Indices of the faces that may be inside (e.g. those touching the ball), for speed.
 
     Returns
     -------
@@ -151,6 +166,8 @@ def boundary_loop(faces: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray | N
     region_vertices : ndarray of int
         Vertices of the selected faces.
     """
+    if candidates is not None:
+        faces = faces[candidates]
     sel = faces[inside[faces].all(axis=1)]
     if len(sel) == 0:
         return None, np.zeros(0, dtype=np.int64)
@@ -247,25 +264,46 @@ def closest_point_local(mesh: trimesh.Trimesh, point: np.ndarray, vertices: np.n
 
 
 def _fit_defect_model(xi: np.ndarray, eta: np.ndarray, theta: np.ndarray, weight: np.ndarray,
-                      m: float, scale: float) -> np.ndarray | None:
-    """Fit θ = m·atan2(η−η0, ξ−ξ0) + θ0 + c1 ξ + c2 η to nematic angles; return (ξ0, η0)."""
+                      m: float, scale: float, harmonic: bool = False) -> np.ndarray | None:
+    """Fit a defect model to nematic angles in a tangent plane; return the core (ξ0, η0).
+
+    θ = m·φ + θ0 + (c1 ξ + c2 η)/scale [+ a cos φ + b sin φ], φ = atan2(η − η0, ξ − ξ0). The
+    linear term absorbs the smooth background of the other defects and of the surface; the
+    optional first harmonic absorbs a director-measurement bias that depends on the director's
+    angle (for |m| = 1/2 an angle-dependent bias δ(θ) has a cos φ component that would otherwise
+    be mistaken for a core displacement, whose signature is m·δ/r).
+    """
 
     def model(p):
-        return m * np.arctan2(eta - p[1], xi - p[0]) + p[2] + (p[3] * xi + p[4] * eta) / scale
+        phi = np.arctan2(eta - p[1], xi - p[0])
+        out = m * phi + p[2] + (p[3] * xi + p[4] * eta) / scale
+        if harmonic:
+            out = out + p[5] * np.cos(phi) + p[6] * np.sin(phi)
+        return out
 
     def resid(p):
-        return weight * np.sin(theta - model(p))
+        # damp the directors right at the trial core: the model angle is singular there, and an
+        # undamped fit can snap the core onto a single noisy director
+        r2 = (xi - p[0]) ** 2 + (eta - p[1]) ** 2
+        return weight * (r2 / (r2 + r0 * r0)) * np.sin(theta - model(p))
 
-    # θ0 in closed form for the initial core at the origin
-    th0 = 0.5 * np.angle(np.sum(weight * np.exp(2j * (theta - m * np.arctan2(eta, xi)))))
-    try:
-        res = optimize.least_squares(resid, np.array([0.0, 0.0, th0, 0.0, 0.0]), loss="soft_l1",
-                                     f_scale=0.2, x_scale=np.array([scale, scale, 1, 1, 1]) * 0.1)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    if not res.success or not np.all(np.isfinite(res.x)):
-        return None
-    return res.x[:2]
+    r0 = scale / math.sqrt(len(xi))  # ~ the spacing of the directors in the window
+    best = None
+    # a few starting cores (the window centre and a ring around it) guard against local minima
+    starts = [(0.0, 0.0)] + [(0.2 * scale * math.cos(a), 0.2 * scale * math.sin(a))
+                             for a in np.arange(4) * np.pi / 2]
+    for sx, sy in starts:
+        # θ0 in closed form for the starting core
+        th0 = 0.5 * np.angle(np.sum(weight * np.exp(2j * (theta - m * np.arctan2(eta - sy, xi - sx)))))
+        p0 = np.array([sx, sy, th0, 0.0, 0.0] + ([0.0, 0.0] if harmonic else []))
+        xs = np.array([scale * 0.1, scale * 0.1] + [0.1] * (len(p0) - 2))
+        try:
+            res = optimize.least_squares(resid, p0, loss="soft_l1", f_scale=0.2, x_scale=xs)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if res.success and np.all(np.isfinite(res.x)) and (best is None or res.cost < best.cost):
+            best = res
+    return None if best is None else best.x[:2]
 
 
 def _linear_q_zero(xi: np.ndarray, eta: np.ndarray, q: np.ndarray) -> np.ndarray | None:
@@ -354,6 +392,8 @@ def find_defects(
     charge_tolerance: float = 0.15,
     exact_angles: bool = True,
     fit_radius: float | None = None,
+    fit_exclude: float = 0.0,
+    fit_harmonic: bool = False,
 ) -> pd.DataFrame:
     """Locate the topological defects of a tangential nematic field and measure their charge.
 
@@ -376,8 +416,9 @@ def find_defects(
     max_defects : int, optional
         Stop after this many accepted defects.
     contour_radius : float, optional
-        Geodesic radius of the charge contour (µm). Default ``avg_radius``, capped at 0.45 × the
-        distance to the nearest other defect and to the mesh boundary, at least 3 edge lengths.
+        Geodesic radius of the charge contour (µm). Default 1.5 × ``avg_radius`` (grown up to
+        2.5 × when S on the contour is low), capped at 0.45 × the distance to the nearest other
+        dip or defect and kept off the mesh boundary, at least 3 edge lengths.
     curvature_correction : bool
         Add (1/2π)∫K dA over the enclosed patch (the paper's correction).
     avg_radius : float, optional
@@ -426,6 +467,11 @@ def find_defects(
     h = float(np.mean(mesh.edges_unique_length))
     size = math.sqrt(float(mesh.area) / (4 * math.pi))  # radius of the sphere of equal area
     graph = edge_graph(mesh)
+    faces_arr = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    # vertex -> incident faces (CSR rows), so that a ball's faces cost O(ball), not O(mesh)
+    vf = sparse.csr_matrix((np.ones(faces_arr.size, dtype=np.int8),
+                            (faces_arr.ravel(), np.repeat(np.arange(len(faces_arr)), 3))),
+                           shape=(n, len(faces_arr)))
     S = f.S
     s_ref = float(np.nanpercentile(S, 90))
     if s_threshold is None:
@@ -459,7 +505,7 @@ def find_defects(
         logger.info("averaging radius not given: estimated %.3g from the S field", avg_radius)
     if min_distance is None:
         min_distance = avg_radius
-    r_contour_default = contour_radius if contour_radius is not None else avg_radius
+    r_contour_default = contour_radius if contour_radius is not None else 1.5 * avg_radius
     if s_ordered is None:
         s_ordered = s_threshold  # raised per defect to 3x the isotropic floor (see module doc)
 
@@ -510,7 +556,7 @@ def find_defects(
         near = np.concatenate(near) if near else np.zeros((0, 3))
         dmin = float(np.min(np.linalg.norm(near - verts[v], axis=1))) if len(near) else np.inf
         if contour_radius is None:
-            radii = sorted({max(min(fac * r_contour_default, 0.45 * dmin), 3 * h) for fac in (1.0, 1.5, 2.0)})
+            radii = sorted({max(min(fac * r_contour_default, 0.45 * dmin), 3 * h) for fac in (1.0, 1.33, 1.67)})
         else:
             radii = [contour_radius]
         floor = s_ordered
@@ -519,7 +565,7 @@ def find_defects(
             floor = max(floor, 3 * math.sqrt(math.pi / (4 * max(n_dir, 1))))
         res = None
         for r_c in radii:
-            res = _charge(mesh, graph, verts, normals, f, kdA, boundary_vertices, v, r_c, h,
+            res = _charge(faces_arr, vf, graph, verts, normals, f, kdA, boundary_vertices, v, r_c, h,
                           winding_field, curvature_correction, exact_angles)
             if res is None or res["contour_S"] >= floor:
                 break
@@ -534,7 +580,7 @@ def find_defects(
             reason = "unresolved winding"
         elif res["charge_rounded"] == 0:
             reason = "zero charge"
-        elif abs(res["charge"] - res["charge_rounded"]) > charge_tolerance:
+        elif curvature_correction and abs(res["charge"] - res["charge_rounded"]) > charge_tolerance:
             reason = "off-half charge"
         if reason:
             rejected[reason] += 1
@@ -545,12 +591,12 @@ def find_defects(
         if len(centres) > 1:
             rho = min(rho, 0.5 * dmin)
         point, method = _refine(mesh, graph, verts, normals, f, v, res["charge_rounded"],
-                                max(rho, 3 * h), h, refine)
+                                max(rho, 3 * h), h, refine, fit_exclude, fit_harmonic)
         # final vertex = nearest to the refined point; recentre the contour when it moved
         ball_idx, _ = geodesic_ball(graph, v, max(4 * h, np.linalg.norm(point - verts[v]) + 2 * h))
         vv = int(ball_idx[np.argmin(np.linalg.norm(verts[ball_idx] - point, axis=1))])
         if vv != v:
-            res2 = _charge(mesh, graph, verts, normals, f, kdA, boundary_vertices, vv, r_c, h,
+            res2 = _charge(faces_arr, vf, graph, verts, normals, f, kdA, boundary_vertices, vv, r_c, h,
                            winding_field, curvature_correction, exact_angles)
             if res2 is not None and res2["charge_rounded"] == res["charge_rounded"]:
                 res = res2
@@ -595,7 +641,7 @@ def find_defects(
     return df
 
 
-def _charge(mesh, graph, verts, normals, f: _Fields, kdA, boundary_vertices, v: int, r_c: float,
+def _charge(faces_arr, vf, graph, verts, normals, f: _Fields, kdA, boundary_vertices, v: int, r_c: float,
             h: float, winding_field: str, curvature_correction: bool, exact: bool) -> dict | None:
     """Winding + curvature charge on the geodesic circle of radius r_c around vertex v."""
     idx, dist = geodesic_ball(graph, v, 1.5 * r_c + 2 * h)
@@ -607,16 +653,14 @@ def _charge(mesh, graph, verts, normals, f: _Fields, kdA, boundary_vertices, v: 
             return None
     inside = np.zeros(len(verts), dtype=bool)
     inside[idx[dist < r_c]] = True
-    loop, region = boundary_loop(np.asarray(mesh.faces), inside)
-    weights = np.zeros(len(verts))
+    loop, region = boundary_loop(faces_arr, inside, vf[idx].indices)
     if loop is not None and len(loop) >= 8:
-        weights[region] = 1.0
-        weights[loop] = 0.5
+        enclosed = float(kdA[region].sum() - 0.5 * kdA[loop].sum())  # contour vertices count half
     else:  # non-manifold ball boundary: ring of vertices sorted by angle, ball = enclosed
         loop = angle_sorted_contour(verts, verts[v], normals[v], idx, dist, r_c, 2 * h)
         if len(loop) < 8:
             return None
-        weights[idx[dist < r_c]] = 1.0
+        enclosed = float(kdA[idx[dist < r_c]].sum())
     if winding_field == "average":
         dirs = f.navg[loop]
         s_loop = f.S[loop]
@@ -629,7 +673,7 @@ def _charge(mesh, graph, verts, normals, f: _Fields, kdA, boundary_vertices, v: 
         return None
     steps = winding_steps(dirs, normals[loop], exact=exact)
     wind = float(steps.sum() / (2 * math.pi))
-    kterm = float(np.dot(weights, kdA) / (2 * math.pi))
+    kterm = enclosed / (2 * math.pi)
     charge = wind + (kterm if curvature_correction else 0.0)
     return {
         "charge": charge, "charge_winding": wind, "charge_curvature": kterm,
@@ -640,7 +684,7 @@ def _charge(mesh, graph, verts, normals, f: _Fields, kdA, boundary_vertices, v: 
 
 
 def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: float, h: float,
-            method: str) -> tuple[np.ndarray, str]:
+            method: str, r_in: float = 0.0, harmonic: bool = True) -> tuple[np.ndarray, str]:
     """Sub-vertex position of the defect near vertex v from data within ``rho`` (module doc)."""
     x0 = verts[v]
     if method == "none":
@@ -652,6 +696,8 @@ def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: floa
         centre = x0
         for _ in range(2):  # fit, re-centre the window on the fitted core, fit again
             j = np.asarray(f.dtree.query_ball_point(centre, rho), dtype=np.int64)
+            if r_in > 0:
+                j = j[np.linalg.norm(f.dpos[j] - centre, axis=1) >= r_in]
             if len(j) < 12:
                 break
             rel = f.dpos[j] - x0
@@ -660,7 +706,7 @@ def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: floa
             d = f.ddir[j]
             theta = np.arctan2(d @ t2, d @ t1)
             w = np.clip(f.dcoh[j], 0.05, None)
-            core = _fit_defect_model(xi - c0[0], eta - c0[1], theta, w, m, rho)
+            core = _fit_defect_model(xi - c0[0], eta - c0[1], theta, w, m, rho, harmonic)
             if core is None:
                 break
             core = core + c0
