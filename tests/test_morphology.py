@@ -177,7 +177,7 @@ def test_ellipsoid_principal_curvatures_and_directions(ellipsoids):
 
 
 def test_fit_variants_documented(ellipsoids):
-    """The module docstring's claim: at a radius with ~100 neighbours the quartic fit is several
+    """The module docstring's claim: at r = 6 µm (~160 neighbours) the quartic fit is several
     times more accurate than the paper's quadric, whose r²/R² bias shows up as overestimation."""
     mesh = ellipsoids[ISO]
     H_true, _ = ellipsoid_HK(closest_on_ellipsoid(np.asarray(mesh.vertices), ELL), ELL)
