@@ -40,7 +40,9 @@ def _format_warning(message, category, filename, lineno, file=None, line=None): 
     return f"nemo: warning: {message}\n"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser; with ``only``, just that subcommand (fast start-up: the other
+    subcommand modules, and the heavy libraries they import, are not loaded)."""
     parser = argparse.ArgumentParser(
         prog="nemo",
         description="Nematic order and morphology of curved, multi-layered surfaces in 3D images.",
@@ -49,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"nemo {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
+    for name in COMMANDS if only is None else (only,):
         try:
             module = importlib.import_module(f"nemo.cli.{name}")
         except ModuleNotFoundError as exc:
@@ -67,7 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``nemo`` console script."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
