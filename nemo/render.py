@@ -251,11 +251,13 @@ def discover_frame(paths: str | os.PathLike | list, image: str | os.PathLike | N
         parents = {f.parent for f in files}
         folder = parents.pop() if len(parents) == 1 else None
     ff = FrameFiles(path=folder)
-    if folder is not None:
-        c = _int_from(_CHANNEL_DIR, folder.name)
-        t = _int_from(_FRAME_DIR, folder.parent.name)
+    # t and c from the folder names t{t}/c{c} (the tables' folder when files are spread out)
+    for d in ([folder] if folder is not None else []) + [f.parent for f in files if f.suffix == ".parquet"]:
+        c = _int_from(_CHANNEL_DIR, d.name)
+        t = _int_from(_FRAME_DIR, d.parent.name)
         if c is not None and t is not None:
             ff.t, ff.c = t, c
+            break
     for f in files:
         if f.name.startswith("."):
             continue  # temporary files of atomic writes
@@ -492,10 +494,16 @@ def _pick_mesh(path: Path, df: pd.DataFrame, meshes: dict[str, object], hint: st
     for per-vertex tables a mesh with exactly as many vertices as the table has rows; any mesh
     with more vertices than the largest index (preferring inner, mesh, outer).
     """
-    names = {Path(s).name for s in _strings(_provenance(path))}
-    for key, mesh in meshes.items():
-        if getattr(mesh, "_nemo_file", None) in names:
-            return key
+    prov = _provenance(path)
+    by_file = {getattr(m, "_nemo_file", None): k for k, m in meshes.items()}
+    for field_name in ("mesh", "mesh_from", "mesh_a", "surface"):  # the table's own mesh first
+        value = prov.get(field_name)
+        if isinstance(value, str) and Path(value).name in by_file:
+            return by_file[Path(value).name]
+    named = {by_file[Path(s).name] for s in _strings(prov) if Path(s).name in by_file}
+    if len(named) == 1:
+        return named.pop()
+    hint = {"whole": "mesh"}.get(hint, hint)  # workflow: curvature_whole -> mesh.ply
     if hint and hint in meshes:
         return hint
     vmax = int(df["vertex"].max()) if len(df) else -1

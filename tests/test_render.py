@@ -342,3 +342,16 @@ def test_warning_class_for_unreadable_table(demo, tmp_path):
     with pytest.warns(NemoWarning, match="not a Parquet table"):
         fr = load_frame(frame)
     assert fr.layers["a"].order is None
+
+
+def test_provenance_names_the_mesh(demo, tmp_path):
+    """A partial table goes to the mesh its provenance names, not to the preferred inner one."""
+    frame = tmp_path / "t0" / "c0"
+    shutil.copytree(demo["frames"][0]["dir"], frame)
+    sub = np.arange(0, 100)
+    write_table(pd.DataFrame({"vertex": sub, "intensity": np.ones(100)}), frame / "layer_o.parquet",
+                mesh=str(frame / "mesh.outer.ply"), mesh_to="mesh.inner.ply")
+    write_table(pd.DataFrame({"vertex": sub, "intensity": np.ones(100)}), frame / "layer_p.parquet")
+    fr = load_frame(frame)
+    assert fr.layers["o"].surface == "outer" and "intensity (o)" in fr.surfaces["outer"].fields
+    assert fr.layers["p"].surface == "inner"  # no provenance: first of inner, mesh, outer

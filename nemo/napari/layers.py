@@ -424,6 +424,10 @@ def open_viewer(results: str | os.PathLike, show: bool = True, **kwargs):
     import napari
 
     viewer = napari.Viewer(show=show, title=f"NEMO: {Path(results)}")
+    try:
+        viewer.window.resize(1400, 900)  # room for the canvas beside the dock widgets
+    except AttributeError:  # older napari windows have no resize
+        pass
     add_nemo_layers(viewer, results, **kwargs)
     viewer.window.add_dock_widget(field_selector(viewer), name="NEMO field", area="right")
     return viewer
