@@ -1,25 +1,34 @@
-# Report: the summary tables are report items (captions in workflow/report/); with
-# report.render: true every frame and layer is also rendered by `nemo render` (pyvista,
-# off-screen) into results/{dataset}/t{t}/c{c}/figures/{layer}/, shown by
-# `snakemake --report report.html`.
+# Figures and report (`nemo render`, pyvista off-screen + matplotlib): per frame and layer with
+# report.frames: true, per dataset (tracks, per-frame summaries) with report.summary: true.
+# Both are report items, so `snakemake --report report.html` shows them with captions.
 
-RENDER = config["report"]["render"]
+REPORT = config["report"]
+
+
+def _render_inputs(wc):
+    seg = seg_dir(wc)
+    surface = LAYERS[wc.layer]["surface"]
+    frame = FRAME.format(**wc)
+    inputs = [layer_mesh(wc)] + [f"{frame}/{kind}_{wc.layer}.parquet"
+                                 for kind in ("layer", "directors", "order", "defects")]
+    if CURVATURE is not None:
+        inputs.append(f"{seg}/curvature_{surface}.parquet")
+    if THICKNESS is not None and THICKNESS["from"] == surface:
+        inputs.append(f"{seg}/thickness.parquet")
+    return inputs
 
 
 rule render:
     input:
-        mesh=layer_mesh,
-        layer=FRAME + "/layer_{layer}.parquet",
-        directors=FRAME + "/directors_{layer}.parquet",
-        order=FRAME + "/order_{layer}.parquet",
-        defects=FRAME + "/defects_{layer}.parquet",
+        _render_inputs,
     output:
         report(
             directory(FRAME + "/figures/{layer}"),
             patterns=["{name}.png"],
             caption="../report/render.rst",
             category="Frames",
-            subcategory="t{t} c{c} {layer}",
+            subcategory="layer {layer}",
+            labels={"t": "{t}", "c": "{c}", "layer": "{layer}", "figure": "{name}"},
         ),
     log:
         LOGS + "/render/t{t}_c{c}_{layer}.log",
@@ -32,11 +41,40 @@ rule render:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " render {input.mesh} --layer {input.layer} --directors {input.directors}"
-        " --order {input.order} --defects {input.defects} -o {output} > {log} 2>&1"
+        NEMO + " render {input} --layer {wildcards.layer} -o {output} > {log} 2>&1"
+
+
+rule render_summary:
+    input:
+        SUMMARY + "/frames.parquet",
+        SUMMARY + "/defects.parquet",
+    output:
+        report(
+            directory(SUMMARY + "/figures"),
+            patterns=["{name}.png"],
+            caption="../report/render_summary.rst",
+            category="Summary",
+            labels={"figure": "{name}"},
+        ),
+    log:
+        LOGS + "/render/summary.log",
+    benchmark:
+        BENCH + "/render/summary.tsv"
+    threads: res("render", "threads")
+    resources:
+        mem_mb=res("render", "mem_mb"),
+        runtime=res("render", "runtime"),
+    conda:
+        "../envs/nemo.yaml"
+    shell:
+        NEMO + " render --summary {input} -o {output} > {log} 2>&1"
 
 
 def render_targets(name):
-    if not RENDER:
-        return []
-    return [FRAME.format(dataset=name, t=t, c=c) + f"/figures/{layer}" for t, c, layer in layer_frames(name)]
+    targets = []
+    if REPORT["summary"]:
+        targets.append(SUMMARY.format(dataset=name) + "/figures")
+    if REPORT["frames"]:
+        targets += [FRAME.format(dataset=name, t=t, c=c) + f"/figures/{layer}"
+                    for t, c, layer in layer_frames(name)]
+    return targets
