@@ -400,6 +400,8 @@ def curvature(
         n = default_n_samples(n_vert, float(mesh.area), radius)
     normals = _normals(mesh)
     usable = np.flatnonzero(np.isfinite(normals[:, 0]))
+    if len(usable) == 0:
+        raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
     n = min(n, len(usable))
     samples = np.sort(usable if n == len(usable) else rng.choice(usable, n, replace=False))
 
@@ -542,9 +544,11 @@ def _ray_distance(
     hit = tri >= 0
     t = np.full(len(origins), np.nan)
     if hit.any():
-        # exact float64 distance to the hit face's plane (Embree works in float32)
-        fn = np.asarray(target.face_normals)[tri[hit]]
-        p0 = np.asarray(target.vertices)[np.asarray(target.faces)[tri[hit], 0]]
+        # exact float64 distance to the hit face's plane (Embree works in float32); the plane
+        # normal of the hit faces only (cheaper than trimesh's face_normals of every face)
+        corners = np.asarray(target.vertices, dtype=np.float64)[np.asarray(target.faces)[tri[hit]]]
+        p0 = corners[:, 0]
+        fn = np.cross(corners[:, 1] - p0, corners[:, 2] - p0)
         with np.errstate(divide="ignore", invalid="ignore"):
             th = np.einsum("ij,ij->i", p0 - origins[hit], fn) / np.einsum("ij,ij->i", directions[hit], fn)
         th[~np.isfinite(th)] = np.nan
@@ -604,7 +608,9 @@ def thickness(
         and np.array_equal(mesh_to.faces, mesh_from.faces)
         and np.array_equal(mesh_to.vertices, mesh_from.vertices)
     )
-    scale = float(np.linalg.norm(np.ptp(np.vstack([mesh_from.bounds, mesh_to.bounds]), axis=0)))
+    both = np.vstack([np.asarray(m.vertices).min(0) for m in (mesh_from, mesh_to)]
+                     + [np.asarray(m.vertices).max(0) for m in (mesh_from, mesh_to)])
+    scale = float(np.linalg.norm(np.ptp(both, axis=0)))
     eps = 1e-5 * scale
     origins, dirs = vertices[valid], normals[valid]
     d = np.full(len(vertices), np.nan)
