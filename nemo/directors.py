@@ -49,6 +49,10 @@ PATCHES_PER_AREA = 30.0
 #: synthetic vesicle 0.5 lowers the median angle error by ~25 % over 1.0).
 PIXEL_PER_EDGE = 0.5
 
+#: Default pixel is at least patch radius / this (bounds the micro-image to ~47 × 47 pixels
+#: on very fine meshes, where half an edge would over-resolve the image anyway).
+MAX_HALF_WIDTH_PX = 20
+
 #: Gaussian-derivative scale of the gradients (pixels), as in OrientationPy.
 GRAD_SIGMA = 1.0
 
@@ -256,7 +260,8 @@ def directors(
         Number of centres, drawn without replacement. Default :func:`default_n_patches`
         (30 per patch area; the paper's 12 000 for R = 200 µm, r = 20 µm), capped by N.
     pixel : float, optional
-        Micro-image pixel (µm); default half the mean edge length.
+        Micro-image pixel (µm); default half the mean edge length, but at least
+        ``radius / 20`` (so a patch spans at most ~40 pixels across).
     sigma : float, optional
         Structure-tensor integration scale in pixels; default half the patch radius.
     frames : {"axis", "smooth"}
@@ -299,7 +304,9 @@ def directors(
         if not patch_radius > 0:
             raise NemoError(f"patch radius must be > 0 µm, got {patch_radius}")
         nominal_radius = patch_radius
-    pixel = PIXEL_PER_EDGE * edge if pixel is None else float(pixel)
+    if pixel is None:  # finer than the mesh, but at most MAX_HALF_WIDTH_PX across the radius
+        pixel = max(PIXEL_PER_EDGE * edge, nominal_radius / MAX_HALF_WIDTH_PX)
+    pixel = float(pixel)
     if not pixel > 0:
         raise NemoError(f"pixel size must be > 0 µm, got {pixel}")
     if nominal_radius < 2 * pixel:

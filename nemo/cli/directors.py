@@ -30,7 +30,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--n-patches", type=positive(int), metavar="N",
                         help="number of patch centres (default: 30 per patch area)")
     parser.add_argument("--pixel", type=positive(), metavar="UM",
-                        help="micro-image pixel in µm (default: half the mean edge length)")
+                        help="micro-image pixel in µm (default: half the mean edge length, at least radius/20)")
     parser.add_argument("--sigma", type=positive(), metavar="PX",
                         help="structure-tensor integration scale in pixels (default: half the patch radius)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed of the centres (default 0)")
