@@ -27,7 +27,6 @@ from nemo.render import (
     Frame,
     charge_text,
     discover_frame,
-    field_label,
     find_frames,
     glyph_spacing,
     load_frame,
