@@ -326,3 +326,11 @@ def test_cli_view_screenshot(viewer_env, demo, run_cli, tmp_path):
     _not_blank((imread(out) * 255).astype(np.uint8))
     code, _, err = run_cli("view", demo["dataset_dir"], "--c", "4")
     assert code == 2 and "channel c=4" in err
+
+
+def test_cli_view_without_napari(demo, run_cli, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "napari", None)  # import napari -> ImportError
+    code, _, err = run_cli("view", demo["dataset_dir"])
+    assert code == 2 and "pip install 'nemo-nematics[napari]'" in err and "Traceback" not in err
