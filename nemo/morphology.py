@@ -638,18 +638,85 @@ def thickness(
 # --------------------------------------------------------------------------------------------
 
 
-def _boundary(mesh: trimesh.Trimesh) -> tuple[np.ndarray, int]:
-    """Boundary edges (E_b, 2) and the number of boundary loops."""
-    edges = np.asarray(mesh.edges_sorted)
-    once = trimesh.grouping.group_rows(edges, require_count=1)
-    bedges = edges[once]
-    if len(bedges) == 0:
-        return bedges, 0
-    nodes, inv = np.unique(bedges, return_inverse=True)
-    inv = inv.reshape(-1, 2)
-    graph = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(nodes), len(nodes)))
-    n_loops, _ = connected_components(graph, directed=False)
-    return bedges, int(n_loops)
+def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
+    """Edge-based topology and angles of a triangle mesh, vectorised (no trimesh caches).
+
+    Coincident vertices are merged first (marching cubes duplicates a vertex wherever the
+    level equals a voxel value) and the faces that collapse are dropped, so that the angles,
+    the Euler characteristic and the edge pairing are those of the surface.
+    """
+    order = np.lexsort(vertices.T[::-1])
+    sv = vertices[order]
+    new = np.concatenate([[True], np.any(sv[1:] != sv[:-1], axis=1)])
+    merged = np.empty(len(vertices), dtype=np.int64)
+    merged[order] = np.cumsum(new) - 1
+    verts = sv[new]
+    f = merged[faces]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    f = f[keep]
+    nv, nf = len(verts), len(f)
+    used = np.zeros(nv, dtype=bool)
+    used[f.ravel()] = True
+
+    # directed half-edges a -> b of every face corner, and their undirected keys
+    a = f.ravel()
+    b = np.roll(f, -1, axis=1).ravel()
+    face_of = np.repeat(np.arange(nf), 3)
+    key = np.minimum(a, b) * nv + np.maximum(a, b)
+    srt = np.argsort(key, kind="stable")
+    ks = key[srt]
+    first = np.concatenate([[True], ks[1:] != ks[:-1]])
+    edge_id = np.cumsum(first) - 1
+    n_edges = int(edge_id[-1] + 1) if len(ks) else 0
+    count = np.bincount(edge_id, minlength=n_edges)
+    boundary_edges = ks[first][count == 1]
+    directed = not np.any(np.diff(np.sort(a * nv + b)) == 0)  # consistent winding: no half-edge twice
+    watertight = bool(np.all(count == 2) and directed)
+
+    # components of the vertex graph (used vertices only) and boundary loops
+    und = np.stack([ks[first] // nv, ks[first] % nv], axis=1)
+    graph = coo_matrix((np.ones(len(und)), (und[:, 0], und[:, 1])), shape=(nv, nv))
+    _, labels = connected_components(graph, directed=False)
+    n_comp = int(np.count_nonzero(np.bincount(labels[used])))
+    n_loops = 0
+    bverts = np.zeros(nv, dtype=bool)
+    if len(boundary_edges):
+        be = np.stack([boundary_edges // nv, boundary_edges % nv], axis=1)
+        bverts[be.ravel()] = True
+        nodes, inv = np.unique(be, return_inverse=True)
+        inv = inv.reshape(-1, 2)
+        bgraph = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(nodes), len(nodes)))
+        n_loops = int(connected_components(bgraph, directed=False)[0])
+
+    # corner angles -> angle sums per vertex (angle defects)
+    tri = verts[f]
+    angles = np.empty((nf, 3))
+    for c in range(3):
+        e1 = tri[:, (c + 1) % 3] - tri[:, c]
+        e2 = tri[:, (c + 2) % 3] - tri[:, c]
+        angles[:, c] = np.arctan2(np.linalg.norm(np.cross(e1, e2), axis=1), np.einsum("ij,ij->i", e1, e2))
+    angle_sum = np.bincount(f.ravel(), weights=angles.ravel(), minlength=nv)
+
+    # signed dihedral angle at every edge shared by exactly two faces (Steiner: ∫H dA = ½ Σ ℓ θ)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn = _unit(fn)
+    pair_start = np.flatnonzero(first)[count == 2]
+    h1, h2 = srt[pair_start], srt[pair_start + 1]  # the two half-edges of the edge
+    f1, f2 = face_of[h1], face_of[h2]
+    n1, n2 = fn[f1], fn[f2]
+    theta = np.arctan2(np.linalg.norm(np.cross(n1, n2), axis=1), np.einsum("ij,ij->i", n1, n2))
+    # convex when the far corner of face 2 lies below the plane of face 1
+    far = f[f2][np.arange(len(f2)), (np.argmax(f[f2] == a[h2][:, None], axis=1) + 2) % 3]
+    convex = np.einsum("ij,ij->i", verts[far] - verts[a[h1]], n1) <= 0
+    length = np.linalg.norm(verts[a[h1]] - verts[b[h1]], axis=1)
+    total_h = 0.5 * float(np.nansum(length * np.where(convex, theta, -theta)))
+    return {
+        "vertices": verts, "faces": f, "n_collapsed": int((~keep).sum()), "used": used,
+        "chi": int(used.sum()) - n_edges + nf, "watertight": watertight,
+        "consistent": bool(directed), "non_manifold_edges": int((count > 2).sum()),
+        "n_components": n_comp, "n_loops": n_loops, "boundary": bverts,
+        "angle_sum": angle_sum, "total_mean_curvature": total_h,
+    }
 
 
 def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> dict:
@@ -674,36 +741,35 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         ``gauss_bonnet_ratio`` ((∫K dA + ∫k_g ds) / 2πχ; None when χ = 0), ``mean_H``
         (area-weighted, from the dihedral angles: ∫H dA = ½ Σ_edges ℓ θ), ``mean_K``, and with
         ``curvature_df``: ``integral_K_fit``, ``gauss_bonnet_ratio_fit``, ``mean_H_fit``,
-        ``mean_K_fit``; ``notes`` (list of str).
+        ``mean_K_fit``; ``notes`` (list of str). Coincident vertices are merged (and the faces
+        they collapse ignored) for the topology and the angles.
     """
     check_mesh(mesh)
     notes: list[str] = []
     unit = _unit_name(mesh)
-    n_vertices_in, n_faces_in = len(mesh.vertices), len(mesh.faces)
-    area = float(mesh.area)
-    # topology and angles on a cleaned copy: marching cubes makes coincident vertices and
-    # zero-area faces wherever the level equals a voxel value, and their angles are undefined
-    clean = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
-    clean.merge_vertices()
-    clean.update_faces(clean.nondegenerate_faces())
-    clean.remove_unreferenced_vertices()
-    n_removed = n_faces_in - len(clean.faces)
-    if n_removed:
-        notes.append(f"{n_removed} zero-area faces (coincident vertices) ignored for topology and angles")
-    mesh_t = clean
-    vertices = np.asarray(mesh_t.vertices, dtype=np.float64)
-    faces = np.asarray(mesh_t.faces)
-    watertight = bool(mesh_t.is_watertight)
-    chi = len(vertices) - len(mesh_t.edges_unique) + len(faces)
-    labels = trimesh.graph.connected_component_labels(mesh_t.face_adjacency, len(faces))
-    n_comp = int(labels.max() + 1) if len(labels) else 0
-    bedges, n_loops = _boundary(mesh_t)
+    vertices_in = np.asarray(mesh.vertices, dtype=np.float64)
+    faces_in = np.asarray(mesh.faces, dtype=np.int64)
+    n_vertices_in, n_faces_in = len(vertices_in), len(faces_in)
+    tri = vertices_in[faces_in]
+    face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = float(face_area.sum())
+    topo = _topology(vertices_in, faces_in)
+    if topo["n_collapsed"]:
+        notes.append(f"{topo['n_collapsed']} faces collapse onto coincident vertices; ignored for "
+                     "topology and angles")
+    if topo["non_manifold_edges"]:
+        notes.append(f"{topo['non_manifold_edges']} non-manifold edges (shared by more than two faces)")
+    if not topo["consistent"]:
+        notes.append("face winding is inconsistent: volume and mean curvature are unreliable")
+    watertight = topo["watertight"]
+    chi = topo["chi"]
+    n_comp, n_loops = topo["n_components"], topo["n_loops"]
     genus_twice = 2 * n_comp - n_loops - chi
-    genus = genus_twice // 2 if genus_twice >= 0 and genus_twice % 2 == 0 else None
+    genus = genus_twice // 2 if genus_twice >= 0 and genus_twice % 2 == 0 and not topo["non_manifold_edges"] else None
     if genus is None:
         notes.append("genus undefined: the mesh is not a manifold orientable surface")
 
-    volume = signed_volume(vertices, faces) if watertight else None
+    volume = signed_volume(vertices_in, faces_in) if watertight else None
     if not watertight:
         notes.append(
             f"open or non-manifold mesh ({n_loops} boundary loop(s)): no enclosed volume; "
@@ -712,22 +778,13 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
     elif volume < 0:
         notes.append("negative volume: the faces are wound inward (normals point inside)")
 
-    defects = np.asarray(trimesh.curvature.vertex_defects(mesh_t), dtype=np.float64)
-    boundary = np.zeros(len(vertices), dtype=bool)
-    boundary[bedges.ravel()] = True
-    interior = ~boundary
-    integral_k = float(defects[interior].sum())
-    turning = float((defects[boundary] - np.pi).sum())
+    used, boundary, angle_sum = topo["used"], topo["boundary"], topo["angle_sum"]
+    integral_k = float(np.sum(2 * np.pi - angle_sum[used & ~boundary]))
+    turning = float(np.sum(np.pi - angle_sum[boundary]))
     gb = (integral_k + turning) / (2 * np.pi * chi) if chi != 0 else None
     if chi == 0:
         notes.append("χ = 0 (e.g. a torus): Gauss–Bonnet predicts ∫K dA + ∫k_g ds = 0, no ratio")
-
-    # total mean curvature of the polyhedral surface: ½ Σ over interior edges of length × signed
-    # dihedral angle (Steiner formula); convexity is judged against the outward face normals
-    adj_edges = np.asarray(mesh_t.face_adjacency_edges)
-    lengths = np.linalg.norm(vertices[adj_edges[:, 0]] - vertices[adj_edges[:, 1]], axis=1)
-    angles = np.asarray(mesh_t.face_adjacency_angles) * np.where(mesh_t.face_adjacency_convex, 1.0, -1.0)
-    mean_h = float(0.5 * np.sum(lengths * angles) / area) if area > 0 else None
+    mean_h = topo["total_mean_curvature"] / area if area > 0 else None
 
     result: dict = {
         "unit": unit,
@@ -755,7 +812,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         order = np.argsort(curvature_df["vertex"].to_numpy())
         kf = curvature_df["K"].to_numpy(dtype=np.float64)[order]
         hf = curvature_df["H"].to_numpy(dtype=np.float64)[order]
-        areas = vertex_areas(mesh)
+        areas = np.bincount(faces_in.ravel(), weights=np.repeat(face_area / 3, 3), minlength=n_vertices_in)
         ok = np.isfinite(kf) & np.isfinite(hf)
         if (~ok & (areas > 0)).any():
             notes.append(f"fitted curvature is NaN at {int((~ok).sum())} vertices; left out of the sums")
