@@ -10,7 +10,6 @@ intersections with spheres and ellipsoids).
 from __future__ import annotations
 
 import json
-import warnings
 
 import numpy as np
 import pytest
@@ -338,6 +337,22 @@ def test_measure_two_components_and_vertex_areas():
     assert res["gauss_bonnet_ratio"] == pytest.approx(1.0, abs=1e-9)
     assert vertex_areas(mesh).sum() == pytest.approx(mesh.area, rel=1e-12)
     assert (vertex_areas(mesh) >= 0).all()
+
+
+def test_measure_flags_inconsistent_winding_and_non_manifold():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(2.0, 3.0, 4.0))
+    res = measure(make_mesh(box.vertices, box.faces))
+    assert res["volume"] == pytest.approx(24.0) and res["area"] == pytest.approx(52.0)
+    assert res["mean_H"] == pytest.approx(0.5 * (np.pi / 2) * 4 * (2 + 3 + 4) / 52.0)  # ½ Σ ℓ θ / A
+    flipped = box.faces.copy()
+    flipped[0] = flipped[0][::-1]
+    res = measure(make_mesh(box.vertices, flipped, orient_outward=False))
+    assert res["volume"] is None and any("winding" in note for note in res["notes"])
+    # a third face on the box edge (0, 1): non-manifold, no genus
+    res = measure(make_mesh(box.vertices, np.vstack([box.faces, [[0, 1, 7]]]), orient_outward=False))
+    assert res["genus"] is None and any("non-manifold" in note for note in res["notes"])
 
 
 # --------------------------------------------------------------------------------------------
