@@ -11,7 +11,7 @@ CORES  ?= 2
 $(BIN)/nemo: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,napari]'
 	touch $(BIN)/nemo
 
 demo: $(BIN)/nemo
