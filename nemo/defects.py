@@ -127,6 +127,23 @@ def vertex_areas(mesh: trimesh.Trimesh) -> np.ndarray:
                        minlength=len(mesh.vertices))
 
 
+def smooth_conserving(values: np.ndarray, graph: sparse.csr_matrix, iterations: int) -> np.ndarray:
+    """Spread each vertex's value equally over itself and its edge neighbours, ``iterations`` times.
+
+    The operator is column-stochastic, so the sum over the mesh is preserved exactly (discrete
+    Gauss–Bonnet still holds) while the vertex-to-vertex noise of angle defects, which would
+    otherwise enter the curvature term through the contour's boundary band, is averaged out.
+    """
+    n = graph.shape[0]
+    adj = (graph != 0).astype(np.float64) + sparse.identity(n, format="csr")
+    deg = np.asarray(adj.sum(axis=0)).ravel()
+    op = (adj @ sparse.diags(1.0 / deg)).tocsr()
+    out = np.asarray(values, dtype=np.float64)
+    for _ in range(iterations):
+        out = op @ out
+    return out
+
+
 def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An orthonormal tangent basis (t1, t2) with t1 × t2 = normal, for one normal (3,)."""
     normal = normal / np.linalg.norm(normal)
@@ -342,6 +359,12 @@ def _fields(mesh: trimesh.Trimesh, order_df: pd.DataFrame, directors_df: pd.Data
         raise NemoError(
             f"order table refers to vertex {int(vtx.max())} but the mesh has {n} vertices: "
             "it was computed on another mesh")
+    tol = 1e-3 * float(np.mean(mesh.edges_unique_length))  # PLY stores float32 coordinates
+    if {"x", "y", "z"} <= set(order_df.columns):
+        dev = np.abs(order_df[["x", "y", "z"]].to_numpy(dtype=np.float64) - np.asarray(mesh.vertices)[vtx]).max()
+        if dev > tol:
+            raise NemoError(f"the order table's vertex positions differ from the mesh by up to {dev:.3g}: "
+                            "it was computed on another mesh; give the mesh it was made on")
     S = np.full(n, np.nan)
     navg = np.full((n, 3), np.nan)
     S[vtx] = order_df["S"].to_numpy(dtype=np.float64)
@@ -361,6 +384,13 @@ def _fields(mesh: trimesh.Trimesh, order_df: pd.DataFrame, directors_df: pd.Data
             if col not in directors_df.columns:
                 raise NemoError(f"directors table lacks column {col!r}; make it with 'nemo directors'")
         dpos = directors_df[["x", "y", "z"]].to_numpy(dtype=np.float64)
+        if "vertex" in directors_df.columns:
+            dv = directors_df["vertex"].to_numpy()
+            ok = (dv >= 0) & (dv < n)
+            dev = (np.abs(dpos[ok] - np.asarray(mesh.vertices)[dv[ok]]).max() if ok.any() else 0.0)
+            if not ok.all() or dev > tol:
+                raise NemoError("the directors table does not match the mesh (vertex indices or positions "
+                                "differ): it was computed on another mesh; give the mesh it was made on")
         ddir = directors_df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64)
         dcoh = (directors_df["coherency"].to_numpy(dtype=np.float64)
                 if "coherency" in directors_df.columns else np.ones(len(dpos)))
@@ -488,8 +518,8 @@ def find_defects(
         kdA = curvature * vertex_areas(mesh)
         k_source = "curvature table K x vertex area"
     else:
-        kdA = np.asarray(mesh.vertex_defects, dtype=np.float64)
-        k_source = "angle defects (discrete Gauss-Bonnet)"
+        kdA = smooth_conserving(np.asarray(mesh.vertex_defects, dtype=np.float64), graph, 3)
+        k_source = "angle defects (discrete Gauss-Bonnet, 3 conservative smoothing passes)"
     boundary_vertices = np.zeros(n, dtype=bool)
     if not mesh.is_watertight:
         edges = np.sort(np.asarray(mesh.edges), axis=1)
