@@ -288,7 +288,7 @@ def test_changing_the_averaging_radius_reruns_only_order_and_below(demo_run, tmp
     counts = _rerun_counts(demo_run, tmp_path, lambda c: c["order"].update(radius=c["order"]["radius"] + 5))
     n = default_config()["datasets"]["demo"]["synthetic"]["frames"] * 2
     assert counts.pop("order") == n and counts.pop("defects") == n
-    assert set(counts) <= {"aggregate_frames", "aggregate_defects", "track", "all"}, counts
+    assert set(counts) <= {"aggregate_frames", "aggregate_defects", "track", "render_summary", "all"}, counts
 
 
 def test_changing_one_layer_reruns_that_layer_only(demo_run, tmp_path):
@@ -301,7 +301,7 @@ def test_changing_one_layer_reruns_that_layer_only(demo_run, tmp_path):
 
 def test_changing_tracking_reruns_only_tracking(demo_run, tmp_path):
     counts = _rerun_counts(demo_run, tmp_path, lambda c: c["tracking"].update(max_distance=30))
-    assert set(counts) == {"track", "all"}, counts
+    assert set(counts) <= {"track", "render_summary", "all"} and counts["track"] == 1, counts
 
 
 # ----------------------------------------------------------------------------- slow: real-looking data, failures, SLURM
