@@ -20,7 +20,7 @@ import sys
 import warnings
 
 from nemo import __version__
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 
 #: Subcommands in the order ``nemo --help`` lists them (module name = command name).
 COMMANDS = (
@@ -36,8 +36,8 @@ Lengths are physical (the image's unit, usually µm); tables use physical x, y, 
 Run 'nemo COMMAND --help' for a command's options."""
 
 
-def _format_warning(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
-    return f"nemo: warning: {message}\n"
+def _show_warning(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
+    print(f"nemo: warning: {message}", file=sys.stderr)
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -79,9 +79,12 @@ def main(argv: list[str] | None = None) -> int:
     from nemo import _log
 
     _log.configure(getattr(args, "verbose", 0) + 1)
-    warnings.formatwarning = _format_warning
     try:
-        return int(args._run(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.simplefilter("always", NemoWarning)
+            warnings.showwarning = _show_warning  # one line on stderr, restored on exit
+            return int(args._run(args) or 0)
     except NemoError as exc:
         print(f"nemo {args._command}: error: {exc}", file=sys.stderr)
         return 2
