@@ -355,3 +355,17 @@ def test_bad_input(sphere60):
         find_defects(sphere60, good, None, curvature=np.zeros(3))
     with pytest.raises(NemoError, match="winding_field"):
         find_defects(sphere60, good, None, winding_field="nearest")
+
+
+def test_winding_from_raw_directors_and_no_refinement(sphere60):
+    dirs = rotated(TETRA, 21)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=5, noise=5.0, mesh=sphere60)
+    raw = find_defects(mesh, odf, ddf, avg_radius=15.0, winding_field="directors")
+    assert len(raw) == 4
+    np.testing.assert_allclose(raw["charge"], 0.5, atol=0.05)
+    plain = find_defects(mesh, odf, ddf, avg_radius=15.0, refine="none")
+    assert len(plain) == 4 and (plain["refine"] == "vertex").all() and (plain["shift"] == 0).all()
+    np.testing.assert_allclose(plain[["x", "y", "z"]].to_numpy(),
+                               np.asarray(mesh.vertices)[plain["vertex"].to_numpy()])
+    # the model refinement beats the minimum-S vertex, which the averaging biases
+    assert match(find_defects(mesh, odf, ddf, avg_radius=15.0), 60.0 * dirs).mean() < match(plain, 60.0 * dirs).mean()
