@@ -137,6 +137,8 @@ def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, floa
     dx, dy = _res(xres), _res(yres)
     dz = ij.get("spacing")
     unit = ij.get("unit")
+    if isinstance(unit, str) and unit.strip().lower() in ("pixel", "pixels", "px", ""):
+        unit = None  # ImageJ's way of saying "not calibrated"
     if unit is None:
         runit = page.tags.get("ResolutionUnit")
         code = int(runit.value) if runit is not None else 1
@@ -144,10 +146,15 @@ def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, floa
         if code == 1:
             unit = None
     has_xy = dx is not None and dy is not None and not (dx == 1.0 and dy == 1.0 and unit is None)
-    if not has_xy and dz is None:
+    if not has_xy and (dz is None or unit is None):
         return (1.0, 1.0, 1.0), "pixel", False
     dx = dx if dx is not None else 1.0
     dy = dy if dy is not None else dx
+    if dz is None:
+        warnings.warn(
+            "the file has no z spacing: assuming dz = dx; set it with --spacing if wrong",
+            NemoWarning, stacklevel=3,
+        )
     dz = float(dz) if dz is not None else dx
     scale = _unit_scale(unit)
     if scale is None:
@@ -202,7 +209,7 @@ def read_info(path: str | os.PathLike) -> ImageInfo:
         return _info_from_tiff(tif, str(path))
 
 
-def _check_spacing(spacing) -> tuple[float, float, float]:
+def check_spacing(spacing) -> tuple[float, float, float]:
     try:
         dz, dy, dx = (float(s) for s in spacing)
     except (TypeError, ValueError):
@@ -262,7 +269,8 @@ def read_stack(
     kept = [a for a in axes if a not in "TC"]
     data = np.transpose(data, [kept.index(a) for a in "ZYX"])
     if spacing is not None:
-        info.spacing = _check_spacing(spacing)
+        info.spacing = check_spacing(spacing)
+        info.unit = "um"
         info.calibrated = True
     elif not info.calibrated:
         warnings.warn(
@@ -304,7 +312,7 @@ def write_hyperstack(
     metadata : dict, optional
         Extra key/values stored in the ImageJ ``Info`` string as JSON.
     """
-    dz, dy, dx = _check_spacing(spacing)
+    dz, dy, dx = check_spacing(spacing)
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     if ome:

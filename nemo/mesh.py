@@ -6,6 +6,8 @@ faces are wound so that ``mesh.vertex_normals`` point **outward**. Two trimesh a
 it the container the rest of NEMO uses:
 
 * ``mesh.units`` -- the physical unit (``"um"``), written into the PLY header as a comment;
+* ``mesh.metadata["spacing"]`` -- ``(dz, dy, dx)`` of the image the mesh was reconstructed
+  from (a PLY header comment), so later steps can check they read the same image;
 * ``mesh.vertex_attributes`` -- per-vertex fields (``(N,)`` float arrays), written as extra
   PLY vertex properties and read back.
 
@@ -16,14 +18,16 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 
 _UNIT_COMMENT = re.compile(rb"comment nemo unit (\S+)")
+_SPACING_COMMENT = re.compile(rb"comment nemo spacing (\S+) (\S+) (\S+)")
 _XYZ = ("x", "y", "z")
 _PLY_SKIP = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha"}
 
@@ -106,10 +110,64 @@ def orient_outward_(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return mesh
 
 
+def face_normals_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit face normals (F, 3) (zero for degenerate faces) and face areas (F,)."""
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(cross, axis=1)
+    normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0)
+    return normals, 0.5 * norm
+
+
+def vertex_areas(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Barycentric vertex areas, shape (N,): a third of every incident face (sum = mesh area)."""
+    _, areas = face_normals_areas(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))
+    third = np.repeat(areas / 3.0, 3)
+    return np.bincount(np.asarray(mesh.faces).ravel(), weights=third, minlength=len(mesh.vertices))
+
+
 def vertex_normals(mesh: trimesh.Trimesh) -> np.ndarray:
-    """Unit outward vertex normals, shape (N, 3) (area-weighted face normals)."""
-    normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    """Unit outward vertex normals, shape (N, 3) (area-weighted face normals).
+
+    A vertex whose faces all have zero area (marching cubes duplicates a vertex wherever the
+    level equals a voxel value) takes the normal of a coincident twin; vertices on no face, or
+    without a usable twin, get NaN (never a zero vector that would pass as a direction).
+    """
+    normals = np.array(mesh.vertex_normals, dtype=np.float64)
+    bad = ~np.isfinite(normals).all(axis=1) | (np.abs(normals).sum(axis=1) == 0)
+    if bad.any():
+        from scipy.spatial import cKDTree
+
+        normals[bad] = np.nan
+        good = np.flatnonzero(~bad)
+        if len(good):
+            vertices = np.asarray(mesh.vertices, dtype=np.float64)
+            dist, idx = cKDTree(vertices[good]).query(vertices[bad])
+            twin = dist <= 1e-6 * max(float(np.linalg.norm(np.ptp(vertices, axis=0))), 1e-300)
+            normals[np.flatnonzero(bad)[twin]] = normals[good[idx[twin]]]
     return normals
+
+
+def merge_coincident_vertices(
+    vertices: np.ndarray, faces: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge exactly coincident vertices and drop the faces that collapse.
+
+    Returns
+    -------
+    vertices : ndarray, shape (M, 3)
+    faces : ndarray, shape (G, 3)
+    index : ndarray, shape (N,)
+        New index of every old vertex.
+    """
+    order = np.lexsort(vertices.T[::-1])
+    sv = vertices[order]
+    new = np.concatenate([[True], np.any(sv[1:] != sv[:-1], axis=1)])
+    index = np.empty(len(vertices), dtype=np.int64)
+    index[order] = np.cumsum(new) - 1
+    f = index[faces]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return sv[new], f[keep], index
 
 
 def mean_edge_length(mesh: trimesh.Trimesh) -> float:
@@ -130,7 +188,11 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
                 out.vertex_attributes[name] = values.astype(np.float64)
         data = out.export(file_type="ply", encoding="binary")
         unit = getattr(mesh, "units", None) or "um"
-        data = data.replace(b"\nelement vertex", f"\ncomment nemo unit {unit}\nelement vertex".encode(), 1)
+        comments = f"comment nemo unit {unit}\n"
+        spacing = mesh.metadata.get("spacing")
+        if spacing is not None:
+            comments += "comment nemo spacing {:.9g} {:.9g} {:.9g}\n".format(*spacing)
+        data = data.replace(b"\nelement vertex", f"\n{comments}element vertex".encode(), 1)
         tmp.write_bytes(data)  # trimesh stores vertices as float32: ~1e-7 relative precision
     elif suffix == ".obj":
         tmp.write_text(mesh.export(file_type="obj"))
@@ -153,6 +215,9 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
     mesh = trimesh.Trimesh(vertices=loaded.vertices, faces=loaded.faces, process=False)
     match = _UNIT_COMMENT.search(header)
     mesh.units = match.group(1).decode() if match else "um"
+    match = _SPACING_COMMENT.search(header)
+    if match:
+        mesh.metadata["spacing"] = tuple(float(v) for v in match.groups())
     ply_raw = loaded.metadata.get("_ply_raw", {})
     vertex_data = ply_raw.get("vertex", {}).get("data")
     if isinstance(vertex_data, dict):  # ASCII PLY: trimesh returns a dict of arrays
@@ -209,6 +274,13 @@ def load_mesh(path: str | os.PathLike, unit: str | None = None) -> trimesh.Trime
     if unit is not None:
         mesh.units = unit
     check_mesh(mesh, str(path))
+    if mesh.is_watertight and signed_volume(mesh.vertices, mesh.faces) < 0:
+        mesh.faces = mesh.faces[:, ::-1]
+        warnings.warn(
+            f"{path} is wound inward (negative enclosed volume): its faces were flipped so that "
+            "normals point outward. Re-export it with outward normals to silence this.",
+            NemoWarning, stacklevel=2,
+        )
     return mesh
 
 

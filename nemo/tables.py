@@ -2,8 +2,9 @@
 
 Per-vertex tables are keyed by an integer ``vertex`` column (the row index of the vertex in
 the mesh the table was computed on). Each file stores, in its Parquet key/value metadata under
-``nemo``, a JSON object with the unit, the command and parameters that made it, so a table can
-be traced back to its inputs. Writes are atomic (temporary file + rename).
+``nemo``, a JSON object with the unit, the command and parameters that made it, and for
+per-vertex tables the mesh it was computed on (``mesh`` path, ``n_vertices``), so a table can
+be traced back to its inputs and is never paired with another mesh. Writes are atomic (temporary file + rename).
 
 The documented schemas live in :data:`SCHEMAS`; :func:`read_table` checks a file against one.
 """
@@ -72,6 +73,7 @@ def read_table(
     path: str | os.PathLike,
     kind: str | None = None,
     columns: tuple[str, ...] | None = None,
+    n_vertices: int | None = None,
 ) -> pd.DataFrame:
     """Read a NEMO Parquet table and check it has the columns of ``kind``.
 
@@ -82,11 +84,16 @@ def read_table(
         One of :data:`SCHEMAS`; the file must have its columns.
     columns : tuple of str, optional
         Further columns the caller needs.
+    n_vertices : int, optional
+        Vertex count of the mesh the caller pairs the table with. The table must have been
+        computed on a mesh of that size (its provenance ``n_vertices``, when recorded) and
+        may not refer to vertices beyond it.
 
     Raises
     ------
     NemoError
-        Missing or non-Parquet file, or a file that lacks required columns.
+        Missing or non-Parquet file, a file that lacks required columns, or a table made on
+        another mesh.
     """
     path = Path(path)
     if not path.exists():
@@ -103,7 +110,32 @@ def read_table(
             f"{path} lacks column(s) {', '.join(missing)} needed for {what} "
             f"(it has: {', '.join(map(str, df.columns))}); was it made by the right nemo command?"
         )
+    if n_vertices is not None:
+        check_table_mesh(df, path, n_vertices)
     return df
+
+
+def check_table_mesh(df: pd.DataFrame, path: str | os.PathLike, n_vertices: int) -> None:
+    """Raise :class:`NemoError` unless a per-vertex table fits a mesh of ``n_vertices``.
+
+    The table's provenance records the mesh it was computed on (``mesh``, ``n_vertices``); a
+    different vertex count, or a ``vertex`` index beyond the mesh, means the table and the mesh
+    do not belong together.
+    """
+    prov = read_provenance(path)
+    made_on = prov.get("n_vertices")
+    if made_on is not None and int(made_on) != int(n_vertices):
+        raise NemoError(
+            f"{path} was computed on {prov.get('mesh', 'a mesh')} with {made_on} vertices, but the "
+            f"mesh given has {n_vertices}: pass the mesh the table was made on"
+        )
+    if "vertex" in df.columns and len(df):
+        vmax = int(df["vertex"].max())
+        if vmax >= n_vertices or int(df["vertex"].min()) < 0:
+            raise NemoError(
+                f"{path} refers to vertex {vmax} but the mesh has {n_vertices} vertices: "
+                "the table was computed on another mesh"
+            )
 
 
 def read_provenance(path: str | os.PathLike) -> dict:
@@ -113,8 +145,16 @@ def read_provenance(path: str | os.PathLike) -> dict:
     return json.loads(raw) if raw else {}
 
 
-def field_on_vertices(df: pd.DataFrame, column: str, n_vertices: int, path: str = "table") -> np.ndarray:
+def field_on_vertices(
+    df: pd.DataFrame, column: str, n_vertices: int, path: str = "table", exact: bool = False
+) -> np.ndarray:
     """Scatter a per-vertex column onto an (N,) array (NaN where the table has no row).
+
+    Parameters
+    ----------
+    exact : bool
+        The table must have exactly one row per vertex of the mesh (layers, curvature,
+        thickness): a table from a smaller or larger mesh is refused.
 
     Raises
     ------
@@ -124,6 +164,11 @@ def field_on_vertices(df: pd.DataFrame, column: str, n_vertices: int, path: str 
     if column not in df.columns:
         raise NemoError(f"{path} has no column {column!r} (columns: {', '.join(df.columns)})")
     vertex = df["vertex"].to_numpy()
+    if exact and (len(vertex) != n_vertices or not np.array_equal(np.sort(vertex), np.arange(n_vertices))):
+        raise NemoError(
+            f"{path} has {len(vertex)} rows but the mesh has {n_vertices} vertices: "
+            "the table was computed on another mesh; pass the mesh it was made on"
+        )
     if len(vertex) and (vertex.min() < 0 or vertex.max() >= n_vertices):
         raise NemoError(
             f"{path} refers to vertex {int(vertex.max())} but the mesh has {n_vertices} vertices: "
