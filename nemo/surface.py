@@ -43,33 +43,18 @@ from scipy.sparse import csgraph
 
 from nemo._log import logger, step as log_step
 from nemo.errors import NemoError
-from nemo.mesh import make_mesh
+from nemo.io import check_spacing
+from nemo.mesh import face_normals_areas, make_mesh, merge_coincident_vertices, signed_volume
 
-__all__ = ["reconstruct", "split_mesh", "fit_sphere", "keep_components", "submesh", "face_components"]
+__all__ = [
+    "reconstruct", "split_mesh", "fit_sphere", "keep_components", "submesh", "face_components",
+    "default_sigma", "parse_threshold",
+]
 
 _MAX_THRESHOLD_SAMPLES = 4_000_000
 
 
 # --------------------------------------------------------------------------- helpers
-def _check_spacing(spacing) -> tuple[float, float, float]:
-    try:
-        dz, dy, dx = (float(s) for s in spacing)
-    except (TypeError, ValueError):
-        raise NemoError(f"spacing must be three numbers DZ DY DX, got {spacing!r}") from None
-    if not all(np.isfinite(s) and s > 0 for s in (dz, dy, dx)):
-        raise NemoError(f"spacing must be three positive numbers DZ DY DX, got {spacing!r}")
-    return dz, dy, dx
-
-
-def _face_normals_unit(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit face normals (F, 3) and face areas (F,)."""
-    tri = vertices[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    norm = np.linalg.norm(cross, axis=1)
-    normals = cross / np.where(norm > 0, norm, 1.0)[:, None]
-    return normals, 0.5 * norm
-
-
 def face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     """Connected-component label of every face (faces sharing a vertex are connected).
 
@@ -127,6 +112,8 @@ def submesh(mesh: trimesh.Trimesh, face_index: np.ndarray, flip: bool = False) -
             fields[name] = values[used]
     out = make_mesh(np.asarray(mesh.vertices)[used], new_faces, unit=getattr(mesh, "units", None) or "um",
                     fields=fields, orient_outward=False)
+    if "spacing" in mesh.metadata:
+        out.metadata["spacing"] = mesh.metadata["spacing"]
     out.metadata["parent_faces"] = face_index
     out.metadata["parent_vertices"] = used
     return out
@@ -153,14 +140,44 @@ def keep_components(mesh: trimesh.Trimesh, keep: Literal["largest", "all"] = "la
     n = int(labels.max()) + 1
     if n == 1:
         return mesh
-    _, areas = _face_normals_unit(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    _, areas = face_normals_areas(np.asarray(mesh.vertices), np.asarray(mesh.faces))
     comp_area = np.bincount(labels, weights=areas, minlength=n)
     best = int(np.argmax(comp_area))
     logger.info("keeping the largest of %d components (%.4g of %.4g area units)", n, comp_area[best], comp_area.sum())
     return submesh(mesh, labels == best)
 
 
-def _parse_threshold(threshold) -> str | float:
+def default_sigma(spacing, step: int = 1) -> float:
+    """Default Gaussian blur σ (physical units) for a marching-cubes step of ``step`` voxels.
+
+    Half the lateral sampling distance of the surface, ``step × (dx + dy) / 4``: half a voxel at
+    full resolution, one voxel at the paper's step 2. It merges voxel noise (which would make a
+    thin wall porous) without pulling the surface towards bright structures near it (every extra
+    σ widens the edge), and the surface is only sampled every ``step`` voxels anyway.
+
+    Parameters
+    ----------
+    spacing : (dz, dy, dx)
+        Voxel size.
+    step : int
+        Marching-cubes step in voxels.
+
+    Returns
+    -------
+    float
+    """
+    _, dy, dx = check_spacing(spacing)
+    return 0.25 * max(1, int(step)) * (dx + dy)
+
+
+def parse_threshold(threshold) -> str | float:
+    """``"yen"``, ``"otsu"`` (any case) or a finite number, from a string or a number.
+
+    Raises
+    ------
+    NemoError
+        Anything else.
+    """
     if isinstance(threshold, str):
         name = threshold.strip().lower()
         if name in ("yen", "otsu"):
@@ -212,6 +229,49 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
         return thr, thr
     top = peaks[ok][np.argmax(counts[peaks[ok]])]
     return thr, 0.5 * (float(centres[b0]) + float(centres[top]))
+
+
+def _cancel_duplicate_faces(faces: np.ndarray) -> np.ndarray:
+    """Remove faces repeated on the same three vertices, cancelling opposite windings.
+
+    Merging coincident marching-cubes vertices turns two sheets that touch at the iso-level
+    into back-to-back face pairs (a membrane of zero thickness whose normals cancel). Per
+    vertex triple the windings are summed (+1 / −1); a net of 0 removes every copy, otherwise
+    one face of the net winding is kept.
+    """
+    if len(faces) == 0:
+        return faces
+    order = np.argsort(faces, axis=1)
+    key = np.take_along_axis(faces, order, axis=1)
+    # winding relative to the sorted triple: cyclic shifts of (0, 1, 2) are +1, the rest -1
+    parity = np.where(((order[:, 1] - order[:, 0]) % 3) == 1, 1, -1)
+    _, first, inverse, counts = np.unique(key, axis=0, return_index=True, return_inverse=True,
+                                          return_counts=True)
+    inverse = inverse.ravel()
+    if counts.max() == 1:
+        return faces
+    net = np.bincount(inverse, weights=parity).astype(np.int64)
+    # keep, per triple with net != 0, the first face whose winding is the net's sign
+    cand = np.flatnonzero(parity == np.sign(net[inverse]))
+    keep_idx = np.full(len(net), -1, dtype=np.int64)
+    keep_idx[inverse[cand[::-1]]] = cand[::-1]  # last write wins -> the first candidate
+    keep_idx = keep_idx[(net != 0) & (keep_idx >= 0)]
+    logger.debug("removed %d duplicate/back-to-back faces", len(faces) - len(keep_idx))
+    return faces[np.sort(keep_idx)]
+
+
+def _check_finite(volume: np.ndarray) -> None:
+    """Raise :class:`NemoError` if a float volume holds NaN or infinite voxels (slab by slab:
+    no full-size temporary)."""
+    if not np.issubdtype(volume.dtype, np.inexact):
+        return
+    slab = max(1, 8_000_000 // max(1, volume[0].size))
+    bad = sum(int(np.count_nonzero(~np.isfinite(volume[z:z + slab]))) for z in range(0, len(volume), slab))
+    if bad:
+        raise NemoError(
+            f"the image has {bad} NaN or infinite voxels ({100 * bad / volume.size:.2g} % of it): "
+            "replace them (e.g. by the background intensity) before meshing, or give a --mask"
+        )
 
 
 def _blur_sampled(src: np.ndarray, sig_vox: tuple[float, float, float], step: int, truncate: float = 3.0) -> np.ndarray:
@@ -272,9 +332,9 @@ def reconstruct(
     spacing : (dz, dy, dx)
         Voxel size in ``unit`` (µm).
     sigma : float, optional
-        Gaussian blur σ in physical units (per-axis σ/spacing voxels). Default: half a lateral
-        voxel, ``(dx + dy) / 4`` -- enough to merge voxel noise, small enough not to pull the
-        surface towards bright structures near it (every extra σ widens the edge). ``0`` = no blur.
+        Gaussian blur σ in physical units (per-axis σ/spacing voxels). Default
+        :func:`default_sigma`: ``step × (dx + dy) / 4``, half the surface sampling distance
+        (half a voxel at step 1, one voxel at step 2). ``0`` = no blur.
     threshold : {"yen", "otsu"} or float
         Automatic threshold on the blurred image, or an iso-level in the image's intensity
         units. Ignored when ``mask`` is given.
@@ -309,7 +369,7 @@ def reconstruct(
         Bad shapes or parameters; a constant (e.g. all-dark) image; a threshold or mask that
         selects no voxel or every voxel.
     """
-    dz, dy, dx = _check_spacing(spacing)
+    dz, dy, dx = check_spacing(spacing)
     if keep not in ("largest", "all"):
         raise NemoError(f"keep must be 'largest' or 'all', got {keep!r}")
     if edge not in ("half", "threshold"):
@@ -322,7 +382,7 @@ def reconstruct(
     if not 0 < pass_band < 2:
         raise NemoError(f"pass_band must lie in (0, 2), got {pass_band!r}")
     if sigma is None:
-        sigma = 0.25 * (dx + dy)
+        sigma = default_sigma((dz, dy, dx), step)
     sigma = float(sigma)
     if not np.isfinite(sigma) or sigma < 0:
         raise NemoError(f"sigma must be a length >= 0 (µm), got {sigma!r}")
@@ -350,6 +410,7 @@ def reconstruct(
         raise NemoError("give an image volume or a mask")
     else:
         source, shape = volume, volume.shape
+        _check_finite(volume)
     if min(shape) < 2:
         raise NemoError(f"the stack {shape} is too thin for a surface: every axis needs at least 2 voxels")
 
@@ -371,7 +432,7 @@ def reconstruct(
         if not vmin < level < vmax:  # blur wider than the object
             level = 0.5 * (vmin + vmax)
     else:
-        how = _parse_threshold(threshold)
+        how = parse_threshold(threshold)
         if vmin == vmax:
             raise NemoError(
                 f"the image is constant (every voxel = {vmin:g}, e.g. an all-dark stack): no object to "
@@ -404,9 +465,20 @@ def reconstruct(
     from skimage import measure
 
     with log_step(f"marching cubes (step {step} voxels)"):
-        verts_zyx, faces, _, _ = measure.marching_cubes(padded, level, spacing=(dz * step, dy * step, dx * step))
+        verts_zyx, faces, _, _ = measure.marching_cubes(padded, level, spacing=(dz * step, dy * step, dx * step),
+                                                        allow_degenerate=False)
     del padded, inner
-    vertices = verts_zyx[:, ::-1].astype(np.float64) - pad * step * np.array([dx, dy, dz])
+    # Where the level equals a voxel value, marching cubes puts several vertices on the same
+    # point (zero-area faces, zero normals): merge them and drop the faces that collapse and
+    # the vertices no face uses any more.
+    verts_zyx, faces, _ = merge_coincident_vertices(np.asarray(verts_zyx, dtype=np.float64), faces)
+    faces = _cancel_duplicate_faces(faces)
+    used = np.zeros(len(verts_zyx), dtype=bool)
+    used[faces.ravel()] = True
+    if not used.all():
+        faces = (np.cumsum(used) - 1)[faces]
+        verts_zyx = verts_zyx[used]
+    vertices = verts_zyx[:, ::-1] - pad * step * np.array([dx, dy, dz])
     # caps of objects cut by the border lie between the last sample and the pad: put them on
     # the border plane (the image's extent), also after smoothing
     box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
@@ -415,8 +487,6 @@ def reconstruct(
     # point down the intensity gradient (out of the object).
     faces = np.ascontiguousarray(faces[:, ::-1], dtype=np.int64)
     mesh = make_mesh(vertices, faces, unit=unit, orient_outward=False)
-    from nemo.mesh import signed_volume
-
     if signed_volume(mesh.vertices, mesh.faces) < 0:  # padded => closed => the solid has volume > 0
         mesh.faces = mesh.faces[:, ::-1]
     logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
@@ -431,6 +501,7 @@ def reconstruct(
     }
     mesh.metadata.pop("parent_faces", None)
     mesh.metadata.pop("parent_vertices", None)
+    mesh.metadata["spacing"] = (dz, dy, dx)  # saved in the PLY header: peel checks the image
     return mesh
 
 
@@ -444,8 +515,8 @@ def split_mesh(
 ) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
     """Split a mesh into its inner and outer walls by the sign of ``n · (x − centre)`` or ``n · axis``.
 
-    Each face goes to exactly one half by the sign for its unit normal ``n`` and its centroid
-    ``x``: ``> 0`` outer, ``<= 0`` inner.
+    Each face goes to at most one half by the sign for its unit normal ``n`` and its centroid
+    ``x``: ``> 0`` outer, ``< 0`` inner; zero-area faces (no normal, sign 0) go to neither.
 
     Parameters
     ----------
@@ -476,7 +547,7 @@ def split_mesh(
     faces = np.asarray(mesh.faces)
     if len(faces) == 0:
         raise NemoError("cannot split an empty mesh")
-    normals, areas = _face_normals_unit(vertices, faces)
+    normals, areas = face_normals_areas(vertices, faces)
     centroids = vertices[faces].mean(axis=1)
     if by == "centre":
         if centre is None:
@@ -495,15 +566,17 @@ def split_mesh(
         ref = f"axis ({axis[0]:.4g}, {axis[1]:.4g}, {axis[2]:.4g})"
     else:
         raise NemoError(f"split by must be 'centre' or 'axis', got {by!r}")
+    # zero-area faces have no normal (sign 0): they belong to neither wall and are left out
     outer_sel = sign > 0
-    n_out = int(outer_sel.sum())
-    if n_out == 0 or n_out == len(faces):
-        side = "inner" if n_out == len(faces) else "outer"
+    inner_sel = sign < 0
+    n_out, n_in = int(outer_sel.sum()), int(inner_sel.sum())
+    if n_out == 0 or n_in == 0:
+        side = "inner" if n_in == 0 else "outer"
         raise NemoError(
             f"splitting by {ref} leaves the {side} half empty: the mesh has a single wall "
             "(e.g. a filled object) or the reference is outside it; use the whole mesh or another --split/--axis"
         )
-    inner = keep_components(submesh(mesh, ~outer_sel, flip=True), keep)
+    inner = keep_components(submesh(mesh, inner_sel, flip=True), keep)
     outer = keep_components(submesh(mesh, outer_sel), keep)
     logger.info("split by %s: inner %d faces, outer %d faces", ref, len(inner.faces), len(outer.faces))
     return inner, outer

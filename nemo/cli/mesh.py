@@ -34,16 +34,12 @@ examples:
 
 
 def _threshold(text: str):
-    name = text.strip().lower()
-    if name in ("yen", "otsu"):
-        return name
+    from nemo.surface import parse_threshold  # one parser for the CLI and the library
+
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'yen', 'otsu' or a number, got {text!r}") from None
-    if not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"threshold must be finite, got {text!r}")
-    return value
+        return parse_threshold(text)
+    except NemoError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _nonneg_int(text: str) -> int:
@@ -60,7 +56,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
     add_common(parser, frame=True, output_help="output mesh (.ply or .obj)")
     parser.add_argument("--sigma", type=float, default=None, metavar="UM",
-                        help="Gaussian blur sigma in µm (default: one lateral voxel; 0 = none)")
+                        help="Gaussian blur sigma in the image unit (default: half the sampling distance, "
+                             "--step × (dx + dy)/4, i.e. one voxel at --step 2; 0 = none)")
     parser.add_argument("--threshold", type=_threshold, default="yen", metavar="yen|otsu|VALUE",
                         help="automatic threshold or an intensity iso-level (default yen)")
     parser.add_argument("--edge", choices=("half", "threshold"), default="half",
