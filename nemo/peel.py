@@ -20,9 +20,23 @@ from scipy import ndimage
 
 from nemo._log import logger
 from nemo.errors import NemoError, NemoWarning
+from nemo.io import check_spacing
 
 #: Sample points interpolated per chunk (bounds the temporary memory to ~100 MB).
 _CHUNK_POINTS = 2_000_000
+
+#: A mesh with more than this fraction of its vertices outside the image box was not made from
+#: this image (or at another spacing): peeling it is refused.
+MAX_OUTSIDE_FRACTION = 0.05
+
+#: Samples closer than this fraction of the smallest voxel add nothing to the layer.
+_MIN_SAMPLE_STEP_VOXELS = 0.05
+
+#: Extra voxels around the sampled region kept for the cubic B-spline prefilter (its influence
+#: decays as 0.27^k: 8 voxels leave < 3e-5 of the boundary condition at the samples).
+_CUBIC_MARGIN = 8
+
+_UM = {"um", "µm", "μm", "micron", "microns", "micrometer", "micrometre"}
 
 
 def sample_depths(d_min: float, d_max: float, n_samples: int) -> np.ndarray:
@@ -30,6 +44,51 @@ def sample_depths(d_min: float, d_max: float, n_samples: int) -> np.ndarray:
     if n_samples == 1:
         return np.array([float(d_min)])
     return np.linspace(float(d_min), float(d_max), int(n_samples))
+
+
+def max_samples(d_min: float, d_max: float, spacing) -> int:
+    """Most useful samples over a range: 1/20 of the smallest voxel apart (at least 101)."""
+    step = _MIN_SAMPLE_STEP_VOXELS * min(check_spacing(spacing))
+    return max(101, int(np.ceil((float(d_max) - float(d_min)) / step)) + 1)
+
+
+def _same_unit(a: str | None, b: str | None) -> bool:
+    a, b = (a or "um").strip().lower(), (b or "um").strip().lower()
+    return a == b or (a in _UM and b in _UM)
+
+
+def check_mesh_image(mesh, spacing, unit: str, mesh_name: str = "the mesh", image_name: str = "the image") -> None:
+    """Raise :class:`NemoError` unless a mesh lives in the physical space of an image.
+
+    The mesh's unit (``mesh.units``) must be the image's, and the spacing recorded when the
+    mesh was reconstructed (``mesh.metadata["spacing"]``, a PLY header comment written by
+    ``nemo mesh``) must equal the image's. Meshes without a recorded spacing (made elsewhere)
+    are only checked for the unit; :func:`peel` then checks that they lie inside the image.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    spacing : (dz, dy, dx)
+        The image's voxel size (after any ``--spacing`` override).
+    unit : str
+        The image's unit.
+    """
+    sp = np.asarray(check_spacing(spacing))
+    mesh_unit = getattr(mesh, "units", None) or "um"
+    if not _same_unit(mesh_unit, unit):
+        raise NemoError(
+            f"{mesh_name} is in unit '{mesh_unit}' but {image_name} is in '{unit}' (spacing "
+            f"{' '.join(f'{v:g}' for v in sp)}): make the mesh from this image with the same "
+            "--spacing, or give the image the --spacing the mesh was made with"
+        )
+    made = mesh.metadata.get("spacing") if hasattr(mesh, "metadata") else None
+    if made is not None and not np.allclose(np.asarray(made, dtype=np.float64), sp, rtol=1e-5, atol=0.0):
+        raise NemoError(
+            f"{mesh_name} was made from an image with spacing (dz, dy, dx) = "
+            f"({', '.join(f'{v:g}' for v in made)}) but {image_name} has "
+            f"({', '.join(f'{v:g}' for v in sp)}): pass --spacing {' '.join(f'{v:g}' for v in made)} "
+            "(as for 'nemo mesh'), or remake the mesh from this image"
+        )
 
 
 def peel(
@@ -57,26 +116,29 @@ def peel(
         Physical x, y, z.
     normals : ndarray, shape (N, 3)
         Direction of increasing depth (outward normals; pass ``-normals`` to peel inward).
-        Normalised here.
+        Normalised here; a zero or NaN normal gives a NaN intensity.
     d_min, d_max : float
         Depth range along the normal (µm), ``d_min <= d_max``; negative values go against the
         normal.
     n_samples : int
-        Number of depths in the range (``1`` samples ``d_min`` only).
+        Number of depths in the range (``1`` samples ``d_min`` only); at most
+        :func:`max_samples` (samples 1/20 voxel apart).
     reduce : {"mean", "max"}
         Reduction over the depth samples.
     interp : {"linear", "cubic"}
-        Interpolation order 1 or 3 (cubic B-spline, volume prefiltered once as float32).
+        Interpolation order 1 or 3 (cubic B-spline, prefiltered once as float32 on the part of
+        the volume the samples reach, mirror boundaries).
     shift : ndarray, shape (N,), optional
         Per-vertex offset (µm) added to the whole range (e.g. a fraction of the local
         thickness). NaN shift gives a NaN intensity.
     return_profile : bool
-        Also return the samples and their depths.
+        Also return the samples and their depths (an (N, n_samples) array is then kept).
 
     Returns
     -------
     intensity : ndarray, shape (N,)
-        Reduced intensity (float64), NaN where any sample lies outside the volume.
+        Reduced intensity (float64), NaN where any sample lies outside the volume or on a NaN
+        voxel.
     profile : ndarray, shape (N, n_samples)
         Only with ``return_profile``: the samples.
     depths : ndarray, shape (n_samples,)
@@ -85,14 +147,13 @@ def peel(
     Raises
     ------
     NemoError
-        Bad shapes, options or range.
+        Bad shapes, options or range; more than :data:`MAX_OUTSIDE_FRACTION` of the vertices
+        outside the image box ``[0, (n − 1) d]`` (a mesh from another image or spacing).
     """
     volume = np.asarray(volume)
     if volume.ndim != 3:
         raise NemoError(f"peel needs a 3-D (Z, Y, X) volume, got shape {volume.shape}")
-    spacing = np.asarray(spacing, dtype=np.float64)
-    if spacing.shape != (3,) or not np.all(spacing > 0):
-        raise NemoError(f"spacing must be three positive numbers (dz, dy, dx), got {spacing.tolist()}")
+    spacing = np.asarray(check_spacing(spacing), dtype=np.float64)
     vertices = np.asarray(vertices, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or normals.shape != vertices.shape:
@@ -103,6 +164,12 @@ def peel(
         raise NemoError(f"bad depth range [{d_min}, {d_max}]: need finite DMIN <= DMAX")
     if int(n_samples) < 1:
         raise NemoError(f"--samples must be >= 1, got {n_samples}")
+    cap = max_samples(d_min, d_max, spacing)
+    if int(n_samples) > cap:
+        raise NemoError(
+            f"--samples {n_samples} puts samples closer than 1/20 of a voxel over [{d_min:g}, {d_max:g}]: "
+            f"use at most {cap} (the default 11 is plenty for a layer a few voxels deep)"
+        )
     if reduce not in ("mean", "max"):
         raise NemoError(f"unknown reduction {reduce!r}: use 'mean' or 'max'")
     if interp not in ("linear", "cubic"):
@@ -112,19 +179,25 @@ def peel(
         shift = np.asarray(shift, dtype=np.float64)
         if shift.shape != (n,):
             raise NemoError(f"shift must have one value per vertex ({n}), got shape {shift.shape}")
+    upper = np.array(volume.shape, dtype=np.float64) - 1.0
+    _check_inside(vertices, upper[::-1] * spacing[::-1], spacing)
 
     norm = np.linalg.norm(normals, axis=1, keepdims=True)
-    unit = normals / np.where(norm > 0, norm, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = normals / np.where(norm > 0, norm, np.nan)
+    no_normal = ~np.isfinite(unit).all(axis=1)
     depths = sample_depths(d_min, d_max, n_samples)
+    offset = np.zeros(3)
     if interp == "cubic":
         order = 3
-        data = ndimage.spline_filter(volume.astype(np.float32, copy=False), order=3,
-                                     output=np.float32, mode="mirror")
+        data, offset = _cubic_coefficients(volume, vertices, depths, shift, spacing)
     else:
         order = 1
         data = volume
-    upper = np.array(volume.shape, dtype=np.float64) - 1.0
-    profile = np.empty((n, len(depths)), dtype=np.float64)
+    crop_upper = np.array(data.shape, dtype=np.float64) - 1.0
+    intensity = np.empty(n, dtype=np.float64)
+    profile = np.empty((n, len(depths)), dtype=np.float64) if return_profile else None
+    n_outside = n_nan_voxel = 0
     chunk = max(1, _CHUNK_POINTS // len(depths))
     for start in range(0, n, chunk):
         stop = min(n, start + chunk)
@@ -134,27 +207,70 @@ def peel(
         pts = vertices[start:stop, None, :] + d[..., None] * unit[start:stop, None, :]  # (n, s, 3) x,y,z
         idx = pts[..., ::-1] / spacing  # (n, s, 3) voxel z, y, x
         inside = np.all((idx >= 0.0) & (idx <= upper), axis=-1)
-        coords = np.where(inside[..., None], idx, 0.0).reshape(-1, 3).T
-        vals = ndimage.map_coordinates(data, coords, order=order, mode="nearest",
+        local = idx - offset
+        coords = np.where(inside[..., None], np.clip(local, 0.0, crop_upper), 0.0).reshape(-1, 3).T
+        vals = ndimage.map_coordinates(data, coords, order=order, mode="mirror",
                                        prefilter=False, output=np.float64)
         vals = vals.reshape(stop - start, len(depths))
+        nan_voxel = inside & np.isnan(vals)
         vals[~inside] = np.nan
-        profile[start:stop] = vals
-    with np.errstate(invalid="ignore"):
-        intensity = profile.mean(axis=1) if reduce == "mean" else profile.max(axis=1)
+        n_outside += int((~inside.all(axis=1) & np.isfinite(d).all(axis=1) & ~no_normal[start:stop]).sum())
+        n_nan_voxel += int((nan_voxel.any(axis=1) & inside.all(axis=1)).sum())
+        with np.errstate(invalid="ignore"):
+            intensity[start:stop] = vals.mean(axis=1) if reduce == "mean" else vals.max(axis=1)
+        if profile is not None:
+            profile[start:stop] = vals
     n_nan = int(np.isnan(intensity).sum())
     if n_nan == n:
         raise NemoError(
-            "every sampling segment lies (partly) outside the image: check that the mesh was "
-            "made from this image, the spacing/unit, and the --range"
+            "every sampling segment lies (partly) outside the image or on NaN voxels: check that the "
+            "mesh was made from this image, the spacing/unit, and the --range"
         )
     if n_nan:
+        n_shift = int(np.isnan(shift).sum()) if shift is not None else 0
+        parts = [f"{k} {what}" for k, what in (
+            (n_outside, "sample outside the image"), (n_nan_voxel, "sample NaN voxels"),
+            (n_shift, "have a NaN shift"), (int(no_normal.sum()), "have no normal (zero-area faces only)"),
+        ) if k]
         warnings.warn(
-            f"{n_nan} of {n} vertices ({100 * n_nan / n:.1f} %) sample outside the image (or have "
-            "a NaN shift): their intensity is NaN",
+            f"{n_nan} of {n} vertices ({100 * n_nan / n:.1f} %) have a NaN intensity: "
+            + ", ".join(parts),
             NemoWarning, stacklevel=2,
         )
     logger.debug("peeled %d vertices x %d depths", n, len(depths))
     if return_profile:
         return intensity, profile, depths
     return intensity
+
+
+def _check_inside(vertices: np.ndarray, box: np.ndarray, spacing: np.ndarray) -> None:
+    """Refuse a mesh with more than MAX_OUTSIDE_FRACTION of its vertices outside the image box."""
+    tol = 0.5 * spacing[::-1]  # x, y, z
+    outside = np.any((vertices < -tol) | (vertices > box + tol), axis=1)
+    frac = float(outside.mean()) if len(vertices) else 0.0
+    if frac > MAX_OUTSIDE_FRACTION:
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        raise NemoError(
+            f"{100 * frac:.0f} % of the mesh's vertices lie outside the image (mesh x, y, z from "
+            f"({lo[0]:.4g}, {lo[1]:.4g}, {lo[2]:.4g}) to ({hi[0]:.4g}, {hi[1]:.4g}, {hi[2]:.4g}), image "
+            f"box (0, 0, 0) to ({box[0]:.4g}, {box[1]:.4g}, {box[2]:.4g})): the mesh was not made "
+            "from this image or at this spacing/unit; use the image and --spacing of 'nemo mesh'"
+        )
+
+
+def _cubic_coefficients(volume, vertices, depths, shift, spacing):
+    """Cubic B-spline coefficients (float32) of the part of the volume the samples reach.
+
+    Returns the coefficients and the voxel offset (z, y, x) of their first element.
+    """
+    reach = max(abs(float(depths[0])), abs(float(depths[-1])))
+    if shift is not None and np.isfinite(shift).any():
+        reach += float(np.nanmax(np.abs(shift)))
+    lo_xyz = vertices.min(axis=0) - reach
+    hi_xyz = vertices.max(axis=0) + reach
+    shape = np.array(volume.shape)
+    lo = np.clip(np.floor(lo_xyz[::-1] / spacing).astype(np.int64) - _CUBIC_MARGIN, 0, shape - 1)
+    hi = np.clip(np.ceil(hi_xyz[::-1] / spacing).astype(np.int64) + _CUBIC_MARGIN + 1, lo + 1, shape)
+    sub = volume[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32, copy=False)
+    coeff = ndimage.spline_filter(sub, order=3, output=np.float32, mode="mirror")
+    return coeff, lo.astype(np.float64)

@@ -15,6 +15,8 @@ DESCRIPTION = """\
 Sample the image along each vertex normal at x = v + (DMIN + shift + τ) N, τ ∈ [0, DMAX − DMIN]
 (physical units; anisotropic voxels handled exactly), and reduce the samples to one intensity
 per vertex. Writes a layer table (vertex, intensity); NaN where the segment leaves the image.
+The mesh must be in the image's physical space: same unit, and the spacing 'nemo mesh' recorded
+in the PLY must equal the image's (after --spacing); otherwise peel stops with an error.
 
 With --shift FIELDS.parquet:COLUMN the range moves by F × that per-vertex field (F from
 --shift-fraction, default 1), e.g. 0.2 × the local thickness. With --profile the full depth
@@ -32,9 +34,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) in the image's physical coordinates")
     parser.add_argument("--range", type=float, nargs=2, required=True, metavar=("DMIN", "DMAX"),
-                        help="depth range in µm along the normal (negative = against it)")
+                        help="depth range along the normal, in the mesh's unit (µm; negative = against it)")
     parser.add_argument("--samples", type=positive(int), default=11, metavar="N",
-                        help="samples over the range (default 11)")
+                        help="samples over the range (default 11; at most one per 1/20 voxel)")
     parser.add_argument("--reduce", choices=("mean", "max"), default="mean",
                         help="reduction over the samples (default mean)")
     parser.add_argument("--interp", choices=("linear", "cubic"), default="linear",
@@ -42,7 +44,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--inward", action="store_true",
                         help="measure depth along the inward normal instead of the outward one")
     parser.add_argument("--shift", metavar="FIELDS.parquet:COLUMN",
-                        help="per-vertex field added (× --shift-fraction) to the range, in µm")
+                        help="per-vertex field of this mesh added (× --shift-fraction) to the range, "
+                             "in the mesh's unit")
     parser.add_argument("--shift-fraction", type=float, default=1.0, metavar="F",
                         help="fraction of the --shift field to add (default 1)")
     parser.add_argument("--profile", action="store_true",
@@ -56,8 +59,8 @@ def _read_shift(spec: str, n_vertices: int) -> np.ndarray:
     path, sep, column = spec.rpartition(":")
     if not sep or not path or not column:
         raise NemoError(f"--shift {spec!r}: write it as FIELDS.parquet:COLUMN")
-    df = read_table(path, columns=("vertex", column))
-    return field_on_vertices(df, column, n_vertices, path)
+    df = read_table(path, columns=("vertex", column), n_vertices=n_vertices)
+    return field_on_vertices(df, column, n_vertices, path, exact=True)
 
 
 def profile_path(layer_path: str | Path) -> Path:
@@ -70,7 +73,7 @@ def run(args) -> int:
     from nemo._log import step
     from nemo.io import read_stack
     from nemo.mesh import load_mesh, vertex_normals
-    from nemo.peel import peel
+    from nemo.peel import check_mesh_image, peel
     from nemo.tables import write_table
 
     out = output_path(args.output)
@@ -86,13 +89,17 @@ def run(args) -> int:
         shift = args.shift_fraction * _read_shift(args.shift, len(mesh.vertices))
     with step(f"reading {args.image} t={args.t} c={args.c}"):
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
+    check_mesh_image(mesh, info.spacing, info.unit, mesh_name=f"the mesh {args.mesh}",
+                     image_name=f"the image {args.image}")
     with step(f"peeling {len(mesh.vertices)} vertices × {args.samples} samples in [{dmin:g}, {dmax:g}]"):
-        intensity, profile, depths = peel(
+        result = peel(
             volume, info.spacing, mesh.vertices, normals, dmin, dmax, n_samples=args.samples,
-            reduce=args.reduce, interp=args.interp, shift=shift, return_profile=True,
+            reduce=args.reduce, interp=args.interp, shift=shift, return_profile=args.profile,
         )
+    intensity, profile, depths = result if args.profile else (result, None, None)
     prov = dict(
-        command="peel", image=str(args.image), mesh=str(args.mesh), t=args.t, c=args.c,
+        command="peel", image=str(args.image), mesh=str(args.mesh), n_vertices=len(mesh.vertices),
+        t=args.t, c=args.c,
         spacing=list(info.spacing), unit=info.unit, range=[dmin, dmax], samples=args.samples,
         reduce=args.reduce, interp=args.interp, inward=args.inward, shift=args.shift,
         shift_fraction=args.shift_fraction,
