@@ -53,6 +53,13 @@ PIXEL_PER_EDGE = 0.5
 #: on very fine meshes, where half an edge would over-resolve the image anyway).
 MAX_HALF_WIDTH_PX = 20
 
+#: Largest micro-image half-width (pixels) accepted from user options (201 × 201 pixels): wider
+#: images cost seconds and gigabytes per chunk without resolving more of the layer.
+MAX_HALF_WIDTH_LIMIT = 100
+
+#: Smallest pixel accepted, as a fraction of the mean edge length (finer over-resolves the mesh).
+MIN_PIXEL_PER_EDGE = 0.1
+
 #: Gaussian-derivative scale of the gradients (pixels), as in OrientationPy.
 GRAD_SIGMA = 1.0
 
@@ -252,8 +259,9 @@ def directors(
     intensity : ndarray, shape (N,)
         Layer intensity per vertex (from :func:`nemo.peel.peel`); NaN values are ignored.
     patch_radius : float, optional
-        Patch radius (µm): vertices within this 3D distance of the centre. Default (when
-        ``patch_k`` is not given either) 10 × the mean edge length.
+        Patch radius (mesh unit, µm): vertices within this 3D distance of the centre. Default
+        (when ``patch_k`` is not given either) 10 × the mean edge length; the CLI requires one of
+        the two.
     patch_k : int, optional
         Patch = the ``patch_k`` nearest vertices instead (exclusive with ``patch_radius``).
     n_patches : int, optional
@@ -261,7 +269,9 @@ def directors(
         (30 per patch area; the paper's 12 000 for R = 200 µm, r = 20 µm), capped by N.
     pixel : float, optional
         Micro-image pixel (µm); default half the mean edge length, but at least
-        ``radius / 20`` (so a patch spans at most ~40 pixels across).
+        ``radius / 20`` (so a patch spans at most ~40 pixels across). Refused below
+        :data:`MIN_PIXEL_PER_EDGE` × the mean edge length or when the micro-image would be
+        wider than ``2 MAX_HALF_WIDTH_LIMIT + 1`` pixels.
     sigma : float, optional
         Structure-tensor integration scale in pixels; default half the patch radius.
     frames : {"axis", "smooth"}
@@ -309,6 +319,12 @@ def directors(
     pixel = float(pixel)
     if not pixel > 0:
         raise NemoError(f"pixel size must be > 0 µm, got {pixel}")
+    if pixel < MIN_PIXEL_PER_EDGE * edge:
+        raise NemoError(
+            f"--pixel {pixel:g} is below {MIN_PIXEL_PER_EDGE:g} × the mean edge length ({edge:.3g}): "
+            f"the micro-image would over-resolve the mesh at great cost; use --pixel "
+            f"{PIXEL_PER_EDGE * edge:.3g} (half an edge, the default) or at least {MIN_PIXEL_PER_EDGE * edge:.3g}"
+        )
     if nominal_radius < 2 * pixel:
         raise NemoError(
             f"the patch (radius ≈ {nominal_radius:.3g}) is smaller than 2 micro-image pixels "
@@ -339,6 +355,13 @@ def directors(
     grid_radius = float(np.quantile(radii, 0.99)) if n_c else nominal_radius
     radii = np.minimum(radii, grid_radius)
     half = int(np.ceil(grid_radius / pixel)) + _MARGIN_PX
+    if half > MAX_HALF_WIDTH_LIMIT:
+        raise NemoError(
+            f"a patch of radius {grid_radius:.3g} with --pixel {pixel:.3g} needs micro-images of "
+            f"{2 * half + 1} × {2 * half + 1} pixels (at most {2 * MAX_HALF_WIDTH_LIMIT + 1}): use "
+            f"--pixel {max(PIXEL_PER_EDGE * edge, grid_radius / MAX_HALF_WIDTH_PX):.3g} (the default) or "
+            f"at least {grid_radius / (MAX_HALF_WIDTH_LIMIT - _MARGIN_PX):.3g}, or a smaller patch"
+        )
     size = 2 * half + 1
     sigma = (grid_radius / pixel) / 2.0 if sigma is None else float(sigma)
     if not sigma > 0:

@@ -5,9 +5,11 @@ outward normal), so that an angle θ lifts to the 3D unit director ``n = cos θ 
 
 Two constructions (method note §5, paper "Local tangential projection"):
 
-* ``"axis"`` -- ``t1 = N × x̂`` normalised (``N × ŷ`` where ``N`` is nearly parallel to x̂),
-  ``t2 = N × t1``. Vectorised, O(N), never fails; discontinuous only where the x̂/ŷ switch
-  happens.
+* ``"axis"`` -- ``t1 = N × x̂`` normalised (``N × ŷ`` where ``N`` is nearly parallel to x̂,
+  ``|N × x̂| < 0.3``), ``t2 = N × t1``. Vectorised, O(N), never fails; discontinuous only
+  where the x̂/ŷ switch happens. :func:`axis_frames` is NEMO's only such construction: the
+  morphology fits, the synthetic ground truth (:func:`nemo.synthetic.nematic_angle`) and the
+  defect contours all use it, so angles from different modules are comparable.
 * ``"smooth"`` -- a unit vector parallel-transported from one vertex over the whole surface by
   the vector heat method of Sharp et al. (potpourri3d ``MeshVectorHeatSolver``). Smooth
   everywhere except the unavoidable singularities (hairy-ball theorem). It costs a sparse
@@ -28,6 +30,7 @@ import numpy as np
 import trimesh
 
 from nemo.errors import NemoError, NemoWarning
+from nemo.mesh import vertex_normals
 
 #: Largest mesh (vertices) on which the potpourri3d transport is attempted by default.
 SMOOTH_MAX_VERTICES = 60_000
@@ -47,7 +50,7 @@ def axis_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     t1, t2 : ndarray, shape (N, 3)
-        Orthonormal, ``t1 × t2 = N``.
+        Orthonormal, ``t1 × t2 = N``; NaN rows for NaN normals.
     """
     n = _unit(np.asarray(normals, dtype=np.float64))
     # N × x̂ = (0, nz, -ny); N × ŷ = (-nz, 0, nx)
@@ -116,7 +119,7 @@ def tangent_frames(
     """
     if method not in ("axis", "smooth"):
         raise NemoError(f"unknown tangent-frame method {method!r}: use 'axis' or 'smooth'")
-    normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    normals = vertex_normals(mesh)
     idx = slice(None) if vertices is None else np.asarray(vertices, dtype=np.int64)
     if method == "smooth":
         frames = _smooth_frames(mesh, normals, max_vertices, source)

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
 from nemo.frames import axis_frames
+from nemo.mesh import vertex_normals
 
 #: Upper bound on (target, director) pairs held at once.
 _CHUNK_PAIRS = 4_000_000
@@ -77,8 +78,14 @@ def tangential_eig(q6: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.
         ``2 λ_max`` of the traceless tangential part (in [0, 1] for averages of unit directors).
     n : ndarray, shape (T, 3)
         Unit eigenvector of ``λ_max`` (tangent to the target plane).
+
+    Both are NaN where the normal is not a unit vector (e.g. a vertex on zero-area faces
+    only): there is no tangent plane to project on, and S = 0 there would read as a defect.
     """
-    t1, t2 = axis_frames(normals)
+    normals = np.asarray(normals, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        no_plane = ~(np.abs(np.linalg.norm(normals, axis=1) - 1.0) < 1e-3)
+    t1, t2 = axis_frames(np.where(no_plane[:, None], (0.0, 0.0, 1.0), normals))
     q = np.empty((len(q6), 3, 3))
     for k, (i, j) in enumerate(_SYM):
         q[:, i, j] = q6[:, k]
@@ -91,7 +98,10 @@ def tangential_eig(q6: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.
     lam = np.hypot(a, m12)
     phi = 0.5 * np.arctan2(m12, a)
     n = np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2
-    return 2.0 * lam, n
+    s = 2.0 * lam
+    s[no_plane] = np.nan
+    n[no_plane] = np.nan
+    return s, n
 
 
 def _director_arrays(mesh: trimesh.Trimesh | None, df: pd.DataFrame, name: str):
@@ -112,7 +122,7 @@ def _director_arrays(mesh: trimesh.Trimesh | None, df: pd.DataFrame, name: str):
                 f"{name} refers to vertices the mesh (with {n_vert} vertices) does not have: "
                 "the directors were computed on another mesh"
             )
-        mesh_normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+        mesh_normals = vertex_normals(mesh)
         if len(vert):
             gap = np.linalg.norm(np.asarray(mesh.vertices)[vert] - pos, axis=1)
             scale = float(np.ptp(np.asarray(mesh.vertices), axis=0).max()) or 1.0
@@ -154,8 +164,9 @@ def order(
     if not (np.isfinite(radius) and radius > 0):
         raise NemoError(f"averaging radius must be > 0 µm, got {radius}")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    normals = vertex_normals(mesh)
     pos, n, d_normals, ok = _director_arrays(mesh, directors_df, "the directors table")
+    ok &= np.isfinite(d_normals).all(axis=1)  # a director needs its tangent plane
     pos, n, d_normals = pos[ok], n[ok], d_normals[ok]
     if len(pos) == 0:
         raise NemoError("the directors table has no valid director: rerun 'nemo directors'")
@@ -214,6 +225,7 @@ def alignment(
     dir_b: pd.DataFrame,
     mesh_a: trimesh.Trimesh | None = None,
     normals_a: np.ndarray | None = None,
+    max_distance: float | None = None,
 ) -> pd.DataFrame:
     """Inter-layer nematic alignment ``c = cos 2(θ_B − θ_A)`` for every director of A.
 
@@ -230,19 +242,32 @@ def alignment(
         ``n_B`` is not projected (exact when both layers share the surface or are parallel).
     normals_a : ndarray, shape (len(dir_a), 3), optional
         A's normals, given directly.
+    max_distance : float, optional
+        A director of A whose nearest director of B is farther than this (mesh unit) gets
+        ``c = NaN``: there is no director of B near it to compare with.
 
     Returns
     -------
     DataFrame
-        ``vertex`` (A's), ``c`` in [−1, 1] (1 parallel, −1 orthogonal), ``x``, ``y``, ``z``
-        (A's director), ``distance`` (to the matched director of B).
+        ``vertex`` (A's), ``c`` in [−1, 1] (1 parallel, −1 orthogonal; NaN beyond
+        ``max_distance``), ``x``, ``y``, ``z`` (A's director), ``distance`` (to the matched
+        director of B).
     """
+    if max_distance is not None and not (np.isfinite(max_distance) and max_distance > 0):
+        raise NemoError(f"max_distance must be a positive length, got {max_distance}")
+    if normals_a is not None:
+        normals_a = np.asarray(normals_a, dtype=np.float64)
+        if normals_a.shape != (len(dir_a), 3):
+            raise NemoError(
+                f"normals_a must have one (x, y, z) normal per director of A: shape "
+                f"({len(dir_a)}, 3), got {normals_a.shape}"
+            )
     pos_a, n_a, nrm_mesh, ok_a = _director_arrays(mesh_a, dir_a, "directors A")
     pos_b, n_b, _, ok_b = _director_arrays(None, dir_b, "directors B")
     pos_b, n_b = pos_b[ok_b], n_b[ok_b]
     if not ok_a.any() or len(pos_b) == 0:
         raise NemoError("a directors table has no valid director: rerun 'nemo directors'")
-    normals = nrm_mesh if normals_a is None else np.asarray(normals_a, dtype=np.float64)
+    normals = nrm_mesh if normals_a is None else normals_a
     dist, j = cKDTree(pos_b).query(pos_a[ok_a], workers=-1)
     na, nb = n_a[ok_a], n_b[j]
     if normals is not None:
@@ -251,6 +276,8 @@ def alignment(
         nb = _unit(nb - np.einsum("ij,ij->i", nb, nrm)[:, None] * nrm)
     dot = np.einsum("ij,ij->i", na, nb)
     c = np.clip(2.0 * dot**2 - 1.0, -1.0, 1.0)
+    if max_distance is not None:
+        c[dist > max_distance] = np.nan
     vert = dir_a["vertex"].to_numpy()[ok_a] if "vertex" in dir_a.columns else np.flatnonzero(ok_a)
     pa = pos_a[ok_a]
     return pd.DataFrame({

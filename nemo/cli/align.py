@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from nemo.cli.common import add_common, output_path
+from nemo.cli.common import add_common, output_path, positive
+from nemo.errors import NemoError
 
 HELP = "inter-layer alignment c = cos 2(θ_B − θ_A) between two director tables"
 DESCRIPTION = """\
 For each director of A take the nearest director of B and compute c = cos 2(θ_B − θ_A) in A's
 tangent basis (c = 1 parallel, 0 at 45°, −1 orthogonal). With --mesh (the mesh of A), B's
-director is first projected onto A's tangent plane. Writes vertex, c, x, y, z, distance and
-prints the mean c and a histogram.
+director is first projected onto A's tangent plane. With --max-distance, a director of A with
+no director of B that close gets c = NaN. Writes vertex, c, x, y, z, distance and prints the
+mean c, the matching distances and a histogram.
 
 example:
-  nemo align directors_outer.parquet directors_inner.parquet -o align.parquet --mesh inner.ply"""
+  nemo align directors_outer.parquet directors_inner.parquet -o align.parquet --mesh inner.ply \\
+      --max-distance 20"""
 
 
 def add_arguments(parser) -> None:
@@ -22,7 +25,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("directors_b", metavar="DIRECTORS_B", help="directors table of layer B")
     parser.add_argument("--mesh", metavar="MESH_A",
                         help="mesh of A's directors (projects B onto A's tangent planes)")
-    parser.add_argument("--bins", type=int, default=10, metavar="N", help="histogram bins (default 10)")
+    parser.add_argument("--max-distance", type=positive(), metavar="UM",
+                        help="a director of A whose nearest director of B is farther than this "
+                             "(mesh unit) gets c = NaN (default: no limit; the distances are printed)")
+    parser.add_argument("--bins", type=positive(int), default=10, metavar="N", help="histogram bins (default 10)")
     add_common(parser, output_help="alignment table (.parquet)")
 
 
@@ -43,14 +49,25 @@ def run(args) -> int:
     from nemo.tables import read_table, write_table
 
     out = output_path(args.output)
-    a = read_table(args.directors_a, kind="directors")
-    b = read_table(args.directors_b, kind="directors")
     mesh = load_mesh(args.mesh) if args.mesh else None
-    df = alignment(a, b, mesh_a=mesh)
+    n_vertices = len(mesh.vertices) if mesh is not None else None
+    a = read_table(args.directors_a, kind="directors", n_vertices=n_vertices)
+    b = read_table(args.directors_b, kind="directors")
+    df = alignment(a, b, mesh_a=mesh, max_distance=args.max_distance)
     write_table(df, out, command="align", directors_a=str(args.directors_a),
-                directors_b=str(args.directors_b), mesh=args.mesh)
+                directors_b=str(args.directors_b), mesh=args.mesh, n_vertices=n_vertices,
+                max_distance=args.max_distance)
     c = df["c"].to_numpy()
-    print(f"{len(df)} directors of A: mean c = {np.nanmean(c):+.3f} (median {np.nanmedian(c):+.3f})")
+    d = df["distance"].to_numpy()
+    n_far = int(np.isnan(c).sum())
+    if n_far == len(c):
+        raise NemoError(
+            f"no director of B lies within --max-distance {args.max_distance:g} of a director of A "
+            f"(nearest: {np.min(d):.3g}): are the two tables from the same surface and frame?"
+        )
+    print(f"{len(df)} directors of A: mean c = {np.nanmean(c):+.3f} (median {np.nanmedian(c):+.3f})"
+          + (f", {n_far} without a director of B within {args.max_distance:g}" if n_far else ""))
+    print(f"distance to the matched director of B: median {np.median(d):.3g}, max {np.max(d):.3g}")
     print(text_histogram(c, bins=max(1, args.bins)))
     print(f"-> {out}")
     return 0

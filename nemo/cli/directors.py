@@ -12,9 +12,12 @@ For a random subset of vertices, project the patch of vertices within --patch-ra
 structure tensor (OrientationPy's recipe, integration scale --sigma pixels). Writes a directors
 table: vertex, x, y, z, nx, ny, nz (unit 3D director, tangent), coherency.
 
-Defaults follow the data: patch radius 10 × the mean edge length, pixel = half the mean edge length,
-sigma = half the patch radius, 30 patches per patch area (the paper's 12 000 patches of 20 µm
-on a vesicle of R = 200 µm), capped by the number of vertices.
+The patch size is required (--patch-radius or --patch-k). The other defaults follow the data:
+pixel = half the mean edge length (at least radius/20), sigma = half the patch radius in
+pixels, 30 patches per patch area (the paper's 12 000 patches of 20 µm on a vesicle of
+R = 200 µm), capped by the number of vertices. Lengths are in the mesh's unit (µm). A pixel
+below 0.1 × the mean edge length, or micro-images wider than 201 pixels, are refused (they
+only cost time and memory).
 
 examples:
   nemo directors inner.ply layer.parquet -o directors.parquet --patch-radius 20 --seed 0
@@ -25,12 +28,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) the layer was peeled on")
     parser.add_argument("layer", help="layer table from 'nemo peel'")
     size = parser.add_mutually_exclusive_group(required=True)
-    size.add_argument("--patch-radius", type=positive(), metavar="UM", help="patch radius in µm")
+    size.add_argument("--patch-radius", type=positive(), metavar="UM", help="patch radius in the mesh's unit (µm)")
     size.add_argument("--patch-k", type=positive(int), metavar="K", help="patch = K nearest vertices")
     parser.add_argument("--n-patches", type=positive(int), metavar="N",
                         help="number of patch centres (default: 30 per patch area)")
     parser.add_argument("--pixel", type=positive(), metavar="UM",
-                        help="micro-image pixel in µm (default: half the mean edge length, at least radius/20)")
+                        help="micro-image pixel in the mesh's unit (default: half the mean edge length, at least "
+                             "radius/20)")
     parser.add_argument("--sigma", type=positive(), metavar="PX",
                         help="structure-tensor integration scale in pixels (default: half the patch radius)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed of the centres (default 0)")
@@ -46,15 +50,16 @@ def run(args) -> int:
 
     out = output_path(args.output)
     mesh = load_mesh(args.mesh)
-    layer = read_table(args.layer, kind="layer")
-    intensity = field_on_vertices(layer, "intensity", len(mesh.vertices), args.layer)
+    n_vertices = len(mesh.vertices)
+    layer = read_table(args.layer, kind="layer", n_vertices=n_vertices)
+    intensity = field_on_vertices(layer, "intensity", n_vertices, args.layer, exact=True)
     df = directors(
         mesh, intensity, patch_radius=args.patch_radius, patch_k=args.patch_k,
         n_patches=args.n_patches, pixel=args.pixel, sigma=args.sigma, frames=args.frames,
         rng=args.seed,
     )
     write_table(
-        df, out, command="directors", mesh=str(args.mesh), layer=str(args.layer),
+        df, out, command="directors", mesh=str(args.mesh), n_vertices=n_vertices, layer=str(args.layer),
         unit=getattr(mesh, "units", "um"), patch_radius=args.patch_radius, patch_k=args.patch_k,
         n_patches=args.n_patches, pixel=args.pixel, sigma=args.sigma, seed=args.seed,
         frames=args.frames,

@@ -20,7 +20,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("mesh", help="surface mesh the directors were computed on")
     parser.add_argument("directors", help="directors table from 'nemo directors'")
     parser.add_argument("--radius", type=positive(), required=True, metavar="UM",
-                        help="averaging radius in µm")
+                        help="averaging radius in the mesh's unit (µm): a few patch radii, so that "
+                             "each target averages many directors (the paper: 50 µm ≈ 2.5 × 20 µm "
+                             "patches); S and defects blur on larger scales")
     parser.add_argument("--targets", choices=("all", "directors"), default="all",
                         help="average at every vertex (default) or at the directors' vertices")
     add_common(parser, output_help="order table (.parquet)")
@@ -35,9 +37,10 @@ def run(args) -> int:
 
     out = output_path(args.output)
     mesh = load_mesh(args.mesh)
-    dirs = read_table(args.directors, kind="directors")
+    dirs = read_table(args.directors, kind="directors", n_vertices=len(mesh.vertices))
     df = order(mesh, dirs, args.radius, targets=args.targets)
-    write_table(df, out, command="order", mesh=str(args.mesh), directors=str(args.directors),
+    write_table(df, out, command="order", mesh=str(args.mesh), n_vertices=len(mesh.vertices),
+                directors=str(args.directors),
                 unit=getattr(mesh, "units", "um"), radius=args.radius, targets=args.targets)
     s = df["S"].to_numpy()
     print(f"{len(df)} targets: S mean {np.nanmean(s):.3f}, median {np.nanmedian(s):.3f}, "
