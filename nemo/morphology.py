@@ -9,7 +9,8 @@ Method note §3, paper methods "Morphological analysis".
   casting (Embree through trimesh when available); NaN where the ray finds nothing.
 * :func:`measure` -- area, enclosed volume, Euler characteristic, genus, components, discrete
   ∫K dA with its Gauss–Bonnet check, area-weighted mean curvature.
-* :func:`vertex_areas` -- barycentric vertex areas (they sum to the mesh area).
+* :func:`vertex_areas` -- barycentric vertex areas (they sum to the mesh area); the shared
+  :func:`nemo.mesh.vertex_areas`, re-exported here.
 
 Sign conventions: vertex normals point outward, and a sphere of radius R has H = +1/R,
 K = +1/R². Thickness is the signed distance d = (V* − V)·N of the paper: positive when the other
@@ -64,7 +65,16 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
-from nemo.mesh import check_mesh, mean_edge_length, signed_volume
+from nemo.frames import axis_frames
+from nemo.mesh import (
+    check_mesh,
+    face_normals_areas,
+    mean_edge_length,
+    merge_coincident_vertices,
+    signed_volume,
+    vertex_areas,
+    vertex_normals,
+)
 
 #: Fewest neighbours (besides the vertex itself) a quadric fit accepts.
 MIN_NEIGHBOURS = 6
@@ -74,6 +84,10 @@ MIN_DEFAULT_SAMPLES = 20_000
 QUARTIC_MIN_NEIGHBOURS = 30
 #: ``fit="auto"`` picks the quartic fit when the median sample has at least this many neighbours.
 AUTO_QUARTIC_NEIGHBOURS = 60
+#: radius × median |k1| above this (or a radius above a quarter of the bounding-box diagonal)
+#: warns that the fits average over too much of the surface (the quadric/quadratic fits are
+#: biased by ~(r k)²/4 there; the quartic fit, without that bias, is warned at twice the value).
+LARGE_RADIUS_RK = 0.5
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -95,63 +109,9 @@ def _unit(v: np.ndarray) -> np.ndarray:
         return v / n
 
 
-def _normals(mesh: trimesh.Trimesh) -> np.ndarray:
-    """Unit outward vertex normals, shape (N, 3).
-
-    A vertex whose faces all have zero area (marching cubes duplicates a vertex wherever the
-    level equals a voxel value) takes the normal of a coincident twin; vertices on no face, or
-    without a usable twin, get NaN.
-    """
-    normals = np.array(mesh.vertex_normals, dtype=np.float64)
-    bad = ~np.isfinite(normals).all(axis=1) | (np.abs(normals).sum(axis=1) == 0)
-    if bad.any():
-        normals[bad] = np.nan
-        good = np.flatnonzero(~bad)
-        if len(good):
-            vertices = np.asarray(mesh.vertices, dtype=np.float64)
-            dist, idx = cKDTree(vertices[good]).query(vertices[bad])
-            twin = dist <= 1e-6 * max(float(np.linalg.norm(np.ptp(vertices, axis=0))), 1e-300)
-            normals[np.flatnonzero(bad)[twin]] = normals[good[idx[twin]]]
-    return normals
-
-
-def tangent_basis(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """An orthonormal tangent basis (t1, t2) with t1 × t2 = N for every normal.
-
-    Parameters
-    ----------
-    normals : ndarray, shape (N, 3)
-        Unit normals.
-
-    Returns
-    -------
-    t1, t2 : ndarray, shape (N, 3)
-        t1 = N × x̂ normalised (N × ŷ where N is nearly parallel to x̂), t2 = N × t1.
-    """
-    ref = np.zeros_like(normals)
-    near_x = np.abs(normals[:, 0]) > 0.9
-    ref[~near_x, 0] = 1.0
-    ref[near_x, 1] = 1.0
-    t1 = _unit(np.cross(normals, ref))
-    t2 = np.cross(normals, t1)
-    return t1, t2
-
-
-def vertex_areas(mesh: trimesh.Trimesh) -> np.ndarray:
-    """Barycentric vertex areas: a third of the area of every incident face.
-
-    Parameters
-    ----------
-    mesh : trimesh.Trimesh
-
-    Returns
-    -------
-    ndarray, shape (N,)
-        Areas in unit² (they sum to ``mesh.area``); 0 for vertices on no face.
-    """
-    faces = np.asarray(mesh.faces)
-    third = np.repeat(np.asarray(mesh.area_faces, dtype=np.float64) / 3.0, 3)
-    return np.bincount(faces.ravel(), weights=third, minlength=len(mesh.vertices))
+#: Tangent basis (t1, t2) with t1 × t2 = N: NEMO's one axis construction
+#: (:func:`nemo.frames.axis_frames`), kept under its old name.
+tangent_basis = axis_frames
 
 
 def _unit_name(mesh: trimesh.Trimesh) -> str:
@@ -398,7 +358,7 @@ def curvature(
         n = min(int(n_samples), n_vert)
     else:
         n = default_n_samples(n_vert, float(mesh.area), radius)
-    normals = _normals(mesh)
+    normals = vertex_normals(mesh)
     usable = np.flatnonzero(np.isfinite(normals[:, 0]))
     if len(usable) == 0:
         raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
@@ -436,6 +396,8 @@ def curvature(
             NemoWarning,
             stacklevel=2,
         )
+    _warn_large_radius(radius, out["k1"], out["k2"], vertices, unit,
+                       LARGE_RADIUS_RK * (2.0 if fit == "quartic" else 1.0))
     bad_fit = ~few & ~np.isfinite(out["H"])
     if bad_fit.any():
         warnings.warn(
@@ -472,6 +434,26 @@ def curvature(
     )
     df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp))
     return df
+
+
+def _warn_large_radius(
+    radius: float, k1: np.ndarray, k2: np.ndarray, vertices: np.ndarray, unit: str, limit: float
+) -> None:
+    """Warn when the fitting radius is large for the surface: the fits then average over
+    regions of changing curvature and bias H and K (towards 0 on a closed surface)."""
+    kmax = np.fmax(np.abs(k1), np.abs(k2))
+    rk = float(radius * np.nanmedian(kmax)) if np.isfinite(kmax).any() else 0.0
+    diag = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    if rk > limit or radius > 0.25 * diag:
+        kmed = float(np.nanmedian(kmax)) if np.isfinite(kmax).any() else 0.0
+        better = 0.25 * diag if kmed == 0 else min(0.25 * diag, 0.5 * limit / kmed)
+        warnings.warn(
+            f"curvature radius {radius:g} {unit} is large for this surface (radius × median |k1| = "
+            f"{rk:.2g}, bounding-box diagonal {diag:.4g} {unit}): the fits span regions of changing "
+            f"curvature and H, K are biased; use a radius of about {better:.2g} {unit} or less",
+            NemoWarning,
+            stacklevel=3,
+        )
 
 
 def _idw(
@@ -600,7 +582,7 @@ def thickness(
     if u_from != u_to:
         raise NemoError(f"the two meshes are in different units ({u_from} and {u_to}); convert one")
     vertices = np.asarray(mesh_from.vertices, dtype=np.float64)
-    normals = _normals(mesh_from)
+    normals = vertex_normals(mesh_from)
     valid = np.isfinite(normals[:, 0])
     same = mesh_to is mesh_from or (
         mesh_to.vertices.shape == mesh_from.vertices.shape
@@ -645,15 +627,8 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
     level equals a voxel value) and the faces that collapse are dropped, so that the angles,
     the Euler characteristic and the edge pairing are those of the surface.
     """
-    order = np.lexsort(vertices.T[::-1])
-    sv = vertices[order]
-    new = np.concatenate([[True], np.any(sv[1:] != sv[:-1], axis=1)])
-    merged = np.empty(len(vertices), dtype=np.int64)
-    merged[order] = np.cumsum(new) - 1
-    verts = sv[new]
-    f = merged[faces]
-    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    f = f[keep]
+    verts, f, _ = merge_coincident_vertices(vertices, faces)
+    n_collapsed = len(faces) - len(f)
     nv, nf = len(verts), len(f)
     used = np.zeros(nv, dtype=bool)
     used[f.ravel()] = True
@@ -698,8 +673,7 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
     angle_sum = np.bincount(f.ravel(), weights=angles.ravel(), minlength=nv)
 
     # signed dihedral angle at every edge shared by exactly two faces (Steiner: ∫H dA = ½ Σ ℓ θ)
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    fn = _unit(fn)
+    fn, _ = face_normals_areas(verts, f)
     pair_start = np.flatnonzero(first)[count == 2]
     h1, h2 = srt[pair_start], srt[pair_start + 1]  # the two half-edges of the edge
     f1, f2 = face_of[h1], face_of[h2]
@@ -711,7 +685,7 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
     length = np.linalg.norm(verts[a[h1]] - verts[b[h1]], axis=1)
     total_h = 0.5 * float(np.nansum(length * np.where(convex, theta, -theta)))
     return {
-        "vertices": verts, "faces": f, "n_collapsed": int((~keep).sum()), "used": used,
+        "vertices": verts, "faces": f, "n_collapsed": int(n_collapsed), "used": used,
         "chi": int(used.sum()) - n_edges + nf, "watertight": watertight,
         "consistent": bool(directed), "non_manifold_edges": int((count > 2).sum()),
         "n_components": n_comp, "n_loops": n_loops, "boundary": bverts,
@@ -750,9 +724,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
     vertices_in = np.asarray(mesh.vertices, dtype=np.float64)
     faces_in = np.asarray(mesh.faces, dtype=np.int64)
     n_vertices_in, n_faces_in = len(vertices_in), len(faces_in)
-    tri = vertices_in[faces_in]
-    face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    area = float(face_area.sum())
+    area = float(face_normals_areas(vertices_in, faces_in)[1].sum())
     topo = _topology(vertices_in, faces_in)
     if topo["n_collapsed"]:
         notes.append(f"{topo['n_collapsed']} faces collapse onto coincident vertices; ignored for "
@@ -812,7 +784,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         order = np.argsort(curvature_df["vertex"].to_numpy())
         kf = curvature_df["K"].to_numpy(dtype=np.float64)[order]
         hf = curvature_df["H"].to_numpy(dtype=np.float64)[order]
-        areas = np.bincount(faces_in.ravel(), weights=np.repeat(face_area / 3, 3), minlength=n_vertices_in)
+        areas = vertex_areas(mesh)
         ok = np.isfinite(kf) & np.isfinite(hf)
         if (~ok & (areas > 0)).any():
             notes.append(f"fitted curvature is NaN at {int((~ok).sum())} vertices; left out of the sums")

@@ -63,7 +63,8 @@ def run(args) -> int:
     params = {"radius": args.radius, "samples": args.samples, "fraction": args.fraction,
               "k_interp": args.k_interp, "fit": args.fit, "fit_used": df.attrs.get("fit"),
               "n_fitted": df.attrs.get("n_samples"), "seed": args.seed}
-    write_table(df, out, command="curvature", parameters=params, inputs={"mesh": str(args.mesh)},
+    write_table(df, out, command="curvature", mesh=str(args.mesh), n_vertices=len(mesh.vertices),
+                parameters=params, inputs={"mesh": str(args.mesh)},
                 unit=unit, columns_unit={"H": f"1/{unit}", "K": f"1/{unit}^2"})
     u = "µm" if unit == "um" else unit
     h, k = df["H"].to_numpy(), df["K"].to_numpy()

@@ -37,7 +37,7 @@ def run(args) -> int:
     from nemo.tables import read_table
 
     mesh = load_mesh(args.mesh)
-    curv = read_table(args.curvature, "curvature") if args.curvature else None
+    curv = read_table(args.curvature, "curvature", n_vertices=len(mesh.vertices)) if args.curvature else None
     res = measure(mesh, curv)
     if args.json:
         print_json(res)

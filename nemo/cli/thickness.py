@@ -43,7 +43,7 @@ def run(args) -> int:
     d = thickness(mesh_from, mesh_to, direction=args.direction, max_distance=args.max_distance)
     df = pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d})
     unit = getattr(mesh_from, "units", None) or "um"
-    write_table(df, out, command="thickness",
+    write_table(df, out, command="thickness", mesh=str(args.mesh_from), n_vertices=len(mesh_from.vertices),
                 parameters={"direction": args.direction, "max_distance": args.max_distance},
                 inputs={"mesh_from": str(args.mesh_from), "mesh_to": str(args.mesh_to)}, unit=unit)
     u = "µm" if unit == "um" else unit
