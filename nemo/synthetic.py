@@ -54,6 +54,8 @@ from scipy.spatial.transform import Rotation
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
+from nemo.frames import axis_frames
+from nemo.io import check_spacing
 
 __all__ = [
     "PRESETS",
@@ -319,17 +321,6 @@ def _director_kernel(p: np.ndarray, d: np.ndarray, m: np.ndarray, rot: np.ndarra
     return n @ rot  # back to the original frame (rot is orthogonal)
 
 
-def _axis_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """t1 = N x x^ (N x y^ where N is nearly parallel to x^), t2 = N x t1."""
-    ref = np.zeros_like(normals)
-    near = np.abs(normals[:, 0]) > 0.9
-    ref[~near, 0] = 1.0
-    ref[near, 1] = 1.0
-    t1 = np.cross(normals, ref)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    return t1, np.cross(normals, t1)
-
-
 def nematic_angle(
     points: ArrayLike,
     defect_dirs: ArrayLike,
@@ -349,8 +340,9 @@ def nematic_angle(
     defect_dirs, charges, pole, phase
         As in :func:`director_field`.
     t1, t2 : array_like, shape (N, 3), optional
-        Tangent basis at each point. Default: ``t1 = N x x^`` (``N x y^`` when ``N`` is nearly
-        parallel to ``x^``), ``t2 = N x t1`` with ``N`` the outward normal.
+        Tangent basis at each point. Default: :func:`nemo.frames.axis_frames` of the outward
+        normal ``N`` (``t1 = N x x^``, ``N x y^`` when ``N`` is nearly parallel to ``x^``), the
+        frames NEMO measures angles in, so that angles compare directly.
 
     Returns
     -------
@@ -360,7 +352,7 @@ def nematic_angle(
     p = np.asarray(points, float)
     n = director_field(p, defect_dirs, charges, pole=pole, phase=phase)
     if t1 is None or t2 is None:
-        t1, t2 = _axis_frames(p / np.linalg.norm(p, axis=1, keepdims=True))
+        t1, t2 = axis_frames(p / np.linalg.norm(p, axis=1, keepdims=True))
     t1 = np.asarray(t1, float)
     t2 = np.asarray(t2, float)
     return np.mod(np.arctan2(np.einsum("ij,ij->i", n, t2), np.einsum("ij,ij->i", n, t1)), np.pi)
@@ -500,14 +492,19 @@ def _ball_blur(r: np.ndarray, a: float, s: float) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # vesicle
 # --------------------------------------------------------------------------------------------
-def _check_spacing(spacing) -> tuple[float, float, float]:
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux MemAvailable, else total RAM)."""
     try:
-        sp = tuple(float(v) for v in spacing)
-    except (TypeError, ValueError):
-        raise NemoError(f"spacing must be three numbers DZ DY DX in µm, got {spacing!r}") from None
-    if len(sp) != 3 or not all(np.isfinite(v) and v > 0 for v in sp):
-        raise NemoError(f"spacing must be three positive numbers DZ DY DX in µm, got {spacing!r}")
-    return sp  # type: ignore[return-value]
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
 
 
 def _rotation_matrix(axis: ArrayLike, angle_deg: float) -> np.ndarray:
@@ -683,7 +680,7 @@ def vesicle(
         raise NemoError(f"radius must be a positive number of µm, got {radius!r}")
     if fibre_length is None:
         fibre_length = 0.5 * R
-    sp = _check_spacing(spacing)
+    sp = check_spacing(spacing)
     for name, val in (("fibre_spacing", fibre_spacing), ("fibre_length", fibre_length)):
         if not (np.isfinite(val) and val > 0):
             raise NemoError(f"{name} must be > 0 µm, got {val!r}")
@@ -764,8 +761,14 @@ def vesicle(
             f"voxels of {sp[::-1]} µm gives only {half:.1f} µm: increase size or decrease radius"
         )
     n_vox = int(np.prod(shape)) * frames * channels
-    if n_vox > 4e10:
-        raise NemoError(f"the requested image has {n_vox:.3g} voxels: too large; reduce size, frames or channels")
+    need = n_vox + 8 * int(np.prod(shape))  # uint8 result + the float32 working volume (+ filter)
+    avail = _available_memory()
+    if avail is not None and need > avail:
+        raise NemoError(
+            f"the requested image ({shape[2]} x {shape[1]} x {shape[0]} voxels x {frames} frame(s) x "
+            f"{channels} channel(s)) needs about {need / 1e9:.3g} GB of memory but {avail / 1e9:.3g} GB "
+            "are available: reduce the size (--size, --spacing, --radius), frames or channels"
+        )
     centre = centre_zyx[::-1].copy()  # physical (x, y, z)
 
     step_um = min(0.5, min(sp) / 2) if step_size is None else float(step_size)

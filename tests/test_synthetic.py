@@ -10,6 +10,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from nemo.errors import NemoError, NemoWarning
+from nemo.frames import axis_frames
 from nemo.io import read_info, read_stack
 from nemo.synthetic import (
     PRESETS,
@@ -190,11 +191,12 @@ def test_nematic_angle_basis(rng):
     rebuilt = np.cos(th)[:, None] * t1 + np.sin(th)[:, None] * t2
     assert np.all(np.abs(np.einsum("ij,ij->i", rebuilt, n)) > 1 - 1e-12)
     assert th.min() >= 0 and th.max() < np.pi
-    # the documented default basis: t1 = N x x^ (N x y^ when |N . x^| > 0.9), t2 = N x t1
-    ref = np.where(np.abs(p[:, :1]) > 0.9, [[0, 1.0, 0]], [[1.0, 0, 0]])
-    t1 = np.cross(p, ref)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(p, t1)
+    # the documented default basis is NEMO's one axis construction, nemo.frames.axis_frames,
+    # including near N ∥ x^ where the x^/y^ switch happens (N = (0.93, 0.3, 0.21): once 123° vs 86°)
+    p = np.vstack([p, [[0.93, 0.3, 0.21]], [[1.0, 0.0, 0.0]], [[-0.95, 0.0, 0.31]]])
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    n = director_field(p, d, m)
+    t1, t2 = axis_frames(p)
     th = nematic_angle(p, d, m)
     rebuilt = np.cos(th)[:, None] * t1 + np.sin(th)[:, None] * t2
     assert np.all(np.abs(np.einsum("ij,ij->i", rebuilt, n)) > 1 - 1e-12)
