@@ -74,7 +74,7 @@ Accuracy (measured, see tests and benchmarks/bench_defects.py)
 --------------------------------------------------------------
 Analytic director fields (5° noise): positions within 0.2–1 µm (below the vertex spacing),
 charges within 0.02. The paper's synthetic vesicle through the whole chain: charges within
-0.01 of ½, positions 0.4–2.2 µm (mean ≈ 1.5 µm; the paper: 3.58 µm; the minimum-S vertex alone:
+0.025 of ½, positions 0.5–3.0 µm (mean ≈ 1.6 µm; the paper: 3.58 µm; the minimum-S vertex alone:
 4–6 µm). The remaining error is a displacement of ≈ 1.7 µm along the comet axis towards the
 tail, the same for every +½ defect and independent of the fit radius, the director density,
 the structure-tensor scale and the marching-cubes step: the measured director field's core is
