@@ -13,10 +13,26 @@ logger = logging.getLogger("nemo")
 T = TypeVar("T")
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A handler that writes to whatever ``sys.stderr`` is now (not the one at set-up), so that
+    a redirected or captured stderr (pytest, notebooks) never leaves it writing to a closed file."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler assigns it; the property always wins
+        pass
+
+
 def configure(verbosity: int = 0) -> None:
     """Send NEMO's log to stderr: 0 = warnings + progress, 1 = info, 2 = debug."""
     level = logging.INFO if verbosity <= 1 else logging.DEBUG
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StderrHandler()
     handler.setFormatter(logging.Formatter("nemo: %(message)s"))
     logger.handlers[:] = [handler]
     logger.setLevel(level)
