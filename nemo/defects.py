@@ -96,6 +96,8 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger
 from nemo.errors import NemoError
+from nemo.frames import axis_frames
+from nemo.mesh import vertex_areas, vertex_normals
 
 #: Columns of the defect table (the documented schema first, then diagnostics).
 COLUMNS = (
@@ -132,16 +134,6 @@ def geodesic_ball(graph: sparse.csr_matrix, source: int, limit: float) -> tuple[
     return idx, d[idx]
 
 
-def vertex_areas(mesh: trimesh.Trimesh) -> np.ndarray:
-    """Barycentric vertex areas (one third of each incident face), shape (N,).
-
-    Local to this module so that defects do not depend on nemo.morphology (same definition).
-    """
-    fa = np.asarray(mesh.area_faces, dtype=np.float64)
-    return np.bincount(np.asarray(mesh.faces).ravel(), weights=np.repeat(fa / 3.0, 3),
-                       minlength=len(mesh.vertices))
-
-
 def smooth_conserving(values: np.ndarray, graph: sparse.csr_matrix, iterations: int) -> np.ndarray:
     """Spread each vertex's value equally over itself and its edge neighbours, ``iterations`` times.
 
@@ -160,13 +152,12 @@ def smooth_conserving(values: np.ndarray, graph: sparse.csr_matrix, iterations: 
 
 
 def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """An orthonormal tangent basis (t1, t2) with t1 × t2 = normal, for one normal (3,)."""
-    normal = normal / np.linalg.norm(normal)
-    ref = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    t1 = np.cross(normal, ref)
-    t1 /= np.linalg.norm(t1)
-    t2 = np.cross(normal, t1)
-    return t1, t2
+    """Tangent basis (t1, t2), t1 × t2 = normal, for one normal (3,): :func:`nemo.frames.axis_frames`.
+
+    The same construction as every other NEMO angle (directors, synthetic truth, morphology).
+    """
+    t1, t2 = axis_frames(np.asarray(normal, dtype=np.float64)[None])
+    return t1[0], t2[0]
 
 
 def _project_tangent(vec: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -508,7 +499,7 @@ def find_defects(
         raise NemoError("winding_field='directors' needs a directors table")
     n = len(mesh.vertices)
     verts = np.asarray(mesh.vertices, dtype=np.float64)
-    normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    normals = vertex_normals(mesh)
     h = float(np.mean(mesh.edges_unique_length))
     size = math.sqrt(float(mesh.area) / (4 * math.pi))  # radius of the sphere of equal area
     graph = edge_graph(mesh)
