@@ -43,26 +43,44 @@ def add_arguments(parser) -> None:
     add_common(parser, output_help="directors table (.parquet)")
 
 
+def mesh_and_table(mesh_path, table_path, kind: str):
+    """The mesh and a table of ``kind`` computed on it (refused when made on another mesh).
+
+    Shared by the commands that take ``MESH TABLE`` (directors, order).
+
+    Returns
+    -------
+    mesh : trimesh.Trimesh
+    table : DataFrame
+    provenance : dict
+        ``mesh``, ``n_vertices`` and ``unit`` for the output table (the mesh convention).
+    """
+    from nemo.mesh import load_mesh
+    from nemo.tables import read_table
+
+    mesh = load_mesh(mesh_path)
+    n_vertices = len(mesh.vertices)
+    table = read_table(table_path, kind=kind, n_vertices=n_vertices)
+    provenance = dict(mesh=str(mesh_path), n_vertices=n_vertices, unit=getattr(mesh, "units", None) or "um")
+    return mesh, table, provenance
+
+
 def run(args) -> int:
     from nemo.directors import directors
-    from nemo.mesh import load_mesh
-    from nemo.tables import field_on_vertices, read_table, write_table
+    from nemo.tables import field_on_vertices, write_table
 
     out = output_path(args.output)
-    mesh = load_mesh(args.mesh)
-    n_vertices = len(mesh.vertices)
-    layer = read_table(args.layer, kind="layer", n_vertices=n_vertices)
-    intensity = field_on_vertices(layer, "intensity", n_vertices, args.layer, exact=True)
+    mesh, layer, prov = mesh_and_table(args.mesh, args.layer, "layer")
+    intensity = field_on_vertices(layer, "intensity", len(mesh.vertices), args.layer, exact=True)
     df = directors(
         mesh, intensity, patch_radius=args.patch_radius, patch_k=args.patch_k,
         n_patches=args.n_patches, pixel=args.pixel, sigma=args.sigma, frames=args.frames,
         rng=args.seed,
     )
     write_table(
-        df, out, command="directors", mesh=str(args.mesh), n_vertices=n_vertices, layer=str(args.layer),
-        unit=getattr(mesh, "units", "um"), patch_radius=args.patch_radius, patch_k=args.patch_k,
-        n_patches=args.n_patches, pixel=args.pixel, sigma=args.sigma, seed=args.seed,
-        frames=args.frames,
+        df, out, command="directors", layer=str(args.layer), **prov,
+        patch_radius=args.patch_radius, patch_k=args.patch_k, n_patches=args.n_patches,
+        pixel=args.pixel, sigma=args.sigma, seed=args.seed, frames=args.frames,
     )
     print(f"{len(df)} directors, median coherency {df['coherency'].median():.3f} -> {out}")
     return 0

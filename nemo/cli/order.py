@@ -31,17 +31,15 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from nemo.mesh import load_mesh
+    from nemo.cli.directors import mesh_and_table
     from nemo.order import order
-    from nemo.tables import read_table, write_table
+    from nemo.tables import write_table
 
     out = output_path(args.output)
-    mesh = load_mesh(args.mesh)
-    dirs = read_table(args.directors, kind="directors", n_vertices=len(mesh.vertices))
+    mesh, dirs, prov = mesh_and_table(args.mesh, args.directors, "directors")
     df = order(mesh, dirs, args.radius, targets=args.targets)
-    write_table(df, out, command="order", mesh=str(args.mesh), n_vertices=len(mesh.vertices),
-                directors=str(args.directors),
-                unit=getattr(mesh, "units", "um"), radius=args.radius, targets=args.targets)
+    write_table(df, out, command="order", directors=str(args.directors), **prov,
+                radius=args.radius, targets=args.targets)
     s = df["S"].to_numpy()
     print(f"{len(df)} targets: S mean {np.nanmean(s):.3f}, median {np.nanmedian(s):.3f}, "
           f"min {np.nanmin(s):.3f} -> {out}")
