@@ -7,8 +7,13 @@ For every vertex ``v`` with unit normal ``N`` the volume is sampled along
 in physical units, and the samples are reduced to one value per vertex (mean or max). The
 physical point ``(x, y, z)`` is the voxel index ``(z/dz, y/dy, x/dx)`` exactly, so anisotropic
 voxels need no resampling. Interpolation is SciPy's ``map_coordinates`` (linear, or cubic
-B-spline with the volume prefiltered once). Samples outside the volume are NaN and a vertex
-whose segment leaves the volume gets NaN (never a partial, biased value).
+B-spline with the part of the volume the samples reach prefiltered once, mirror boundaries).
+Samples outside the volume are NaN and a vertex whose segment leaves the volume gets NaN
+(never a partial, biased value); NaN voxels give NaN too, counted apart in the warning.
+
+The mesh must live in the image's physical space: :func:`check_mesh_image` compares its unit
+and the spacing recorded at reconstruction with the image's, and :func:`peel` refuses a mesh
+with more than :data:`MAX_OUTSIDE_FRACTION` of its vertices outside the image box.
 """
 
 from __future__ import annotations
