@@ -381,3 +381,15 @@ def test_cli_mesh_on_written_vesicle(tmp_path, run_cli):
     sphere = json.loads((tmp_path / "v.sphere.json").read_text())["inner"]
     assert abs(sphere["radius"] - truth["radius"]) < 0.5
     np.testing.assert_allclose(sphere["centre"], truth["centre"], atol=0.1)
+
+
+def test_duplicate_faces_cancel_by_winding():
+    from nemo.surface import _cancel_duplicate_faces
+
+    faces = np.array([[0, 1, 2], [2, 1, 0],             # back-to-back pair: both go
+                      [3, 4, 5], [4, 5, 3],             # same triangle twice (cyclic shift): one stays
+                      [6, 7, 8], [8, 7, 6], [6, 8, 7],  # net winding -1: the first such face (8, 7, 6) stays
+                      [9, 10, 11]])
+    out = _cancel_duplicate_faces(faces)
+    assert [tuple(f) for f in out] == [(3, 4, 5), (8, 7, 6), (9, 10, 11)]
+    np.testing.assert_array_equal(_cancel_duplicate_faces(out), out)
