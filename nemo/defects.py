@@ -73,13 +73,17 @@ On a closed surface the charges add up to the Euler characteristic χ (Poincaré
 Accuracy (measured, see tests and benchmarks/bench_defects.py)
 --------------------------------------------------------------
 Analytic director fields (5° noise): positions within 0.2–1 µm (below the vertex spacing),
-charges within 0.02. The paper's synthetic vesicle through the whole chain: charges within
-0.025 of ½, positions 0.5–3.0 µm (mean ≈ 1.6 µm; the paper: 3.58 µm; the minimum-S vertex alone:
-4–6 µm). The remaining error is a displacement of ≈ 1.7 µm along the comet axis towards the
-tail, the same for every +½ defect and independent of the fit radius, the director density,
-the structure-tensor scale and the marching-cubes step: the measured director field's core is
-there (a property of the rendered fibres/structure tensor at comet cores), not a localisation
-error.
+charges within 0.02; the analytic field sampled at the measured directors' positions on the
+paper's vesicle: 0.43 µm (of which 0.4 µm is the reconstructed surface lying 0.4 µm inside R).
+The paper's synthetic vesicle through ``nemo run`` (finer micro-image pixel and dense
+refinement directors, see nemo.pipeline): every +½ defect within 0.5–1.5 µm (the paper: 3.58
+µm; the minimum-S vertex alone: 1–5 µm), charges within 0.015 of ½. The remaining error is
+mostly a displacement of ≈ 1.2 µm along the comet axis towards the tail: the gradient structure
+tensor weights orientations by fibre "ink", which is uneven around a comet of streamlines
+(denser on the head side), so the measured field's core moves towards the tail by an amount
+that grows with the gradient and integration scales (see nemo.pipeline). The fit's first
+harmonic term (``fit_harmonic``) does not separate it from a true shift (errors 2–6 µm) and is
+off by default.
 """
 
 from __future__ import annotations
