@@ -7,7 +7,7 @@ from nemo.cli.common import add_common
 HELP = "one frame through mesh -> peel -> directors -> order -> curvature -> defects"
 DESCRIPTION = """\
 Run the whole analysis of one (t, c) frame and write every intermediate file into OUTDIR:
-mesh.ply, mesh.inner.ply, mesh.outer.ply, layer.parquet, directors.parquet, order.parquet,
+mesh.ply, mesh.inner.ply, mesh.outer.ply, layer.parquet, directors.parquet, directors.defects.parquet (refinement), order.parquet,
 curvature.parquet, defects.parquet and summary.json (parameters, timings, peak memory, Euler
 check). Defaults are the paper's for its synthetic vesicle (marching-cubes step 2 µm, layer
 [0, 5] µm outward from the inner wall, 12 000 director patches of 20 µm, 50 µm averaging). A
