@@ -227,10 +227,10 @@ def run_frame(
     from nemo.defects import find_defects
     from nemo.directors import directors
     from nemo.io import read_stack
-    from nemo.mesh import mean_edge_length, save_mesh
+    from nemo.mesh import mean_edge_length, save_mesh, vertex_normals
     from nemo.order import order
     from nemo.peel import peel
-    from nemo.surface import reconstruct, split_mesh
+    from nemo.surface import default_sigma, reconstruct, split_mesh
     from nemo.tables import write_table
 
     cfg = load_config(config) if not isinstance(config, dict) else merge_config(config)
@@ -262,10 +262,9 @@ def run_frame(
     step_vox = max(1, int(round(mc["step_um"] / max(sp[1], sp[2]))))
     with timed("mesh"):
         split = mc["split"] not in ("none", None)
-        # blur: half the marching-cubes step unless given -- the surface is sampled at that step
-        # anyway, and it merges voxel noise that would otherwise make the wall porous (at noise
-        # 20/255 the default 0.5 µm blur gives an inner wall with χ = -214; 1 µm gives a sphere)
-        sigma = float(mc["sigma"]) if mc["sigma"] is not None else 0.5 * step_vox * max(sp[1], sp[2])
+        # blur: surface.default_sigma (half the marching-cubes sampling distance) unless given;
+        # it merges voxel noise that would otherwise make the wall porous
+        sigma = float(mc["sigma"]) if mc["sigma"] is not None else default_sigma(sp, step_vox)
         whole = reconstruct(volume, sp, sigma=sigma, threshold=mc["threshold"], step=step_vox,
                             smooth_iter=mc["smooth_iter"], keep="all" if split else "largest", unit=unit)
         meshes = {"mesh": whole}
@@ -281,21 +280,23 @@ def run_frame(
     n = len(mesh.vertices)
     h = mean_edge_length(mesh)
     logger.info("analysed surface %s: %d vertices, mean edge %.3g %s", mc["surface"], n, h, unit)
+    prov.update(mesh=FILES[mc["surface"] if mc["surface"] != "whole" else "mesh"], n_vertices=n)
 
     pc = cfg["peel"]
     with timed("peel"):
-        normals = np.asarray(mesh.vertex_normals)
+        normals = vertex_normals(mesh)
         intensity = peel(volume, sp, np.asarray(mesh.vertices), -normals if pc["inward"] else normals,
                          float(pc["range"][0]), float(pc["range"][1]), n_samples=int(pc["n_samples"]),
                          reduce=pc["reduce"], interp=pc["interp"])
         write_table(pd.DataFrame({"vertex": np.arange(n, dtype=np.int64), "intensity": intensity}),
-                    out / FILES["layer"], mesh=FILES[mc["surface"] if mc["surface"] != "whole" else "mesh"],
-                    **prov, **{f"peel_{k}": v for k, v in pc.items()})
+                    out / FILES["layer"], **prov, **{f"peel_{k}": v for k, v in pc.items()})
     del volume
 
     dc = cfg["directors"]
     with timed("directors"):
-        pixel = float(dc["pixel"]) if dc["pixel"] is not None else PIXEL_PER_EDGE * h
+        # ¼ edge, but micro-images no wider than the directors module allows (~200 px)
+        pixel = (float(dc["pixel"]) if dc["pixel"] is not None
+                 else max(PIXEL_PER_EDGE * h, float(dc["patch_radius"]) / 97.0))
         dkw = dict(patch_radius=float(dc["patch_radius"]), pixel=pixel, sigma=dc["sigma"],
                    frames=dc["frames"])
         ddf = directors(mesh, intensity, n_patches=None if dc["n_patches"] is None else int(dc["n_patches"]),
@@ -318,7 +319,7 @@ def run_frame(
             write_table(cdf, out / FILES["curvature"], **prov, radius=radius, fraction=cc["fraction"])
         from nemo.tables import field_on_vertices
 
-        kvals = field_on_vertices(cdf, "K", n, FILES["curvature"])
+        kvals = field_on_vertices(cdf, "K", n, FILES["curvature"], exact=True)
 
     fc = cfg["defects"]
     dkw_def = dict(
