@@ -838,7 +838,9 @@ def surface_plotter(
     view = np.asarray(view if view is not None else (1.0, 0.6, 0.5), dtype=np.float64)
     view /= np.linalg.norm(view)
     p = pv.Plotter(off_screen=True, shape=(1, 2), window_size=list(window_size), border=False)
-    normals = np.asarray(mesh.vertex_normals)
+    from nemo.mesh import vertex_normals
+
+    normals = np.nan_to_num(vertex_normals(mesh))
     for col, sign in enumerate((1.0, -1.0)):
         p.subplot(0, col)
         p.set_background("white")
