@@ -42,7 +42,7 @@ def main() -> int:
     cfg["curvature"]["radius"] = round(12 * scale, 1)
     cfg["directors"].update(patch_radius=round(12 * scale, 1), n_patches=int(3000 * scale**2))
     cfg["order"]["radius"] = round(25 * scale, 1)
-    cfg["defects"].update(min_distance=round(30 * scale, 1), contour_radius=round(15 * scale, 1))
+    cfg["defects"].update(min_distance=round(30 * scale, 1), contour_radius=round(20 * scale, 1))
     config = work / "bench.yaml"
     config.write_text(yaml.safe_dump(cfg, sort_keys=False))
     smk = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work),
