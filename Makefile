@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 CORES  ?= 2
 
-.PHONY: demo test test-slow bench clean
+.PHONY: demo test test-slow test-slurm clean
 
 $(BIN)/nemo: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -22,6 +22,9 @@ test: $(BIN)/nemo
 
 test-slow: $(BIN)/nemo
 	$(BIN)/python -m pytest -m slow tests
+
+test-slurm: $(BIN)/nemo
+	bash tests/slurm/run_slurm_test.sh
 
 clean:
 	rm -rf results .snakemake
