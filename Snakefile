@@ -38,8 +38,16 @@ include: "workflow/rules/track.smk"
 include: "workflow/rules/report.smk"
 
 
+# benchmark and validation protocol (docs/benchmarks.md): only with a `benchmark:` section
+BENCHMARK_TARGETS = []
+if config.get("benchmark"):
+
+    include: "workflow/rules/benchmark.smk"
+
+
 rule all:
     default_target: True
     input:
         [summary_targets(name) for name in DATA],
         [render_targets(name) for name in DATA],
+        BENCHMARK_TARGETS,
