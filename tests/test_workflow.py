@@ -424,3 +424,27 @@ def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_ru
         local = _summary(demo_run, name)
         remote = _summary(tmp_path, name)
         pd.testing.assert_frame_equal(local, remote, check_exact=False, rtol=1e-6, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- HTML report
+def test_report_of_the_default_run_has_figures_and_captions(demo_run, tmp_path):
+    """`snakemake --report` on the default run: a self-contained HTML with the summary figures
+    (tracks per layer, per-frame summaries), each figure not blank, and the captions."""
+    from PIL import Image
+
+    work = tmp_path / "run"
+    shutil.copytree(demo_run, work, symlinks=True)  # the shared run stays untouched
+    figures = work / "results" / "demo" / "summary" / "figures"
+    pngs = sorted(figures.glob("*.png"))
+    layers = default_config()["layers"]
+    assert {p.stem for p in pngs} >= {"frames", *(f"tracks_{name}" for name in layers)}
+    for png in pngs:
+        pixels = np.asarray(Image.open(png).convert("L"), dtype=float)
+        assert pixels.std() > 5, f"{png.name} looks blank"
+    report = work / "report.html"
+    smk(work, "--report", report)
+    html = report.read_text(encoding="utf-8", errors="replace")
+    assert report.stat().st_size > 50_000
+    for needle in ("tracks_basal", "tracks_apical", "frames.png", "Per-frame summary",
+                   "Defect tracks of dataset"):
+        assert needle in html, needle
