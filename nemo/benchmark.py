@@ -211,6 +211,12 @@ def shape_volume(spec: dict, rng: np.random.Generator | int | None = None) -> tu
     truth : dict
         The spec plus ``centre`` (physical x, y, z) and ``threshold`` (mid intensity).
     """
+    need = {"ellipsoid": ("axes",), "torus": ("major", "minor"), "shells": ("inner", "outer")}
+    if spec.get("kind") not in need:
+        raise NemoError(f"unknown shape kind {spec.get('kind')!r}; choose one of {', '.join(SHAPES)}")
+    missing = [k for k in need[spec["kind"]] if k not in spec]
+    if missing:
+        raise NemoError(f"shape '{spec['kind']}' needs {', '.join(missing)} (µm)")
     sp = np.asarray(spec.get("spacing", [1.0, 1.0, 1.0]), float)
     if sp.shape != (3,) or np.any(sp <= 0):
         raise NemoError(f"shape spacing must be [dz, dy, dx] > 0, got {spec.get('spacing')}")
