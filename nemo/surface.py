@@ -515,11 +515,16 @@ def split_mesh(
     axis: np.ndarray | None = None,
     centre: np.ndarray | None = None,
     keep: Literal["largest", "all"] = "all",
+    component_majority: float = 0.9,
 ) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
     """Split a mesh into its inner and outer walls by the sign of ``n · (x − centre)`` or ``n · axis``.
 
     Each face goes to at most one half by the sign for its unit normal ``n`` and its centroid
     ``x``: ``> 0`` outer, ``< 0`` inner; zero-area faces (no normal, sign 0) go to neither.
+    A connected component that lies almost entirely on one side (at least ``component_majority``
+    of its area) goes to that side whole: on a noisy wall, bumps whose faces tilt past the
+    radial direction would otherwise punch holes into it. Components that are really split
+    (e.g. one open epithelium whose apical and basal sides meet at a rim) keep the per-face rule.
 
     Parameters
     ----------
@@ -532,6 +537,9 @@ def split_mesh(
         Reference point for ``by="centre"``; default the area-weighted centroid of the surface.
     keep : {"largest", "all"}
         Keep only the largest connected component of each half (drops loose fragments).
+    component_majority : float
+        Area fraction in (0.5, 1] above which a whole connected component follows its majority
+        side; 1 gives the pure per-face rule.
 
     Returns
     -------
@@ -569,9 +577,19 @@ def split_mesh(
         ref = f"axis ({axis[0]:.4g}, {axis[1]:.4g}, {axis[2]:.4g})"
     else:
         raise NemoError(f"split by must be 'centre' or 'axis', got {by!r}")
-    # zero-area faces have no normal (sign 0): they belong to neither wall and are left out
-    outer_sel = sign > 0
-    inner_sel = sign < 0
+    if not 0.5 < component_majority <= 1.0:
+        raise NemoError(f"component_majority must be in (0.5, 1], got {component_majority}")
+    side = np.sign(sign)  # zero-area faces have no normal (sign 0): they stay out of both halves
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(faces))
+    has_normal = side != 0
+    total = np.bincount(labels, weights=areas)
+    outer_frac = np.bincount(labels, weights=areas * (side > 0)) / np.maximum(total, 1e-300)
+    whole_out = outer_frac >= component_majority
+    whole_in = (1.0 - outer_frac) >= component_majority
+    side = np.where(has_normal & whole_out[labels], 1.0, side)
+    side = np.where(has_normal & whole_in[labels], -1.0, side)
+    outer_sel = side > 0
+    inner_sel = side < 0
     n_out, n_in = int(outer_sel.sum()), int(inner_sel.sum())
     if n_out == 0 or n_in == 0:
         side = "inner" if n_in == 0 else "outer"

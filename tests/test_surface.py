@@ -393,3 +393,26 @@ def test_duplicate_faces_cancel_by_winding():
     out = _cancel_duplicate_faces(faces)
     assert [tuple(f) for f in out] == [(3, 4, 5), (8, 7, 6), (9, 10, 11)]
     np.testing.assert_array_equal(_cancel_duplicate_faces(out), out)
+
+
+def test_split_keeps_a_noisy_wall_whole():
+    """Faces of one wall whose normals tip past the radial direction (bumps on a noisy wall)
+    stay with their wall: the inner half is a closed sphere, not one with holes."""
+    import trimesh as _trimesh
+
+    from nemo.surface import split_mesh
+
+    outer = _trimesh.creation.icosphere(3, radius=20.0)
+    inner = _trimesh.creation.icosphere(3, radius=12.0)
+    inner_faces = inner.faces[:, ::-1].copy()  # cavity wall: normals toward the centre
+    tipped = np.arange(0, len(inner_faces), 97)[:8]
+    inner_faces[tipped] = inner_faces[tipped][:, ::-1]  # these now point away from the centre
+    v = np.vstack([outer.vertices, inner.vertices])
+    f = np.vstack([outer.faces, inner_faces + len(outer.vertices)])
+    shell = _trimesh.Trimesh(v, f, process=False)
+    got_inner, got_outer = split_mesh(shell)
+    assert len(got_inner.faces) == len(inner.faces) and len(got_outer.faces) == len(outer.faces)
+    assert np.allclose(np.linalg.norm(got_inner.vertices, axis=1), 12.0)
+    # the pure per-face rule (component_majority=1) shows the failure this guards against
+    holey, _ = split_mesh(shell, component_majority=1.0)
+    assert len(holey.faces) == len(inner.faces) - len(tipped)
