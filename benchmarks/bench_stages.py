@@ -110,7 +110,8 @@ def st_curvature(wd, phase, data=None):
     if phase == "load":
         return load_mesh(wd / "inner.ply")
     df = curvature(data, 20.0, n_samples=20000, rng=0)
-    return {"H_R": round(float(np.nanmedian(df["H"])) * 200, 3)}
+    radius = json.loads((wd / "truth.json").read_text())["radius"]
+    return {"median_H_times_R": round(float(np.nanmedian(df["H"])) * radius, 3)}
 
 
 def st_thickness(wd, phase, data=None):

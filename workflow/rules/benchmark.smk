@@ -252,6 +252,10 @@ def _workflow_stage_files():
             out += [f"{b}/mesh/t{t}_c{seg}.tsv", f"{b}/peel/t{t}_c{c}_{layer}.tsv",
                     f"{b}/directors/t{t}_c{c}_{layer}.tsv", f"{b}/order/t{t}_c{c}_{layer}.tsv",
                     f"{b}/defects/t{t}_c{c}_{layer}.tsv"]
+            if CURVATURE is not None:
+                out.append(f"{b}/curvature/t{t}_c{seg}_{LAYERS[layer]['surface']}.tsv")
+            if THICKNESS is not None:
+                out.append(f"{b}/thickness/t{t}_c{seg}.tsv")
     return sorted(set(out))
 
 
