@@ -458,7 +458,9 @@ def find_defects(
     contour_radius : float, optional
         Geodesic radius of the charge contour (µm). Default 1.5 × ``avg_radius`` (grown up to
         2.5 × when S on the contour is low), capped at 0.45 × the distance to the nearest other
-        dip or defect and kept off the mesh boundary, at least 3 edge lengths.
+        dip or defect and kept off the mesh boundary, at least 3 edge lengths. A given radius is
+        used as is, and grown up to 1.67 × (within the same cap) only where S on it is still
+        low, before the candidate is rejected as disordered.
     curvature_correction : bool
         Add (1/2π)∫K dA over the enclosed patch (the paper's correction).
     avg_radius : float, optional
@@ -597,8 +599,9 @@ def find_defects(
         dmin = float(np.min(np.linalg.norm(near - verts[v], axis=1))) if len(near) else np.inf
         if contour_radius is None:
             radii = sorted({max(min(fac * r_contour_default, 0.45 * dmin), 3 * h) for fac in (1.0, 1.33, 1.67)})
-        else:
-            radii = [contour_radius]
+        else:  # the given radius first; grown (not past other dips) only if S on it is still low
+            radii = [contour_radius] + sorted(
+                {r for r in (min(fac * contour_radius, 0.45 * dmin) for fac in (1.33, 1.67)) if r > contour_radius})
         floor = s_ordered
         if f.dtree is not None:
             n_dir = len(f.dtree.query_ball_point(verts[v], avg_radius))
