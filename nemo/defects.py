@@ -773,3 +773,72 @@ def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: floa
     core, name = local
     p = x0 + core[0] * t1 + core[1] * t2
     return closest_point_local(mesh, p, idx), name
+
+
+def refine_with_directors(
+    mesh: trimesh.Trimesh,
+    defects_df: pd.DataFrame,
+    order_df: pd.DataFrame,
+    directors_df: pd.DataFrame,
+    intensity: np.ndarray,
+    director_params: dict,
+    fraction: float = 0.5,
+    seed: int | None = 0,
+    fit_radius: float | None = None,
+    **find_kwargs,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Second pass of :func:`find_defects` with extra directors around the first-pass defects.
+
+    The random subset of patch centres leaves only a few directors within the fit radius of a
+    core, which limits how precisely the defect model can be fitted. This measures directors at
+    ``fraction`` of the vertices within the fit radius of each defect (with the same parameters
+    as the original directors) and finds the defects again from both sets.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    defects_df : DataFrame
+        First-pass result of :func:`find_defects` (its ``attrs["parameters"]`` give the fit radius).
+    order_df, directors_df : DataFrame
+        The tables the first pass used.
+    intensity : ndarray, shape (N,)
+        The peeled layer the directors were measured on.
+    director_params : dict
+        Keyword arguments of :func:`nemo.directors.directors` used for ``directors_df``
+        (``patch_radius``/``patch_k``, ``pixel``, ``sigma``, ``frames``).
+    fraction : float
+        Fraction in (0, 1] of the vertices near each defect that get a director.
+    seed : int, optional
+        Seed of the subset.
+    fit_radius : float, optional
+        Neighbourhood radius; default the first pass's fit radius.
+    **find_kwargs
+        Passed to :func:`find_defects` (the same as for the first pass).
+
+    Returns
+    -------
+    defects : DataFrame
+        Second-pass defects.
+    extra : DataFrame
+        The extra directors (directors schema).
+    """
+    from nemo.directors import directors
+
+    if not 0 < fraction <= 1:
+        raise NemoError(f"the refinement fraction must be in (0, 1], got {fraction}")
+    if len(defects_df) == 0:
+        return defects_df, directors_df.iloc[:0]
+    rho = fit_radius or defects_df.attrs.get("parameters", {}).get("fit_radius")
+    if not rho:
+        rho = 0.75 * float(find_kwargs.get("avg_radius") or 1.0)
+    near = cKDTree(np.asarray(mesh.vertices)).query_ball_point(defects_df[["x", "y", "z"]].to_numpy(), float(rho))
+    near = np.setdiff1d(np.unique(np.concatenate([np.asarray(v, dtype=np.int64) for v in near])),
+                        directors_df["vertex"].to_numpy())
+    if fraction < 1:
+        near = np.sort(np.random.default_rng(seed).choice(near, size=int(round(fraction * len(near))),
+                                                          replace=False))
+    keys = ("patch_radius", "patch_k", "pixel", "sigma", "frames")
+    extra = directors(mesh, intensity, centres=near, **{k: director_params[k] for k in keys if k in director_params})
+    logger.info("refinement: %d extra directors within %.3g of %d defect(s)", len(extra), rho, len(defects_df))
+    refined = find_defects(mesh, order_df, pd.concat([directors_df, extra], ignore_index=True), **find_kwargs)
+    return refined, extra

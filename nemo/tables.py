@@ -126,8 +126,8 @@ def check_table_mesh(df: pd.DataFrame, path: str | os.PathLike, n_vertices: int)
     made_on = prov.get("n_vertices")
     if made_on is not None and int(made_on) != int(n_vertices):
         raise NemoError(
-            f"{path} was computed on {prov.get('mesh', 'a mesh')} with {made_on} vertices, but the "
-            f"mesh given has {n_vertices}: pass the mesh the table was made on"
+            f"{path} was computed on another mesh ({prov.get('mesh', '?')}, {made_on} vertices) than "
+            f"the one given ({n_vertices} vertices): pass the mesh the table was made on"
         )
     if "vertex" in df.columns and len(df):
         vmax = int(df["vertex"].max())

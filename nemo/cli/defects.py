@@ -18,6 +18,8 @@ averaging radius of ORDER (read from its metadata), contour 1.5 × that radius.
 
 example:
   nemo defects mesh.inner.ply order.parquet directors.parquet -o defects.parquet
+  nemo defects mesh.inner.ply order.parquet directors.parquet --layer layer.parquet \
+      -o defects.parquet        # + refinement pass with extra directors near each defect
   nemo defects mesh.ply order.parquet directors.parquet --curvature curvature.parquet \\
       --contour-radius 40 -o defects.parquet"""
 
@@ -45,38 +47,58 @@ def add_arguments(parser) -> None:
     parser.add_argument("--refine", choices=("model", "q", "none"), default="model",
                         help="sub-vertex refinement: defect-model fit to the raw directors, zero of "
                              "the averaged Q, or none")
+    parser.add_argument("--layer", metavar="LAYER.parquet",
+                        help="the peeled layer DIRECTORS was measured on: enables the refinement pass "
+                             "(extra directors around each first-pass defect, same parameters)")
+    parser.add_argument("--refine-directors", type=float, default=0.5, metavar="F",
+                        help="with --layer: fraction of the vertices near each defect that get an "
+                             "extra director (default 0.5; 0 = no refinement pass)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the refinement subset (default 0)")
     add_common(parser, output_help="output defects table (.parquet)")
 
 
 def run(args) -> int:
-    from nemo.defects import find_defects
+    from nemo.defects import find_defects, refine_with_directors
     from nemo.errors import NemoError
     from nemo.mesh import load_mesh
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
 
     out = output_path(args.output)
     mesh = load_mesh(args.mesh)
-    odf = read_table(args.order, kind="order")
-    ddf = read_table(args.directors, kind="directors")
+    n = len(mesh.vertices)
+    odf = read_table(args.order, kind="order", n_vertices=n)
+    ddf = read_table(args.directors, kind="directors", n_vertices=n)
+    if not 0 <= args.refine_directors <= 1:
+        raise NemoError(f"--refine-directors must be in [0, 1], got {args.refine_directors}")
     avg = args.avg_radius
     if avg is None:
         radius = read_provenance(args.order).get("radius")
         avg = float(radius) if isinstance(radius, (int, float)) and radius > 0 else None
     k = None
     if args.curvature:
-        cdf = read_table(args.curvature, kind="curvature")
-        k = field_on_vertices(cdf, "K", len(mesh.vertices), args.curvature)
+        cdf = read_table(args.curvature, kind="curvature", n_vertices=n)
+        k = field_on_vertices(cdf, "K", n, args.curvature, exact=True)
         if not (k == k).any():
             raise NemoError(f"{args.curvature} has no finite K value; recompute it with a larger --radius")
-    df = find_defects(
-        mesh, odf, ddf, curvature=k, s_threshold=args.s_threshold, min_distance=args.min_distance,
+    find_kwargs = dict(
+        curvature=k, s_threshold=args.s_threshold, min_distance=args.min_distance,
         max_defects=args.max_defects, contour_radius=args.contour_radius,
         curvature_correction=not args.no_curvature_correction, avg_radius=avg,
         winding_field=args.winding_field, refine=args.refine,
     )
+    df = find_defects(mesh, odf, ddf, **find_kwargs)
+    n_extra = 0
+    if args.layer and args.refine_directors > 0 and args.refine == "model" and len(df):
+        layer = read_table(args.layer, kind="layer", n_vertices=n)
+        intensity = field_on_vertices(layer, "intensity", n, args.layer, exact=True)
+        params = read_provenance(args.directors)  # the directors' own parameters
+        df, extra = refine_with_directors(mesh, df, odf, ddf, intensity, params,
+                                          fraction=args.refine_directors, seed=args.seed, **find_kwargs)
+        n_extra = len(extra)
     check = df.attrs["euler_check"]
     write_table(df, out, command="defects", mesh=str(args.mesh), order=str(args.order),
-                directors=str(args.directors), curvature=args.curvature,
+                directors=str(args.directors), curvature=args.curvature, layer=args.layer,
+                n_vertices=n, refine_directors=n_extra,
                 unit=getattr(mesh, "units", "um"), euler_check=check, parameters=df.attrs["parameters"])
     unit = getattr(mesh, "units", "um")
     if len(df):

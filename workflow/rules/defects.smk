@@ -7,6 +7,8 @@ def _defects_inputs(wc):
         "order": FRAME.format(**wc) + f"/order_{wc.layer}.parquet",
         "directors": FRAME.format(**wc) + f"/directors_{wc.layer}.parquet",
     }
+    if config["defects"]["refine_directors"] > 0:  # refinement pass: extra directors on the layer
+        inputs["layer"] = FRAME.format(**wc) + f"/layer_{wc.layer}.parquet"
     if CURVATURE is not None and config["defects"]["curvature_correction"]:
         inputs["curvature"] = f"{seg_dir(wc)}/curvature_{LAYERS[wc.layer]['surface']}.parquet"
     return inputs
@@ -21,6 +23,7 @@ rule defects:
         opts=cli_opts(config["defects"], skip=("curvature_correction",))
         + ("" if config["defects"]["curvature_correction"] else " --no-curvature-correction"),
         curvature=lambda wc, input: f"--curvature {input.curvature}" if "curvature" in input.keys() else "",
+        layer=lambda wc, input: f"--layer {input.layer}" if "layer" in input.keys() else "",
     log:
         LOGS + "/defects/t{t}_c{c}_{layer}.log",
     benchmark:
@@ -32,5 +35,5 @@ rule defects:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " defects {input.mesh} {input.order} {input.directors} {params.curvature}"
+        NEMO + " defects {input.mesh} {input.order} {input.directors} {params.curvature} {params.layer}"
         " -o {output} {params.opts} > {log} 2>&1"
