@@ -116,7 +116,13 @@ COLUMNS = (
 
 
 def edge_graph(mesh: trimesh.Trimesh) -> sparse.csr_matrix:
-    """Symmetric sparse graph of the mesh edges weighted by their length, shape (N, N)."""
+    """Symmetric sparse graph of the mesh edges weighted by their length, shape (N, N).
+
+    Distances on it (scipy Dijkstra with a limit, from one source per defect) are the paper's
+    "shortest path along the mesh edges": a few % longer than true geodesics. potpourri3d's
+    heat method is not used here because it solves on the whole mesh for every source, while a
+    limited Dijkstra touches only the ball around the defect.
+    """
     edges = np.asarray(mesh.edges_unique)
     length = np.asarray(mesh.edges_unique_length, dtype=np.float64)
     n = len(mesh.vertices)
@@ -828,9 +834,13 @@ def refine_with_directors(
         raise NemoError(f"the refinement fraction must be in (0, 1], got {fraction}")
     if len(defects_df) == 0:
         return defects_df, directors_df.iloc[:0]
-    rho = fit_radius or defects_df.attrs.get("parameters", {}).get("fit_radius")
+    params = defects_df.attrs.get("parameters", {})
+    rho = fit_radius or params.get("fit_radius")
     if not rho:
-        rho = 0.75 * float(find_kwargs.get("avg_radius") or 1.0)
+        avg = find_kwargs.get("avg_radius") or params.get("avg_radius")
+        if not avg:
+            raise NemoError("refinement needs the fit radius or the averaging radius of the order table")
+        rho = 0.75 * float(avg)
     near = cKDTree(np.asarray(mesh.vertices)).query_ball_point(defects_df[["x", "y", "z"]].to_numpy(), float(rho))
     near = np.setdiff1d(np.unique(np.concatenate([np.asarray(v, dtype=np.int64) for v in near])),
                         directors_df["vertex"].to_numpy())

@@ -237,6 +237,8 @@ def run_frame(
     _check(cfg)
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
+    for name in FILES.values():  # a previous run's outputs this run may not rewrite
+        (out / name).unlink(missing_ok=True)
     timings: dict[str, float] = {}
     start = time.perf_counter()
 
@@ -301,7 +303,8 @@ def run_frame(
                    frames=dc["frames"])
         ddf = directors(mesh, intensity, n_patches=None if dc["n_patches"] is None else int(dc["n_patches"]),
                         rng=dc["seed"], **dkw)
-        write_table(ddf, out / FILES["directors"], **prov, **dc)
+        # the parameters actually used (pixel resolved), so `nemo defects --layer` can re-measure alike
+        write_table(ddf, out / FILES["directors"], **prov, **{**dc, "pixel": pixel})
 
     oc = cfg["order"]
     with timed("order"):
@@ -338,7 +341,7 @@ def run_frame(
             ddefs, extra = refine_with_directors(mesh, ddefs, odf, ddf, intensity, dkw, fraction=frac,
                                                  seed=dc["seed"], **dkw_def)
             n_refine = len(extra)
-            write_table(extra, out / FILES["refine_directors"], **prov, **dc, pixel_um=pixel,
+            write_table(extra, out / FILES["refine_directors"], **prov, **{**dc, "pixel": pixel},
                         centres=f"{frac:g} of the vertices near each first-pass defect")
     write_table(ddefs, out / FILES["defects"], **prov, euler_check=ddefs.attrs["euler_check"],
                 parameters=ddefs.attrs["parameters"])

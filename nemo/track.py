@@ -96,7 +96,8 @@ def link_defects(
     key = out[group_cols].copy()
     key["charge_rounded"] = np.round(key["charge_rounded"].to_numpy(dtype=float) * 2) / 2
     next_id = 0
-    for _, index in key.groupby(group_cols, sort=True, dropna=False).groups.items():
+    for index in key.groupby(group_cols, sort=True, dropna=False).indices.values():
+        index = out.index[index]
         sub = out.loc[index, ["x", "y", "z"]].astype(float).reset_index(drop=True)
         sub["frame"] = rank.loc[out.loc[index, "t"].to_numpy(dtype=np.int64)].to_numpy()
         sub["row_"] = np.arange(len(sub))

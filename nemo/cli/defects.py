@@ -7,7 +7,8 @@ from nemo.cli.common import add_common, output_path, positive
 HELP = "find topological defects (low S) and their charge, corrected for Gaussian curvature"
 DESCRIPTION = """\
 Locate topological defects where the nematic order S of ORDER is low (lowest S first, other
-candidates within --min-distance suppressed, geodesic distances along mesh edges), refine each
+candidates within --min-distance suppressed; geodesic distances are shortest paths along mesh
+edges, a few % longer than true geodesics, and the contour uses the same ones), refine each
 position below the vertex spacing from the raw DIRECTORS, and measure the charge on a closed
 contour at geodesic radius --contour-radius: winding of the director + (1/2π)∫K dA over the
 enclosed patch (K from --curvature, else the mesh's angle defects). On a closed surface the
@@ -18,7 +19,7 @@ averaging radius of ORDER (read from its metadata), contour 1.5 × that radius.
 
 example:
   nemo defects mesh.inner.ply order.parquet directors.parquet -o defects.parquet
-  nemo defects mesh.inner.ply order.parquet directors.parquet --layer layer.parquet \
+  nemo defects mesh.inner.ply order.parquet directors.parquet --layer layer.parquet \\
       -o defects.parquet        # + refinement pass with extra directors near each defect
   nemo defects mesh.ply order.parquet directors.parquet --curvature curvature.parquet \\
       --contour-radius 40 -o defects.parquet"""

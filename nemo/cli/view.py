@@ -44,7 +44,16 @@ def run(args) -> int:
     except ImportError:
         raise NemoError("napari is not installed: pip install 'nemo-nematics[napari]' "
                         "(or pip install 'napari[pyqt6]')") from None
+    import os
+    from pathlib import Path
+
     from nemo.napari.layers import open_viewer
+
+    if not Path(args.results).exists():
+        raise NemoError(f"results not found: {args.results}")
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise NemoError("no display to open napari on: run it on a desktop, or headless as "
+                        "'xvfb-run nemo view RESULTS --screenshot out.png'")
 
     kwargs = dict(dataset=args.dataset, t=args.t, c=args.c, layer=args.layer, image=args.image,
                   spacing=args.spacing, max_vectors=args.max_vectors)
