@@ -51,6 +51,7 @@ import json
 import os
 import resource
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -242,17 +243,12 @@ def run_frame(
     timings: dict[str, float] = {}
     start = time.perf_counter()
 
+    @contextmanager
     def timed(name: str):
-        class _T:
-            def __enter__(self):
-                self.t0 = time.perf_counter()
-                self.ctx = step(name)
-                self.ctx.__enter__()
-
-            def __exit__(self, *exc):
-                self.ctx.__exit__(*exc)
-                timings[name] = round(time.perf_counter() - self.t0, 3)
-        return _T()
+        t0 = time.perf_counter()
+        with step(name):
+            yield
+        timings[name] = round(time.perf_counter() - t0, 3)
 
     with timed("read"):
         volume, info = read_stack(image, t, c, spacing=spacing)

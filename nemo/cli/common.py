@@ -60,3 +60,25 @@ def output_path(path: str | Path, suffixes: tuple[str, ...] = (".parquet",)) -> 
 def print_json(obj) -> None:
     json.dump(obj, sys.stdout, indent=2, default=str)
     sys.stdout.write("\n")
+
+
+def mesh_and_table(mesh_path, table_path, kind: str):
+    """The mesh and a table of ``kind`` computed on it (refused when made on another mesh).
+
+    Shared by the commands that take ``MESH TABLE`` (directors, order).
+
+    Returns
+    -------
+    mesh : trimesh.Trimesh
+    table : DataFrame
+    provenance : dict
+        ``mesh``, ``n_vertices`` and ``unit`` for the output table (the mesh convention).
+    """
+    from nemo.mesh import load_mesh
+    from nemo.tables import read_table
+
+    mesh = load_mesh(mesh_path)
+    n_vertices = len(mesh.vertices)
+    table = read_table(table_path, kind=kind, n_vertices=n_vertices)
+    provenance = dict(mesh=str(mesh_path), n_vertices=n_vertices, unit=getattr(mesh, "units", None) or "um")
+    return mesh, table, provenance

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nemo.cli.common import add_common, output_path, positive
+from nemo.cli.common import add_common, mesh_and_table, output_path, positive
 
 HELP = "tangential fibre directors of a layer (structure tensor of surface micro-images)"
 DESCRIPTION = """\
@@ -41,28 +41,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", choices=("axis", "smooth"), default="axis",
                         help="tangent frames: N × x̂ (default) or potpourri3d transport")
     add_common(parser, output_help="directors table (.parquet)")
-
-
-def mesh_and_table(mesh_path, table_path, kind: str):
-    """The mesh and a table of ``kind`` computed on it (refused when made on another mesh).
-
-    Shared by the commands that take ``MESH TABLE`` (directors, order).
-
-    Returns
-    -------
-    mesh : trimesh.Trimesh
-    table : DataFrame
-    provenance : dict
-        ``mesh``, ``n_vertices`` and ``unit`` for the output table (the mesh convention).
-    """
-    from nemo.mesh import load_mesh
-    from nemo.tables import read_table
-
-    mesh = load_mesh(mesh_path)
-    n_vertices = len(mesh.vertices)
-    table = read_table(table_path, kind=kind, n_vertices=n_vertices)
-    provenance = dict(mesh=str(mesh_path), n_vertices=n_vertices, unit=getattr(mesh, "units", None) or "um")
-    return mesh, table, provenance
 
 
 def run(args) -> int:

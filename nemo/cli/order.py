@@ -31,7 +31,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from nemo.cli.directors import mesh_and_table
+    from nemo.cli.common import mesh_and_table
     from nemo.order import order
     from nemo.tables import write_table
 
