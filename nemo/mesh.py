@@ -16,6 +16,7 @@ Meshes edited elsewhere (MeshLab, Blender) come back through :func:`load_mesh`.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import warnings
@@ -192,6 +193,9 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
         spacing = mesh.metadata.get("spacing")
         if spacing is not None:
             comments += "comment nemo spacing {:.9g} {:.9g} {:.9g}\n".format(*spacing)
+        params = mesh.metadata.get("nemo_params")
+        if params:  # the resolved mesh parameters (provenance), one JSON line
+            comments += f"comment nemo params {json.dumps(params, default=str)}\n"
         data = data.replace(b"\nelement vertex", f"\n{comments}element vertex".encode(), 1)
         tmp.write_bytes(data)  # trimesh stores vertices as float32: ~1e-7 relative precision
     elif suffix == ".obj":

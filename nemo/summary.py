@@ -69,6 +69,21 @@ def _num(value) -> float:
     return float(value) if value is not None else math.nan
 
 
+def _layer_columns(r: Mapping) -> dict:
+    row = {"intensity_mean": _finite_mean(read_table(r["layer_table"], "layer")["intensity"])}
+    d = read_table(r["directors"], "directors")
+    row["n_directors"] = len(d)
+    row["coherency_mean"] = _finite_mean(d["coherency"])
+    s = read_table(r["order"], "order")["S"]
+    row["S_mean"] = _finite_mean(s)
+    row["S_median"] = _finite_median(s)
+    df = read_table(r["defects"], "defects")
+    row["n_defects"] = len(df)
+    row["charge_sum"] = float(df["charge"].sum())
+    row["charge_rounded_sum"] = float(df["charge_rounded"].sum())
+    return row
+
+
 def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     """One row per (t, c, layer) from the per-frame files.
 
@@ -102,17 +117,8 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             row["thickness_mean"] = _finite_mean(th)
             row["thickness_median"] = _finite_median(th)
             row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
-        row["intensity_mean"] = _finite_mean(read_table(r["layer_table"], "layer")["intensity"])
-        d = read_table(r["directors"], "directors")
-        row["n_directors"] = len(d)
-        row["coherency_mean"] = _finite_mean(d["coherency"])
-        s = read_table(r["order"], "order")["S"]
-        row["S_mean"] = _finite_mean(s)
-        row["S_median"] = _finite_median(s)
-        df = read_table(r["defects"], "defects")
-        row["n_defects"] = len(df)
-        row["charge_sum"] = float(df["charge"].sum())
-        row["charge_rounded_sum"] = float(df["charge_rounded"].sum())
+        if r.get("layer_table"):  # a morphology-only record has no layer tables
+            row.update(_layer_columns(r))
         rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
     out = out.astype({"t": "int64", "c": "int64", "n_directors": "Int64", "n_defects": "Int64"})
@@ -134,8 +140,12 @@ def collect_defects(records: Iterable[Mapping]) -> pd.DataFrame:
         t, c, layer, then the input order.
     """
     parts = []
+    from nemo.tables import read_provenance
+
     for r in records:
         df = read_table(r["defects"], "defects")
+        params = read_provenance(r["defects"]).get("parameters") or {}
+        df["min_distance"] = float(params.get("min_distance") or math.nan)  # tracking's default
         df.insert(0, "layer", str(r["layer"]))
         df.insert(0, "c", int(r["c"]))
         df.insert(0, "t", int(r["t"]))

@@ -82,3 +82,14 @@ def mesh_and_table(mesh_path, table_path, kind: str):
     table = read_table(table_path, kind=kind, n_vertices=n_vertices)
     provenance = dict(mesh=str(mesh_path), n_vertices=n_vertices, unit=getattr(mesh, "units", None) or "um")
     return mesh, table, provenance
+
+
+def section_params(args: argparse.Namespace, name: str) -> dict:
+    """The options of a step command that belong to config section ``name`` (None = default).
+
+    Every key of the section is a long option of the same name (``patch_radius`` is
+    ``--patch-radius``), so a rule's ``cli_opts(section)`` and a user's flags meet here.
+    """
+    from nemo.config import section_defaults
+
+    return {key: getattr(args, key) for key in section_defaults(name) if hasattr(args, key)}

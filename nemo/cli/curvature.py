@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from nemo.cli.common import add_common, output_path, positive
-from nemo.errors import NemoError
 
 HELP = "mean and Gaussian curvature (H, K) per vertex from local surface fits"
 DESCRIPTION = """\
@@ -31,46 +30,42 @@ example:
 
 def add_arguments(parser) -> None:
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) with outward normals")
-    parser.add_argument("--radius", type=positive(float), required=True, metavar="UM",
+    parser.add_argument("--radius", type=positive(float), metavar="UM",
                         help="fitting radius in the mesh unit (µm): several edge lengths, below the "
-                             "smallest radius of curvature of interest")
+                             "smallest radius of curvature of interest (default 15 × the mean edge "
+                             "length, at most half the object radius sqrt(area/4π))")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--samples", type=positive(int), metavar="N",
                        help="number of randomly chosen vertices to fit (default: all vertices of small "
                             "meshes, else ~8 per fitting disc, at least 20000)")
     group.add_argument("--fraction", type=positive(float), metavar="F",
                        help="fraction of vertices to fit, in (0, 1]")
-    parser.add_argument("--k-interp", type=positive(int), default=8, metavar="K",
+    parser.add_argument("--k-interp", type=positive(int), metavar="K",
                         help="nearest fitted vertices used for the interpolation (default 8)")
-    parser.add_argument("--fit", choices=("auto", "quadric", "quadratic", "quartic"), default="auto",
+    parser.add_argument("--fit", choices=("auto", "quadric", "quadratic", "quartic"),
                         help="fitted surface (default auto)")
-    parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed of the sample (default 0)")
+    parser.add_argument("--seed", type=int, metavar="S", help="random seed of the sample (default 0)")
     add_common(parser, output_help="output table (.parquet)")
 
 
 def run(args) -> int:
+    from nemo import stages
+    from nemo.cli.common import section_params
     from nemo.mesh import load_mesh
-    from nemo.morphology import curvature
     from nemo.tables import write_table
 
     out = output_path(args.output)
-    if args.fraction is not None and args.fraction > 1:
-        raise NemoError(f"--fraction must be in (0, 1], got {args.fraction}")
     mesh = load_mesh(args.mesh)
-    df = curvature(mesh, args.radius, n_samples=args.samples, fraction=args.fraction,
-                   k_interp=args.k_interp, rng=args.seed, fit=args.fit)
+    df, params = stages.curvature(mesh, section_params(args, "curvature"))
     unit = getattr(mesh, "units", None) or "um"
-    params = {"radius": args.radius, "samples": args.samples, "fraction": args.fraction,
-              "k_interp": args.k_interp, "fit": args.fit, "fit_used": df.attrs.get("fit"),
-              "n_fitted": df.attrs.get("n_samples"), "seed": args.seed}
     write_table(df, out, command="curvature", mesh=str(args.mesh), n_vertices=len(mesh.vertices),
                 parameters=params, inputs={"mesh": str(args.mesh)},
                 unit=unit, columns_unit={"H": f"1/{unit}", "K": f"1/{unit}^2"})
     u = "µm" if unit == "um" else unit
     h, k = df["H"].to_numpy(), df["K"].to_numpy()
     n_nan = int(np.isnan(h).sum())
-    print(f"curvature: {len(df)} vertices, {df.attrs.get('n_samples')} fitted ({df.attrs.get('fit')} fit, "
-          f"radius {args.radius:g} {u})")
+    print(f"curvature: {len(df)} vertices, {params['n_fitted']} fitted ({params['fit_used']} fit, "
+          f"radius {params['radius']:.4g} {u})")
     if n_nan < len(df):
         mh, mk = float(np.nanmedian(h)), float(np.nanmedian(k))
         print(f"  median H = {mh:.4g} 1/{u}" + (f"  (1/H = {1 / mh:.4g} {u})" if mh else ""))

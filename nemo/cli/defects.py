@@ -43,23 +43,27 @@ def add_arguments(parser) -> None:
                         help="averaging radius of ORDER (default: from its metadata, else estimated)")
     parser.add_argument("--no-curvature-correction", action="store_true",
                         help="drop the (1/2π)∫K dA term (the flat-surface winding only)")
-    parser.add_argument("--winding-field", choices=("average", "directors"), default="average",
+    parser.add_argument("--curvature-source", choices=("angle-defects", "table"),
+                        help="K term from the mesh's angle defects (default) or from --curvature")
+    parser.add_argument("--winding-field", choices=("average", "directors"),
                         help="director on the contour: averaged field of ORDER or nearest raw director")
-    parser.add_argument("--refine", choices=("model", "q", "none"), default="model",
+    parser.add_argument("--refine", choices=("model", "q", "none"),
                         help="sub-vertex refinement: defect-model fit to the raw directors, zero of "
                              "the averaged Q, or none")
     parser.add_argument("--layer", metavar="LAYER.parquet",
                         help="the peeled layer DIRECTORS was measured on: enables the refinement pass "
                              "(extra directors around each first-pass defect, same parameters)")
-    parser.add_argument("--refine-directors", type=float, default=0.5, metavar="F",
+    parser.add_argument("--refine-directors", type=float, metavar="F",
                         help="with --layer: fraction of the vertices near each defect that get an "
                              "extra director (default 0.5; 0 = no refinement pass)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the refinement subset (default 0)")
+    parser.add_argument("--refined", metavar="FILE.parquet",
+                        help="with --layer: also write the refinement directors to this table")
     add_common(parser, output_help="output defects table (.parquet)")
 
 
 def run(args) -> int:
-    from nemo.defects import find_defects, refine_with_directors
+    from nemo import stages
+    from nemo.cli.common import section_params
     from nemo.errors import NemoError
     from nemo.mesh import load_mesh
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
@@ -69,11 +73,10 @@ def run(args) -> int:
     n = len(mesh.vertices)
     odf = read_table(args.order, kind="order", n_vertices=n)
     ddf = read_table(args.directors, kind="directors", n_vertices=n)
-    if not 0 <= args.refine_directors <= 1:
-        raise NemoError(f"--refine-directors must be in [0, 1], got {args.refine_directors}")
     avg = args.avg_radius
     if avg is None:
-        radius = read_provenance(args.order).get("radius")
+        oprov = read_provenance(args.order)
+        radius = (oprov.get("parameters") or {}).get("radius", oprov.get("radius"))
         avg = float(radius) if isinstance(radius, (int, float)) and radius > 0 else None
     k = None
     if args.curvature:
@@ -81,33 +84,37 @@ def run(args) -> int:
         k = field_on_vertices(cdf, "K", n, args.curvature, exact=True)
         if not (k == k).any():
             raise NemoError(f"{args.curvature} has no finite K value; recompute it with a larger --radius")
-    find_kwargs = dict(
-        curvature=k, s_threshold=args.s_threshold, min_distance=args.min_distance,
-        max_defects=args.max_defects, contour_radius=args.contour_radius,
-        curvature_correction=not args.no_curvature_correction, avg_radius=avg,
-        winding_field=args.winding_field, refine=args.refine,
-    )
-    df = find_defects(mesh, odf, ddf, **find_kwargs)
-    n_extra = 0
-    if args.layer and args.refine_directors > 0 and args.refine == "model" and len(df):
+        if args.curvature_source is None:
+            args.curvature_source = "table"  # a curvature table given is a curvature table used
+    params = section_params(args, "defects")
+    params["curvature_correction"] = False if args.no_curvature_correction else None
+    intensity = director_params = None
+    if args.layer:
         layer = read_table(args.layer, kind="layer", n_vertices=n)
         intensity = field_on_vertices(layer, "intensity", n, args.layer, exact=True)
-        params = read_provenance(args.directors)  # the directors' own parameters
-        df, extra = refine_with_directors(mesh, df, odf, ddf, intensity, params,
-                                          fraction=args.refine_directors, seed=args.seed, **find_kwargs)
-        n_extra = len(extra)
+        director_params = read_provenance(args.directors).get("parameters")
+        if not director_params:
+            raise NemoError(f"{args.directors} does not record the parameters it was measured with "
+                            "(made by an older nemo?): recompute it, or drop --layer")
+    df, extra, resolved = stages.defects(mesh, odf, ddf, params, avg_radius=avg, curvature=k,
+                                         intensity=intensity, director_params=director_params)
     check = df.attrs["euler_check"]
-    write_table(df, out, command="defects", mesh=str(args.mesh), order=str(args.order),
-                directors=str(args.directors), curvature=args.curvature, layer=args.layer,
-                n_vertices=n, refine_directors=n_extra,
-                unit=getattr(mesh, "units", "um"), euler_check=check, parameters=df.attrs["parameters"])
     unit = getattr(mesh, "units", "um")
+    prov = dict(mesh=str(args.mesh), n_vertices=n, unit=unit)
+    write_table(df, out, command="defects", order=str(args.order), directors=str(args.directors),
+                curvature=args.curvature, layer=args.layer, **prov, euler_check=check,
+                parameters=resolved, find_parameters=df.attrs["parameters"])
+    if args.refined:
+        refined = extra if extra is not None else ddf.iloc[:0]
+        write_table(refined, output_path(args.refined), command="defects refinement directors",
+                    layer=args.layer, **prov, parameters=director_params)
     if len(df):
         cols = ["x", "y", "z", "S", "charge", "charge_winding", "charge_curvature", "charge_rounded"]
         print(df[cols].to_string(float_format=lambda v: f"{v:.3f}", index=False))
     p = df.attrs["parameters"]
     print(f"{len(df)} defect(s) (S < {p['s_threshold']:.3g}, contour {p['contour_radius']:.3g} {unit}, "
-          f"K term: {p['curvature_source'] if p['curvature_correction'] else 'off'}) -> {out}")
+          f"K term: {p['curvature_source'] if p['curvature_correction'] else 'off'}; "
+          f"{resolved['n_refine_directors']} refinement directors) -> {out}")
     if check["closed"]:
         verdict = "ok" if check["matches"] else "MISMATCH"
         print(f"Euler check: sum of charges {check['sum_charge']:.3f} (rounded {check['sum_charge_rounded']:g}) "

@@ -58,28 +58,28 @@ def add_arguments(parser) -> None:
     parser.add_argument("--sigma", type=float, default=None, metavar="UM",
                         help="Gaussian blur sigma in the image unit (default: half the sampling distance, "
                              "--step × (dx + dy)/4, i.e. one voxel at --step 2; 0 = none)")
-    parser.add_argument("--threshold", type=_threshold, default="yen", metavar="yen|otsu|VALUE",
+    parser.add_argument("--threshold", type=_threshold, default=None, metavar="yen|otsu|VALUE",
                         help="automatic threshold or an intensity iso-level (default yen)")
-    parser.add_argument("--edge", choices=("half", "threshold"), default="half",
+    parser.add_argument("--edge", choices=("half", "threshold"), default=None,
                         help="with yen/otsu: surface half-way between object and background intensity "
                              "(default, the true edge of a blurred object) or at the threshold itself")
     parser.add_argument("--mask", metavar="MASK.tif",
                         help="binary mask (nonzero = object) used instead of the threshold; same Z, Y, X "
                              "size as the image (its own t/c = --t/--c when it has them, else 0)")
-    parser.add_argument("--step", type=positive(int), default=2, metavar="N",
-                        help="marching-cubes step in voxels (default 2, the paper's 2 µm at 1 µm voxels)")
-    parser.add_argument("--smooth", type=_nonneg_int, default=10, metavar="ITER",
+    parser.add_argument("--step", type=positive(int), default=None, metavar="N",
+                        help="marching-cubes step in voxels (default 1; 2 for stacks above 64 M voxels)")
+    parser.add_argument("--smooth", type=_nonneg_int, default=None, metavar="ITER",
                         help="Taubin smoothing iterations (default 10; 0 = none)")
-    parser.add_argument("--keep", choices=("largest", "all"), default="largest",
-                        help="keep the largest connected component (of each half with --split) or all")
-    parser.add_argument("--split", choices=("centre", "center", "axis"),
+    parser.add_argument("--keep", choices=("largest", "all"), default=None,
+                        help="keep the largest connected component (of each half with --split; default) or all")
+    parser.add_argument("--split", choices=("centre", "center", "axis", "none"), default=None,
                         help="also write MESH.inner.ply and MESH.outer.ply, split by the sign of "
-                             "n·(x - centre) or n·axis")
+                             "n·(x - centre) or n·axis (default centre; none = one surface)")
     parser.add_argument("--axis", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="reference axis for --split axis")
     parser.add_argument("--centre", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="reference point (µm) for --split centre (default: the surface centroid)")
-    parser.add_argument("--fit-sphere", action="store_true",
+    parser.add_argument("--fit-sphere", action="store_true", default=None,
                         help="fit a sphere to each mesh; print it and write MESH.sphere.json")
 
 
@@ -107,42 +107,31 @@ def _describe(name: str, mesh) -> str:
 
 
 def run(args) -> int:
+    from nemo import stages
     from nemo._log import logger
+    from nemo.cli.common import section_params
     from nemo.io import read_stack
     from nemo.mesh import save_mesh
-    from nemo.surface import fit_sphere, reconstruct, split_mesh, submesh, face_components
+    from nemo.surface import fit_sphere
 
     start = time.perf_counter()
     out = output_path(args.output, (".ply", ".obj"))
-    if args.split == "axis" and args.axis is None:
-        raise NemoError("--split axis needs --axis X Y Z")
+    if args.split == "center":
+        args.split = "centre"
     volume, info = read_stack(args.image, args.t, args.c, spacing=args.spacing)
     logger.info("read %s t=%d c=%d: %s %s, spacing %s %s", args.image, args.t, args.c,
                 "x".join(map(str, volume.shape)), volume.dtype, tuple(info.spacing), info.unit)
     mask = _read_mask(args.mask, args.t, args.c, volume.shape) if args.mask else None
-    whole = reconstruct(
-        volume, info.spacing, sigma=args.sigma, threshold=args.threshold, mask=mask, step=args.step,
-        smooth_iter=args.smooth, keep="all" if args.split else args.keep, edge=args.edge, unit=info.unit,
-    )
+    meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
+                                 unit=info.unit, centre=args.centre)
     del volume, mask
-    level = whole.metadata["nemo_surface"]["level"]
-    meshes = {"whole": (whole, out)}
-    if args.split:
-        by = "centre" if args.split in ("centre", "center") else "axis"
-        inner, outer = split_mesh(whole, by=by, axis=args.axis, centre=args.centre, keep=args.keep)
-        if args.keep == "largest":
-            # the whole mesh = the connected components that the kept halves came from
-            labels = face_components(whole.faces, len(whole.vertices))
-            used = np.unique(labels[np.concatenate([inner.metadata["parent_faces"], outer.metadata["parent_faces"]])])
-            if len(used) < labels.max() + 1:
-                whole = submesh(whole, np.isin(labels, used))
-        meshes = {"whole": (whole, out), "inner": (inner, _sibling(out, "inner")),
-                  "outer": (outer, _sibling(out, "outer"))}
     spheres = {}
-    for name, (mesh, path) in meshes.items():
+    for name, mesh in meshes.items():
+        path = out if name == "whole" else _sibling(out, name)
+        mesh.metadata["nemo_params"] = params
         save_mesh(mesh, path)
         line = _describe(name, mesh) + f" -> {path}"
-        if args.fit_sphere:
+        if params["fit_sphere"]:
             centre, radius = fit_sphere(mesh)
             radii = np.linalg.norm(np.asarray(mesh.vertices) - centre, axis=1)
             spheres[name] = {"file": str(path), "centre": [float(v) for v in centre], "radius": radius,
@@ -150,11 +139,12 @@ def run(args) -> int:
             line += (f"\n  sphere: centre ({centre[0]:.4g}, {centre[1]:.4g}, {centre[2]:.4g}) "
                      f"radius {radius:.5g} {mesh.units} (rms residual {spheres[name]['rms_residual']:.3g})")
         print(line)
-    if args.fit_sphere:
+    if params["fit_sphere"]:
         sidecar = out.with_name(f"{out.stem}.sphere.json")
         tmp = sidecar.with_name(f".{sidecar.name}.tmp{os.getpid()}")
         tmp.write_text(json.dumps(spheres, indent=2) + "\n")
         os.replace(tmp, sidecar)
         print(f"sphere fit -> {sidecar}")
-    print(f"iso-level {level:.4g}; done in {time.perf_counter() - start:.2f} s")
+    print(f"step {params['step']} voxels, sigma {params['sigma']:.4g}, iso-level {params['level']:.4g}; "
+          f"done in {time.perf_counter() - start:.2f} s")
     return 0

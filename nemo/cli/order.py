@@ -19,11 +19,12 @@ examples:
 def add_arguments(parser) -> None:
     parser.add_argument("mesh", help="surface mesh the directors were computed on")
     parser.add_argument("directors", help="directors table from 'nemo directors'")
-    parser.add_argument("--radius", type=positive(), required=True, metavar="UM",
+    parser.add_argument("--radius", type=positive(), metavar="UM",
                         help="averaging radius in the mesh's unit (µm): a few patch radii, so that "
-                             "each target averages many directors (the paper: 50 µm ≈ 2.5 × 20 µm "
-                             "patches); S and defects blur on larger scales")
-    parser.add_argument("--targets", choices=("all", "directors"), default="all",
+                             "each target averages many directors (default 2.5 × the directors' "
+                             "patch radius, as the paper's 50 µm for 20 µm patches); S and defects "
+                             "blur on larger scales")
+    parser.add_argument("--targets", choices=("all", "directors"),
                         help="average at every vertex (default) or at the directors' vertices")
     add_common(parser, output_help="order table (.parquet)")
 
@@ -32,14 +33,17 @@ def run(args) -> int:
     import numpy as np
 
     from nemo.cli.common import mesh_and_table
-    from nemo.order import order
-    from nemo.tables import write_table
+    from nemo import stages
+    from nemo.cli.common import section_params
+    from nemo.tables import read_provenance, write_table
 
     out = output_path(args.output)
     mesh, dirs, prov = mesh_and_table(args.mesh, args.directors, "directors")
-    df = order(mesh, dirs, args.radius, targets=args.targets)
-    write_table(df, out, command="order", directors=str(args.directors), **prov,
-                radius=args.radius, targets=args.targets)
+    dparams = read_provenance(args.directors).get("parameters") or {}
+    df, params = stages.order(mesh, dirs, section_params(args, "order"),
+                              patch_radius=dparams.get("nominal_radius"))
+    write_table(df, out, command="order", directors=str(args.directors), **prov, parameters=params,
+                radius=params["radius"])
     s = df["S"].to_numpy()
     print(f"{len(df)} targets: S mean {np.nanmean(s):.3f}, median {np.nanmedian(s):.3f}, "
           f"min {np.nanmin(s):.3f} -> {out}")

@@ -33,20 +33,21 @@ examples:
 def add_arguments(parser) -> None:
     parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) in the image's physical coordinates")
-    parser.add_argument("--range", type=float, nargs=2, required=True, metavar=("DMIN", "DMAX"),
-                        help="depth range along the normal, in the mesh's unit (µm; negative = against it)")
-    parser.add_argument("--samples", type=positive(int), default=11, metavar="N",
+    parser.add_argument("--range", type=float, nargs=2, default=[0.0, 5.0], metavar=("DMIN", "DMAX"),
+                        help="depth range along the normal, in the mesh's unit (µm; negative = against it; "
+                             "default 0 5)")
+    parser.add_argument("--samples", type=positive(int), metavar="N",
                         help="samples over the range (default 11; at most one per 1/20 voxel)")
-    parser.add_argument("--reduce", choices=("mean", "max"), default="mean",
+    parser.add_argument("--reduce", choices=("mean", "max"),
                         help="reduction over the samples (default mean)")
-    parser.add_argument("--interp", choices=("linear", "cubic"), default="linear",
+    parser.add_argument("--interp", choices=("linear", "cubic"),
                         help="interpolation (default linear)")
-    parser.add_argument("--inward", action="store_true",
+    parser.add_argument("--inward", action="store_true", default=None,
                         help="measure depth along the inward normal instead of the outward one")
     parser.add_argument("--shift", metavar="FIELDS.parquet:COLUMN",
                         help="per-vertex field of this mesh added (× --shift-fraction) to the range, "
                              "in the mesh's unit")
-    parser.add_argument("--shift-fraction", type=float, default=1.0, metavar="F",
+    parser.add_argument("--shift-fraction", type=float, metavar="F",
                         help="fraction of the --shift field to add (default 1)")
     parser.add_argument("--profile", action="store_true",
                         help="also write the depth profile to LAYER.profile.parquet")
@@ -70,10 +71,11 @@ def profile_path(layer_path: str | Path) -> Path:
 
 
 def run(args) -> int:
+    from nemo import stages
     from nemo._log import step
     from nemo.io import read_stack
-    from nemo.mesh import load_mesh, vertex_normals
-    from nemo.peel import check_mesh_image, peel
+    from nemo.mesh import load_mesh
+    from nemo.peel import check_mesh_image
     from nemo.tables import write_table
 
     out = output_path(args.output)
@@ -81,32 +83,27 @@ def run(args) -> int:
     if dmax < dmin:
         raise NemoError(f"--range {dmin:g} {dmax:g}: DMIN must not exceed DMAX")
     mesh = load_mesh(args.mesh)
-    normals = vertex_normals(mesh)
-    if args.inward:
-        normals = -normals
-    shift = None
-    if args.shift:
-        shift = args.shift_fraction * _read_shift(args.shift, len(mesh.vertices))
+    shift = _read_shift(args.shift, len(mesh.vertices)) if args.shift else None
+    fraction = (1.0 if args.shift_fraction is None else args.shift_fraction) if args.shift else 0.0
+    layer = {"range": [dmin, dmax], "samples": args.samples, "reduce": args.reduce, "interp": args.interp,
+             "inward": args.inward, "shift": fraction}
     with step(f"reading {args.image} t={args.t} c={args.c}"):
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
     check_mesh_image(mesh, info.spacing, info.unit, mesh_name=f"the mesh {args.mesh}",
                      image_name=f"the image {args.image}")
-    with step(f"peeling {len(mesh.vertices)} vertices × {args.samples} samples in [{dmin:g}, {dmax:g}]"):
-        result = peel(
-            volume, info.spacing, mesh.vertices, normals, dmin, dmax, n_samples=args.samples,
-            reduce=args.reduce, interp=args.interp, shift=shift, return_profile=args.profile,
-        )
-    intensity, profile, depths = result if args.profile else (result, None, None)
+    with step(f"peeling {len(mesh.vertices)} vertices in [{dmin:g}, {dmax:g}]"):
+        result = stages.peel(volume, info.spacing, mesh, layer, shift=shift, return_profile=args.profile)
+    df, params = result[:2]
     prov = dict(
         command="peel", image=str(args.image), mesh=str(args.mesh), n_vertices=len(mesh.vertices),
-        t=args.t, c=args.c,
-        spacing=list(info.spacing), unit=info.unit, range=[dmin, dmax], samples=args.samples,
-        reduce=args.reduce, interp=args.interp, inward=args.inward, shift=args.shift,
-        shift_fraction=args.shift_fraction,
+        t=args.t, c=args.c, spacing=list(info.spacing), unit=info.unit, shift_field=args.shift,
+        parameters=params,
     )
+    write_table(df, out, **prov)
+    intensity = df["intensity"].to_numpy()
     n = len(intensity)
-    write_table(pd.DataFrame({"vertex": np.arange(n, dtype=np.int64), "intensity": intensity}), out, **prov)
     if args.profile:
+        profile, depths = result[2], result[3]
         prof = pd.DataFrame({
             "vertex": np.repeat(np.arange(n, dtype=np.int64), len(depths)),
             "depth": np.tile(depths, n),

@@ -1,58 +1,67 @@
-"""``nemo run``: the whole chain for one frame of an image."""
+"""``nemo run``: the whole analysis of one frame, with the workflow's config."""
 
 from __future__ import annotations
 
 from nemo.cli.common import add_common
 
-HELP = "one frame through mesh -> peel -> directors -> order -> curvature -> defects"
+HELP = "one frame through the whole analysis (the workflow's steps, config and file names)"
 DESCRIPTION = """\
-Run the whole analysis of one (t, c) frame and write every intermediate file into OUTDIR:
-mesh.ply, mesh.inner.ply, mesh.outer.ply, layer.parquet, directors.parquet, directors.defects.parquet (refinement), order.parquet,
-curvature.parquet, defects.parquet and summary.json (parameters, timings, peak memory, Euler
-check). Defaults are the paper's for its synthetic vesicle (marching-cubes step 2 µm, layer
-[0, 5] µm outward from the inner wall, 12 000 director patches of 20 µm, 50 µm averaging). A
-YAML --config overrides any of them by section, e.g.
+Run the analysis of one (t, c) frame with the same steps, parameters and file names as the
+workflow (nemo.stages, nemo.layout) and write every file into OUTDIR: mesh.ply (+ mesh.inner.ply,
+mesh.outer.ply when split), measure_SURFACE.json, curvature_SURFACE.parquet, thickness.parquet,
+and for each layer in channel C: layer_NAME, directors_NAME, order_NAME, defects_NAME,
+refined_NAME (.parquet); align_A_B.parquet for alignment pairs; summary.json (resolved
+parameters, timings, peak memory, Euler check).
 
-  order:
-    radius: 30
-  peel:
-    range: [1, 4]
+--config takes the workflow's own config file unchanged (datasets, results, resources and
+report are used for the frame it points at, or ignored). Without it the schema's defaults
+apply: one layer 'fibres' [0, 5] µm outward from the inner wall; every length not given
+follows the data (mesh edge length, object size; see --print-config). With the same config
+the workflow and nemo run give the same numbers.
 
-(sections: mesh, peel, directors, order, curvature, defects; unknown keys are an error).
-
-example:
+examples:
   nemo synth vesicle.tif && nemo run vesicle.tif -o results/vesicle
-  nemo run movie.tif --t 3 --c 1 --config my.yaml -o results/t3c1"""
+  nemo run --config config/config.yaml --dataset demo --t 1 -o out/demo_t1
+  nemo run movie.tif --t 3 --c 1 --config my.yaml -o results/t3c1
+  nemo run vesicle.tif --print-config          # every default resolved on this frame"""
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
-    parser.add_argument("--config", metavar="FILE", help="YAML file overriding the default parameters")
+    parser.add_argument("image", nargs="?", help="TIFF hyperstack or OME-TIFF (default: the dataset's path)")
+    parser.add_argument("--config", metavar="FILE", help="the workflow's YAML config (default: built-in defaults)")
+    parser.add_argument("--dataset", metavar="NAME",
+                        help="take image, spacing, mask, segmented channel and overrides from datasets.NAME")
     parser.add_argument("--print-config", action="store_true",
-                        help="print the effective parameters as YAML and exit")
+                        help="print the parameters resolved on this frame (meshes it, no other output) and exit")
     add_common(parser, frame=True, output_help="output folder", output_required=False)
 
 
 def run(args) -> int:
     from nemo.errors import NemoError
-    from nemo.pipeline import load_config, run_frame
+    from nemo.pipeline import run_frame
 
+    spacing = tuple(args.spacing) if args.spacing else None
     if args.print_config:
         import yaml
 
-        print(yaml.safe_dump(load_config(args.config), sort_keys=False), end="")
+        from nemo.pipeline import resolved_config
+
+        print(yaml.safe_dump(resolved_config(args.image, args.config, t=args.t, c=args.c, spacing=spacing,
+                                             dataset=args.dataset), sort_keys=False), end="")
         return 0
     if not args.output:
         raise NemoError("give an output folder with -o OUTDIR")
-    summary = run_frame(args.image, args.output, args.config, t=args.t, c=args.c,
-                        spacing=tuple(args.spacing) if args.spacing else None)
-    chk = summary["euler_check"]
-    print(f"{summary['mesh']['surface']} surface: {summary['mesh']['vertices']} vertices; "
-          f"{summary['n_directors']} directors; mean S {summary['S']['mean']:.3f}")
-    for d in summary["defects"]:
-        print(f"  defect at ({d['x']:.2f}, {d['y']:.2f}, {d['z']:.2f}) charge {d['charge']:+.3f} "
-              f"(~{d['charge_rounded']:+g}), S {d['S']:.3f}")
-    print(f"{len(summary['defects'])} defect(s), sum of charges {chk['sum_charge']:.3f} vs chi = "
-          f"{chk['euler_characteristic']}{'' if chk['closed'] else ' (open surface)'}")
+    summary = run_frame(args.image, args.output, args.config, t=args.t, c=args.c, spacing=spacing,
+                        dataset=args.dataset)
+    print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels")
+    for name, res in summary["layers"].items():
+        chk = res["euler_check"]
+        print(f"layer {name} ({res['surface']} surface, {res['vertices']} vertices): {res['n_directors']} "
+              f"directors, mean S {res['S']['mean']:.3f}")
+        for d in res["defects"]:
+            print(f"  defect at ({d['x']:.2f}, {d['y']:.2f}, {d['z']:.2f}) charge {d['charge']:+.3f} "
+                  f"(~{d['charge_rounded']:+g}), S {d['S']:.3f}")
+        print(f"  {len(res['defects'])} defect(s), sum of charges {chk['sum_charge']:.3f} vs chi = "
+              f"{chk['euler_characteristic']}{'' if chk['closed'] else ' (open surface)'}")
     print(f"done in {summary['total_s']:.1f} s, peak memory {summary['peak_rss_mb']:.0f} MB -> {args.output}")
     return 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
 from nemo.cli.common import add_common, output_path, positive
 
@@ -25,7 +24,7 @@ example:
 def add_arguments(parser) -> None:
     parser.add_argument("mesh_from", help="surface whose vertices get a distance (PLY/OBJ)")
     parser.add_argument("mesh_to", help="surface the rays look for (PLY/OBJ)")
-    parser.add_argument("--direction", choices=("outward", "inward", "nearest"), default="outward",
+    parser.add_argument("--direction", choices=("outward", "inward", "nearest"),
                         help="along +N, -N, or the closer hit of both (default outward)")
     parser.add_argument("--max-distance", type=positive(float), metavar="UM",
                         help="hits farther than this count as misses (NaN)")
@@ -34,21 +33,22 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from nemo.mesh import load_mesh
-    from nemo.morphology import thickness
+    from nemo import stages
+    from nemo.cli.common import section_params
     from nemo.tables import write_table
 
     out = output_path(args.output)
     mesh_from = load_mesh(args.mesh_from)
     mesh_to = load_mesh(args.mesh_to)
-    d = thickness(mesh_from, mesh_to, direction=args.direction, max_distance=args.max_distance)
-    df = pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d})
+    df, params = stages.thickness(mesh_from, mesh_to, section_params(args, "thickness"))
+    d = df["thickness"].to_numpy()
     unit = getattr(mesh_from, "units", None) or "um"
     write_table(df, out, command="thickness", mesh=str(args.mesh_from), n_vertices=len(mesh_from.vertices),
-                parameters={"direction": args.direction, "max_distance": args.max_distance},
+                parameters=params,
                 inputs={"mesh_from": str(args.mesh_from), "mesh_to": str(args.mesh_to)}, unit=unit)
     u = "µm" if unit == "um" else unit
     n_nan = int(np.isnan(d).sum())
-    print(f"thickness: {len(d)} vertices, rays {args.direction}")
+    print(f"thickness: {len(d)} vertices, rays {params['direction']}")
     if n_nan < len(d):
         a = np.abs(d[~np.isnan(d)])
         print(f"  median |d| = {np.median(a):.4g} {u}, mean |d| = {a.mean():.4g} {u}, "

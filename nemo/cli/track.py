@@ -26,9 +26,10 @@ def add_arguments(parser) -> None:
     add_common(parser, output_help="tracks table (.parquet), one row per track")
     parser.add_argument("--linked", metavar="FILE",
                         help="also write the defects with their track_id (.parquet)")
-    parser.add_argument("--max-distance", type=positive(float), required=True, metavar="UM",
-                        help="largest displacement between consecutive frames (µm)")
-    parser.add_argument("--gap-frames", type=int, default=1, metavar="N",
+    parser.add_argument("--max-distance", type=positive(float), metavar="UM",
+                        help="largest displacement between consecutive frames (µm; default: the "
+                             "defects' suppression radius, column min_distance of the input)")
+    parser.add_argument("--gap-frames", type=int, metavar="N",
                         help="frames a defect may be missed and still be linked (default 1; 0 = off)")
     parser.add_argument("--gap-max-distance", type=positive(float), metavar="UM",
                         help="largest displacement across a gap (default: --max-distance)")
@@ -37,20 +38,25 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from nemo import stages
     from nemo._log import logger
+    from nemo.cli.common import section_params
     from nemo.tables import read_table, write_table
     from nemo.track import link_defects, summarise_tracks
 
     out = output_path(args.output)
     linked_path = output_path(args.linked) if args.linked else None
     defects = read_table(args.defects, columns=("t", "x", "y", "z", "charge_rounded"))
+    recorded = defects["min_distance"].dropna().unique() if "min_distance" in defects else []
+    if not len(defects) and args.max_distance is None:
+        args.max_distance = 1.0  # nothing to link: any distance gives the same (empty) tracks
+    params = stages.tracking_distance(section_params(args, "tracking"),
+                                      [{"min_distance": float(v)} for v in recorded])
     linked = link_defects(
-        defects, max_distance=args.max_distance, gap_frames=args.gap_frames,
-        gap_max_distance=args.gap_max_distance, frames=args.frames,
+        defects, max_distance=params["max_distance"], gap_frames=params["gap_frames"],
+        gap_max_distance=params["gap_max_distance"], frames=args.frames,
     )
     tracks = summarise_tracks(linked)
-    params = {"max_distance": args.max_distance, "gap_frames": args.gap_frames,
-              "gap_max_distance": args.gap_max_distance}
     if linked_path:
         write_table(linked, linked_path, unit="um", command="nemo track", parameters=params,
                     inputs=[str(args.defects)])

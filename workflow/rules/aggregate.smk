@@ -2,22 +2,29 @@
 
 
 def _frame_records(name):
+    """One record per (t, c, layer); a dataset without layers: one per (t, surface)."""
     d = DATA[name]
+    s = SECTIONS[name]
     records = []
+
+    def morphology(t, surface):
+        seg = layout.frame_dir(RESULTS, name, t, d["seg"])
+        return {
+            "measure": f"{seg}/{layout.measure_file(surface)}",
+            "curvature": f"{seg}/{layout.curvature_file(surface)}" if s["curvature"] is not None else None,
+            "thickness": f"{seg}/{layout.THICKNESS}" if s["thickness"] is not None
+            and s["thickness"]["from"] == surface else None,
+        }
+
     for t, c, layer in layer_frames(name):
-        seg = f"{RESULTS}/{name}/t{t}/c{d['seg']}"
-        frame = f"{RESULTS}/{name}/t{t}/c{c}"
-        surface = LAYERS[layer]["surface"]
-        records.append({
-            "t": t, "c": c, "layer": layer, "surface": surface,
-            "measure": f"{seg}/measure_{surface}.json",
-            "curvature": f"{seg}/curvature_{surface}.parquet" if CURVATURE is not None else None,
-            "thickness": f"{seg}/thickness.parquet" if THICKNESS is not None else None,
-            "layer_table": f"{frame}/layer_{layer}.parquet",
-            "directors": f"{frame}/directors_{layer}.parquet",
-            "order": f"{frame}/order_{layer}.parquet",
-            "defects": f"{frame}/defects_{layer}.parquet",
-        })
+        frame = layout.frame_dir(RESULTS, name, t, c)
+        surface = s["layers"][layer]["surface"]
+        records.append({"t": t, "c": c, "layer": layer, "surface": surface, **morphology(t, surface),
+                        **{k if k != "layer" else "layer_table": f"{frame}/{layout.layer_file(k, layer)}"
+                           for k in layout.LAYER_KINDS}})
+    if not s["layers"]:
+        records = [{"t": t, "c": d["seg"], "layer": "", "surface": surface, **morphology(t, surface)}
+                   for t in d["t"] for surface in s["surfaces"]]
     return records
 
 
@@ -31,6 +38,7 @@ rule aggregate_frames:
             _frame_records(wc.dataset),
             ("measure", "curvature", "thickness", "layer_table", "directors", "order", "defects"),
         ),
+        lambda wc: [f for t in DATA[wc.dataset]["t"] for f in morphology_files(wc.dataset, t)],
     output:
         report(SUMMARY + "/frames.parquet", caption="../report/frames.rst", category="Summary"),
     params:
@@ -58,7 +66,7 @@ rule aggregate_defects:
     params:
         kind="defects",
         records=lambda wc: [{k: r[k] for k in ("t", "c", "layer", "defects")}
-                            for r in _frame_records(wc.dataset)],
+                            for r in _frame_records(wc.dataset) if r.get("defects")],
     log:
         LOGS + "/aggregate/defects.log",
     benchmark:
@@ -76,7 +84,7 @@ rule aggregate_defects:
 def _align_records(name):
     return [
         {"t": t, "c": c, "layer_a": a, "layer_b": b,
-         "align": f"{RESULTS}/{name}/t{t}/c{c}/align_{a}_{b}.parquet"}
+         "align": f"{layout.frame_dir(RESULTS, name, t, c)}/{layout.align_file(a, b)}"}
         for t, c, a, b in align_frames(name)
     ]
 

@@ -12,6 +12,8 @@ rule align:
         LOGS + "/align/t{t}_c{c}_{a}_{b}.log",
     benchmark:
         BENCH + "/align/t{t}_c{c}_{a}_{b}.tsv"
+    group:
+        "frame"
     threads: res("align", "threads")
     resources:
         mem_mb=res("align", "mem_mb"),
@@ -19,4 +21,4 @@ rule align:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " align {input.a} {input.b} --mesh {input.mesh} -o {output} > {log} 2>&1"
+        NEMO + " align {input.a:q} {input.b:q} --mesh {input.mesh:q} -o {output:q} > {log:q} 2>&1"

@@ -3,15 +3,12 @@
 # No science here: every number is computed by the `nemo` commands the rules call.
 
 import os
+import re
+import shlex
 import sys
 import warnings
 from pathlib import Path
 
-import yaml
-from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
-
-SCHEMA = os.path.join(workflow.basedir, "workflow", "schemas", "config.schema.yaml")
 
 
 def _fail(message):
@@ -23,34 +20,21 @@ def config_error(key, message):
     _fail(f"config key '{key}': {message}")
 
 
-def _validate_config():
-    try:
-        validate(config, SCHEMA)
-    except WorkflowError:
-        # re-validate to list every problem with the path of its key (dotted)
-        import jsonschema
+# the one parameter schema (nemo/schemas/config.schema.yaml), shared with `nemo run` and the
+# step commands: validated, defaults filled, analysis sections resolved per dataset
+sys.path.insert(0, workflow.basedir)
+from nemo import config as nconfig  # noqa: E402
+from nemo import layout  # noqa: E402
+from nemo.errors import NemoError  # noqa: E402
 
-        with open(SCHEMA) as fh:
-            schema = yaml.safe_load(fh)
-        errors = sorted(
-            jsonschema.Draft202012Validator(schema).iter_errors(config),
-            key=lambda e: list(map(str, e.absolute_path)),
-        )
-        lines = []
-        for e in errors:
-            key = ".".join(str(p) for p in e.absolute_path) or "(top level)"
-            msg = e.message
-            if e.validator == "oneOf" and e.context:
-                msg = f"{e.instance!r} is not valid: " + "; or ".join(sorted({c.message for c in e.context}))
-            if e.validator == "pattern" and e.schema_path and "propertyNames" in e.schema_path:
-                msg = (f"the name {e.instance!r} is not allowed: use letters, digits, '-' "
-                       f"(and '_', '.' in dataset names), starting with a letter or digit")
-            lines.append(f"config key '{key}': {msg}")
-        _fail("\n  ".join(lines or ["unknown schema error"])
-              + "\n  (schema: workflow/schemas/config.schema.yaml; keys: docs/workflow.md)")
-
-
-_validate_config()
+try:
+    _validated = nconfig.validate(config)
+except NemoError as exc:
+    _fail(str(exc).replace("invalid configuration\n  ", ""))
+config.clear()
+config.update(_validated)
+if not config["datasets"]:
+    config_error("datasets", "no dataset to analyse: add one under datasets (see config/config.yaml)")
 
 # `nemo` subprocesses: the interpreter running Snakemake first on PATH (so `.venv/bin/snakemake`
 # works without activating the venv), this checkout importable (conda envs via --use-conda).
@@ -67,23 +51,43 @@ NEMO = (
 )
 
 RESULTS = config["results"].rstrip("/")
-SURFACE_FILE = {"whole": "mesh.ply", "inner": "mesh.inner.ply", "outer": "mesh.outer.ply"}
-FRAME = RESULTS + "/{dataset}/t{t}/c{c}"
-LOGS = RESULTS + "/{dataset}/logs"
-BENCH = RESULTS + "/{dataset}/benchmarks"
-SUMMARY = RESULTS + "/{dataset}/summary"
-LAYERS = config["layers"]
-ALIGN_PAIRS = [tuple(p) for p in config["alignment"]]
-CURVATURE = config["curvature"]
-THICKNESS = config["thickness"]
+SURFACE_FILE = layout.MESH
+FRAME = layout.frame_dir(RESULTS, "{dataset}", "{t}", "{c}")
+LOGS = layout.dataset_dir(RESULTS, "{dataset}", layout.LOG_DIR)
+BENCH = layout.dataset_dir(RESULTS, "{dataset}", layout.BENCH_DIR)
+SUMMARY = layout.dataset_dir(RESULTS, "{dataset}", layout.SUMMARY_DIR)
+
+
+def _sections():
+    out = {}
+    for name in config["datasets"]:
+        try:
+            out[name] = nconfig.analysis(config, name)
+        except NemoError as exc:
+            _fail(f"dataset '{name}': {exc}")
+    return out
+
+
+#: analysis sections of each dataset (per-dataset overrides merged, surfaces resolved)
+SECTIONS = _sections()
+
+
+def sec(dataset, name):
+    return SECTIONS[dataset][name]
+
+
+def _names(key):
+    names = sorted({n for s in SECTIONS.values() for n in (s[key] or {})})
+    return "|".join(names) or "NONE"
+
 
 wildcard_constraints:
     dataset=r"[A-Za-z0-9][A-Za-z0-9_.-]*",
     t=r"\d+",
     c=r"\d+",
-    layer="|".join(map(str, LAYERS)) or "NONE",
-    a="|".join(map(str, LAYERS)) or "NONE",
-    b="|".join(map(str, LAYERS)) or "NONE",
+    layer=_names("layers"),
+    a=_names("layers"),
+    b=_names("layers"),
     surface="whole|inner|outer",
 
 
@@ -95,7 +99,7 @@ def cli_opts(options, skip=()):
     (Snakemake reruns a job when its params change).
     """
     parts = []
-    for key, value in sorted(options.items()):
+    for key, value in sorted((options or {}).items()):
         if key in skip or value is None or value is False:
             continue
         flag = "--" + str(key).replace("_", "-")
@@ -108,59 +112,13 @@ def cli_opts(options, skip=()):
     return " ".join(parts)
 
 
-# ----------------------------------------------------------------------------- layers, surfaces
-def _check_layers():
-    split = config["mesh"]["split"]
-    for name, layer in LAYERS.items():
-        dmin, dmax = layer["range"]
-        if not dmax > dmin:
-            config_error(f"layers.{name}.range", f"[{dmin}, {dmax}] needs d_max > d_min (µm)")
-        if layer["shift"]:
-            if THICKNESS is None:
-                config_error(f"layers.{name}.shift",
-                             "shifting by a fraction of the thickness needs a 'thickness' section")
-            if layer["surface"] != THICKNESS["from"]:
-                config_error(
-                    f"layers.{name}.shift",
-                    f"the thickness is measured on the '{THICKNESS['from']}' surface but this "
-                    f"layer is peeled from '{layer['surface']}'; set thickness.from to "
-                    f"'{layer['surface']}' or shift: 0",
-                )
-    needed = {layer["surface"] for layer in LAYERS.values()}
-    if THICKNESS is not None:
-        needed |= {THICKNESS["from"], THICKNESS["to"]}
-        if THICKNESS["from"] == THICKNESS["to"]:
-            config_error("thickness.to", f"must differ from thickness.from ('{THICKNESS['from']}')")
-    if config["measure"]["surfaces"]:
-        needed |= set(config["measure"]["surfaces"])
-    if split == "none" and needed & {"inner", "outer"}:
-        config_error("mesh.split", f"is 'none' but the surfaces {sorted(needed - {'whole'})} are used "
-                                   "by layers/thickness: set mesh.split: centre (or axis)")
-    if split == "axis" and not config["mesh"]["axis"]:
-        config_error("mesh.axis", "mesh.split: axis needs mesh.axis: [x, y, z]")
-    for i, pair in enumerate(ALIGN_PAIRS):
-        for name in pair:
-            if name not in LAYERS:
-                config_error(f"alignment.{i}", f"layer '{name}' is not defined under 'layers' "
-                                               f"(defined: {', '.join(LAYERS)})")
-        if pair[0] == pair[1]:
-            config_error(f"alignment.{i}", f"aligns layer '{pair[0]}' with itself")
-    return sorted(needed)
+def opts(name, skip=()):
+    """Input function: the command-line options of a dataset's section ``name``."""
+    return lambda wc: cli_opts(sec(wc.dataset, name), skip)
 
 
-def _check_required():
-    """Options the commands need but that have no data-independent default."""
-    if config["directors"]["patch_radius"] is None and config["directors"]["patch_k"] is None:
-        config_error("directors.patch_radius", "give directors.patch_radius (µm) or directors.patch_k")
-    if config["order"]["radius"] is None:
-        config_error("order.radius", "the averaging radius (µm) is required, e.g. 2-3 x directors.patch_radius")
-    if CURVATURE is not None and CURVATURE["radius"] is None:
-        config_error("curvature.radius", "the fitting radius (µm) is required (or curvature: null)")
-
-
-_check_required()
-SURFACES = _check_layers()
-MEASURED = sorted(set(config["measure"]["surfaces"] or SURFACES))
+def layer_cfg(wc, layer=None):
+    return sec(wc.dataset, "layers")[layer or wc.layer]
 
 
 # ----------------------------------------------------------------------------- datasets
@@ -235,14 +193,13 @@ DATA = _datasets()
 
 
 def _check_layer_channels():
-    analysed = "; ".join(f"{n}: {DATA[n]['c']}" for n in DATA)
-    for layer in LAYERS:
-        if not any(layer_channels(name, layer) for name in DATA):
-            config_error(f"layers.{layer}.channels",
-                         f"{LAYERS[layer]['channels']} holds none of the analysed channels ({analysed})")
-    for i, (a, b) in enumerate(ALIGN_PAIRS):
-        if not any(align_frames(name) for name in DATA):
-            config_error(f"alignment.{i}", f"layers '{a}' and '{b}' share no analysed channel")
+    for name in DATA:
+        analysed = DATA[name]["c"]
+        layers = sec(name, "layers") or {}
+        for layer in layers:
+            if not layer_channels(name, layer):
+                config_error(f"layers.{layer}.channels", f"{layers[layer]['channels']} holds none of the "
+                                                         f"channels analysed in dataset '{name}' ({analysed})")
 
 
 
@@ -270,15 +227,19 @@ def image(wildcards):
 
 
 def seg_dir(wildcards):
-    return f"{RESULTS}/{wildcards.dataset}/t{wildcards.t}/c{DATA[wildcards.dataset]['seg']}"
+    return layout.frame_dir(RESULTS, wildcards.dataset, wildcards.t, DATA[wildcards.dataset]["seg"])
 
 
 def surface_mesh(wildcards, surface):
-    return f"{seg_dir(wildcards)}/{SURFACE_FILE[surface]}"
+    return f"{seg_dir(wildcards)}/{layout.MESH[surface]}"
 
 
 def layer_mesh(wildcards, layer=None):
-    return surface_mesh(wildcards, LAYERS[layer or wildcards.layer]["surface"])
+    return surface_mesh(wildcards, layer_cfg(wildcards, layer)["surface"])
+
+
+def frame_file(wildcards, name):
+    return f"{FRAME.format(**wildcards)}/{name}"
 
 
 def spacing_opt(wildcards):
@@ -288,27 +249,38 @@ def spacing_opt(wildcards):
 
 def layer_channels(name, layer):
     """Analysed channels of dataset ``name`` that hold ``layer``."""
-    chans = LAYERS[layer]["channels"]
+    chans = sec(name, "layers")[layer]["channels"]
     return [c for c in DATA[name]["c"] if chans == "all" or c in chans]
 
 
 def layer_frames(name):
     """(t, c, layer) triples analysed in a dataset."""
     # sorted: params built from this list must not depend on the order of keys in the config
-    return sorted((t, c, layer) for t in DATA[name]["t"] for layer in LAYERS
+    return sorted((t, c, layer) for t in DATA[name]["t"] for layer in (sec(name, "layers") or {})
                   for c in layer_channels(name, layer))
 
 
 def align_frames(name):
     """(t, c, a, b): alignment pairs in the channels that hold both layers."""
-    return sorted((t, c, a, b) for t in DATA[name]["t"] for a, b in ALIGN_PAIRS
+    return sorted((t, c, a, b) for t in DATA[name]["t"] for a, b in (sec(name, "alignment") or [])
                   for c in layer_channels(name, a) if c in layer_channels(name, b))
+
+
+def morphology_files(name, t):
+    """Files of the morphology of time point t: measure, curvature per surface, thickness."""
+    d = layout.frame_dir(RESULTS, name, t, DATA[name]["seg"])
+    s = SECTIONS[name]
+    files = [f"{d}/{layout.measure_file(x)}" for x in (s["measure"]["surfaces"] or s["surfaces"])]
+    if s["curvature"] is not None:
+        files += [f"{d}/{layout.curvature_file(x)}" for x in s["surfaces"]]
+    if s["thickness"] is not None:
+        files.append(f"{d}/{layout.THICKNESS}")
+    return files
 
 
 def summary_targets(name):
     s = SUMMARY.format(dataset=name)
-    return [f"{s}/frames.parquet", f"{s}/defects.parquet", f"{s}/tracks.parquet",
-            f"{s}/alignment.parquet"]
+    return [f"{s}/{table}" for table in layout.SUMMARY_TABLES]
 
 
 _check_layer_channels()

@@ -1,16 +1,17 @@
-# Topological defects (method note §7): localisation from low S, curvature-corrected charge.
+# Topological defects (method note §7): localisation from low S, curvature-corrected charge,
+# refinement pass with extra directors near each first-pass defect.
 
 
 def _defects_inputs(wc):
     inputs = {
         "mesh": layer_mesh(wc),
-        "order": FRAME.format(**wc) + f"/order_{wc.layer}.parquet",
-        "directors": FRAME.format(**wc) + f"/directors_{wc.layer}.parquet",
+        "order": frame_file(wc, layout.layer_file("order", wc.layer)),
+        "directors": frame_file(wc, layout.layer_file("directors", wc.layer)),
+        "layer": frame_file(wc, layout.layer_file("layer", wc.layer)),
     }
-    if config["defects"]["refine_directors"] > 0:  # refinement pass: extra directors on the layer
-        inputs["layer"] = FRAME.format(**wc) + f"/layer_{wc.layer}.parquet"
-    if CURVATURE is not None and config["defects"]["curvature_correction"]:
-        inputs["curvature"] = f"{seg_dir(wc)}/curvature_{LAYERS[wc.layer]['surface']}.parquet"
+    d = sec(wc.dataset, "defects")
+    if d["curvature_source"] == "table" and d["curvature_correction"]:
+        inputs["curvature"] = f"{seg_dir(wc)}/{layout.curvature_file(layer_cfg(wc)['surface'])}"
     return inputs
 
 
@@ -18,16 +19,18 @@ rule defects:
     input:
         unpack(_defects_inputs),
     output:
-        FRAME + "/defects_{layer}.parquet",
+        defects=FRAME + "/defects_{layer}.parquet",
+        refined=FRAME + "/refined_{layer}.parquet",
     params:
-        opts=cli_opts(config["defects"], skip=("curvature_correction",))
-        + ("" if config["defects"]["curvature_correction"] else " --no-curvature-correction"),
-        curvature=lambda wc, input: f"--curvature {input.curvature}" if "curvature" in input.keys() else "",
-        layer=lambda wc, input: f"--layer {input.layer}" if "layer" in input.keys() else "",
+        opts=lambda wc: cli_opts(sec(wc.dataset, "defects"), skip=("curvature_correction",))
+        + ("" if sec(wc.dataset, "defects")["curvature_correction"] else " --no-curvature-correction"),
+        curvature=lambda wc, input: f"--curvature {shlex.quote(input.curvature)}" if "curvature" in input.keys() else "",
     log:
         LOGS + "/defects/t{t}_c{c}_{layer}.log",
     benchmark:
         BENCH + "/defects/t{t}_c{c}_{layer}.tsv"
+    group:
+        "frame"
     threads: res("defects", "threads")
     resources:
         mem_mb=res("defects", "mem_mb"),
@@ -35,5 +38,6 @@ rule defects:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " defects {input.mesh} {input.order} {input.directors} {params.curvature} {params.layer}"
-        " -o {output} {params.opts} > {log} 2>&1"
+        NEMO + " defects {input.mesh:q} {input.order:q} {input.directors:q} {params.curvature}"
+        " --layer {input.layer:q} --refined {output.refined:q} -o {output.defects:q} {params.opts}"
+        " > {log:q} 2>&1"

@@ -8,11 +8,13 @@ rule directors:
     output:
         FRAME + "/directors_{layer}.parquet",
     params:
-        opts=cli_opts(config["directors"]),
+        opts=opts("directors"),
     log:
         LOGS + "/directors/t{t}_c{c}_{layer}.log",
     benchmark:
         BENCH + "/directors/t{t}_c{c}_{layer}.tsv"
+    group:
+        "frame"
     threads: res("directors", "threads")
     resources:
         mem_mb=res("directors", "mem_mb"),
@@ -20,4 +22,4 @@ rule directors:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " directors {input.mesh} {input.layer} -o {output} {params.opts} > {log} 2>&1"
+        NEMO + " directors {input.mesh:q} {input.layer:q} -o {output:q} {params.opts} > {log:q} 2>&1"

@@ -4,13 +4,15 @@
 
 rule measure:
     input:
-        mesh=lambda wc: f"{FRAME}/{SURFACE_FILE[wc.surface]}".format(**wc),
+        mesh=lambda wc: frame_file(wc, layout.MESH[wc.surface]),
     output:
         FRAME + "/measure_{surface}.json",
     log:
         LOGS + "/measure/t{t}_c{c}_{surface}.log",
     benchmark:
         BENCH + "/measure/t{t}_c{c}_{surface}.tsv"
+    group:
+        "frame"
     threads: res("measure", "threads")
     resources:
         mem_mb=res("measure", "mem_mb"),
@@ -19,20 +21,22 @@ rule measure:
         "../envs/nemo.yaml"
     shell:
         # stdout is the JSON: write it to a temporary file and rename (atomic)
-        NEMO + " measure {input.mesh} --json > {output}.tmp 2> {log} && mv {output}.tmp {output}"
+        NEMO + " measure {input.mesh:q} --json > {output:q}.tmp 2> {log:q} && mv {output:q}.tmp {output:q}"
 
 
 rule curvature:
     input:
-        mesh=lambda wc: f"{FRAME}/{SURFACE_FILE[wc.surface]}".format(**wc),
+        mesh=lambda wc: frame_file(wc, layout.MESH[wc.surface]),
     output:
         FRAME + "/curvature_{surface}.parquet",
     params:
-        opts=cli_opts(CURVATURE or {}),
+        opts=opts("curvature"),
     log:
         LOGS + "/curvature/t{t}_c{c}_{surface}.log",
     benchmark:
         BENCH + "/curvature/t{t}_c{c}_{surface}.tsv"
+    group:
+        "frame"
     threads: res("curvature", "threads")
     resources:
         mem_mb=res("curvature", "mem_mb"),
@@ -40,21 +44,23 @@ rule curvature:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " curvature {input.mesh} -o {output} {params.opts} > {log} 2>&1"
+        NEMO + " curvature {input.mesh:q} -o {output:q} {params.opts} > {log:q} 2>&1"
 
 
 rule thickness:
     input:
-        mesh_from=lambda wc: f"{FRAME}/{SURFACE_FILE[THICKNESS['from']]}".format(**wc),
-        mesh_to=lambda wc: f"{FRAME}/{SURFACE_FILE[THICKNESS['to']]}".format(**wc),
+        mesh_from=lambda wc: frame_file(wc, layout.MESH[sec(wc.dataset, "thickness")["from"]]),
+        mesh_to=lambda wc: frame_file(wc, layout.MESH[sec(wc.dataset, "thickness")["to"]]),
     output:
-        FRAME + "/thickness.parquet",
+        FRAME + "/" + layout.THICKNESS,
     params:
-        opts=cli_opts({k: v for k, v in (THICKNESS or {}).items() if k not in ("from", "to")}),
+        opts=opts("thickness", skip=("from", "to")),
     log:
         LOGS + "/thickness/t{t}_c{c}.log",
     benchmark:
         BENCH + "/thickness/t{t}_c{c}.tsv"
+    group:
+        "frame"
     threads: res("thickness", "threads")
     resources:
         mem_mb=res("thickness", "mem_mb"),
@@ -62,4 +68,4 @@ rule thickness:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " thickness {input.mesh_from} {input.mesh_to} -o {output} {params.opts} > {log} 2>&1"
+        NEMO + " thickness {input.mesh_from:q} {input.mesh_to:q} -o {output:q} {params.opts} > {log:q} 2>&1"

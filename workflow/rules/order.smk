@@ -8,11 +8,13 @@ rule order:
     output:
         FRAME + "/order_{layer}.parquet",
     params:
-        opts=cli_opts(config["order"]),
+        opts=opts("order"),
     log:
         LOGS + "/order/t{t}_c{c}_{layer}.log",
     benchmark:
         BENCH + "/order/t{t}_c{c}_{layer}.tsv"
+    group:
+        "frame"
     threads: res("order", "threads")
     resources:
         mem_mb=res("order", "mem_mb"),
@@ -20,4 +22,4 @@ rule order:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " order {input.mesh} {input.directors} -o {output} {params.opts} > {log} 2>&1"
+        NEMO + " order {input.mesh:q} {input.directors:q} -o {output:q} {params.opts} > {log:q} 2>&1"

@@ -3,19 +3,15 @@
 
 
 def _peel_inputs(wc):
-    layer = LAYERS[wc.layer]
     inputs = {"image": image(wc), "mesh": layer_mesh(wc)}
-    if layer["shift"]:
-        inputs["shift"] = f"{seg_dir(wc)}/thickness.parquet"
+    if layer_cfg(wc)["shift"]:
+        inputs["shift"] = f"{seg_dir(wc)}/{layout.THICKNESS}"
     return inputs
 
 
 def _peel_opts(wc):
-    layer = LAYERS[wc.layer]
-    dmin, dmax = layer["range"]
-    opts = f"--range {dmin} {dmax} " + cli_opts(
-        {k: layer[k] for k in ("reduce", "samples", "interp", "inward")}
-    )
+    layer = layer_cfg(wc)
+    opts = cli_opts({k: layer[k] for k in ("range", "reduce", "samples", "interp", "inward")})
     if layer["shift"]:
         opts += f" --shift-fraction {layer['shift']}"
     return opts
@@ -29,11 +25,13 @@ rule peel:
     params:
         opts=_peel_opts,
         spacing=spacing_opt,
-        shift=lambda wc, input: f"--shift {input.shift}:thickness" if "shift" in input.keys() else "",
+        shift=lambda wc, input: f"--shift {shlex.quote(input.shift + ':thickness')}" if "shift" in input.keys() else "",
     log:
         LOGS + "/peel/t{t}_c{c}_{layer}.log",
     benchmark:
         BENCH + "/peel/t{t}_c{c}_{layer}.tsv"
+    group:
+        "frame"
     threads: res("peel", "threads")
     resources:
         mem_mb=mem_image("peel"),
@@ -41,5 +39,5 @@ rule peel:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " peel {input.image} {input.mesh} -o {output} --t {wildcards.t} --c {wildcards.c}"
-        " {params.spacing} {params.opts} {params.shift} > {log} 2>&1"
+        NEMO + " peel {input.image:q} {input.mesh:q} -o {output:q} --t {wildcards.t} --c {wildcards.c}"
+        " {params.spacing} {params.opts} {params.shift} > {log:q} 2>&1"

@@ -7,14 +7,13 @@ REPORT = config["report"]
 
 def _render_inputs(wc):
     seg = seg_dir(wc)
-    surface = LAYERS[wc.layer]["surface"]
-    frame = FRAME.format(**wc)
-    inputs = [layer_mesh(wc)] + [f"{frame}/{kind}_{wc.layer}.parquet"
-                                 for kind in ("layer", "directors", "order", "defects")]
-    if CURVATURE is not None:
-        inputs.append(f"{seg}/curvature_{surface}.parquet")
-    if THICKNESS is not None and THICKNESS["from"] == surface:
-        inputs.append(f"{seg}/thickness.parquet")
+    s = SECTIONS[wc.dataset]
+    surface = layer_cfg(wc)["surface"]
+    inputs = [layer_mesh(wc)] + [frame_file(wc, layout.layer_file(kind, wc.layer)) for kind in layout.LAYER_KINDS]
+    if s["curvature"] is not None:
+        inputs.append(f"{seg}/{layout.curvature_file(surface)}")
+    if s["thickness"] is not None and s["thickness"]["from"] == surface:
+        inputs.append(f"{seg}/{layout.THICKNESS}")
     return inputs
 
 
@@ -41,7 +40,7 @@ rule render:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " render {input} --layer {wildcards.layer} -o {output} > {log} 2>&1"
+        NEMO + " render {input:q} --layer {wildcards.layer} -o {output:q} > {log:q} 2>&1"
 
 
 rule render_summary:
@@ -67,12 +66,12 @@ rule render_summary:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " render --summary {input} -o {output} > {log} 2>&1"
+        NEMO + " render --summary {input:q} -o {output:q} > {log:q} 2>&1"
 
 
 def render_targets(name):
     targets = []
-    if REPORT["summary"]:
+    if REPORT["summary"] and layer_frames(name):
         targets.append(SUMMARY.format(dataset=name) + "/figures")
     if REPORT["frames"]:
         targets += [FRAME.format(dataset=name, t=t, c=c) + f"/figures/{layer}"

@@ -8,7 +8,7 @@ rule track:
         tracks=report(SUMMARY + "/tracks.parquet", caption="../report/tracks.rst", category="Summary"),
         defects=report(SUMMARY + "/defects.parquet", caption="../report/defects.rst", category="Summary"),
     params:
-        opts=cli_opts(config["tracking"]),
+        opts=opts("tracking"),
         frames=lambda wc: " ".join(str(t) for t in DATA[wc.dataset]["t"]),
     log:
         LOGS + "/track.log",
@@ -21,5 +21,5 @@ rule track:
     conda:
         "../envs/nemo.yaml"
     shell:
-        NEMO + " track {input} -o {output.tracks} --linked {output.defects}"
-        " --frames {params.frames} {params.opts} > {log} 2>&1"
+        NEMO + " track {input:q} -o {output.tracks:q} --linked {output.defects:q}"
+        " --frames {params.frames} {params.opts} > {log:q} 2>&1"

@@ -1,0 +1,254 @@
+"""The one parameter schema of NEMO and its defaults.
+
+The workflow's config file, ``nemo run --config`` and the step commands share one schema,
+``nemo/schemas/config.schema.yaml`` (``workflow/schemas/config.schema.yaml`` links to it). Its
+*analysis sections* (:data:`ANALYSIS_SECTIONS`) hold the parameters of the paper's steps under
+the names of the step commands' options (``order.radius`` is ``nemo order --radius``). A null
+length is derived from the data by :mod:`nemo.stages` and recorded there as a number.
+
+* :func:`validate` checks a whole config (every problem listed with its dotted key) and fills
+  the schema's defaults;
+* :func:`load` reads and validates a YAML file;
+* :func:`section` merges the options of one step over the section's defaults (used by the
+  stage functions, so a notebook call, a command and a rule start from the same values);
+* :func:`analysis` gives the analysis sections of one dataset (per-dataset overrides merged)
+  with the surfaces resolved (:func:`resolve_surfaces`).
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import os
+from collections.abc import Mapping
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from nemo.errors import NemoError
+
+#: Sections that describe the analysis (may be overridden per dataset).
+ANALYSIS_SECTIONS = ("mesh", "measure", "curvature", "thickness", "layers", "directors", "order",
+                     "defects", "alignment", "tracking")
+
+#: Path of the schema (package data).
+SCHEMA_PATH = Path(str(resources.files("nemo.schemas") / "config.schema.yaml"))
+
+
+@functools.cache
+def schema() -> dict:
+    """The parsed JSON schema (draft 2020-12)."""
+    import yaml
+
+    return yaml.safe_load(SCHEMA_PATH.read_text())
+
+
+def _deref(node: dict) -> dict:
+    """A schema node with a local ``$ref`` replaced by its target (sibling keys kept)."""
+    while isinstance(node, dict) and "$ref" in node:
+        target = schema()["$defs"][node["$ref"].rsplit("/", 1)[-1]]
+        node = {**target, **{k: v for k, v in node.items() if k != "$ref"}}
+    return node
+
+
+def _fill_defaults(instance: Any, node: dict, path: tuple = ()) -> None:
+    """Set the schema's defaults in ``instance`` (in place); dataset overrides stay as given."""
+    node = _deref(node)
+    if not isinstance(instance, dict):
+        return
+    props = node.get("properties", {})
+    for key, sub in props.items():
+        if path[:1] == ("datasets",) and key in ANALYSIS_SECTIONS:
+            continue  # a per-dataset override holds only what the user changed
+        sub_d = _deref(sub)
+        if key not in instance and "default" in sub_d:
+            instance[key] = copy.deepcopy(sub_d["default"])
+        if key in instance:
+            _fill_defaults(instance[key], sub, (*path, key))
+    extra = node.get("additionalProperties")
+    if isinstance(extra, dict):
+        for key in instance:
+            if key not in props:
+                _fill_defaults(instance[key], extra, (*path, key))
+
+
+def _messages(errors) -> list[str]:
+    lines = []
+    for e in sorted(errors, key=lambda e: list(map(str, e.absolute_path))):
+        key = ".".join(str(p) for p in e.absolute_path) or "(top level)"
+        msg = e.message
+        if e.validator == "oneOf" and e.context:
+            msg = f"{e.instance!r} is not valid: " + "; or ".join(sorted({c.message for c in e.context}))
+        if e.validator == "pattern" and "propertyNames" in e.schema_path:
+            msg = (f"the name {e.instance!r} is not allowed: use letters, digits, '-' "
+                   f"(and '_', '.' in dataset names), starting with a letter or digit")
+        lines.append(f"config key '{key}': {msg}")
+    return lines
+
+
+def _check(instance: Any, node: dict, where: str = "") -> None:
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator({**node, "$defs": schema()["$defs"]})
+    lines = _messages(validator.iter_errors(instance))
+    if where:
+        lines = [line.replace("config key '", f"config key '{where}.", 1).replace(f"'{where}.(top level)'",
+                                                                                  f"'{where}'")
+                 for line in lines]
+    if lines:
+        raise NemoError("invalid configuration\n  " + "\n  ".join(lines)
+                        + "\n  (schema: nemo/schemas/config.schema.yaml; keys: docs/workflow.md)")
+
+
+def validate(config: Mapping | None) -> dict:
+    """Check a whole config against the schema and fill its defaults.
+
+    Parameters
+    ----------
+    config : mapping or None
+        A workflow config (or any subset of its sections; None = all defaults).
+
+    Returns
+    -------
+    dict
+        A validated deep copy with every default filled in (per-dataset overrides as given).
+
+    Raises
+    ------
+    NemoError
+        Listing every invalid key with its dotted path and the reason.
+    """
+    cfg = copy.deepcopy(dict(config or {}))
+    _check(cfg, schema())
+    _fill_defaults(cfg, schema())
+    return cfg
+
+
+def load(path: str | os.PathLike | None) -> dict:
+    """Read a YAML config file (the workflow's own) and :func:`validate` it."""
+    if path is None:
+        return validate(None)
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise NemoError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise NemoError(f"{path} is not valid YAML ({str(exc).splitlines()[0]})") from None
+    if data is not None and not isinstance(data, dict):
+        raise NemoError(f"{path} must hold a mapping of config keys, not a {type(data).__name__}")
+    return validate(data)
+
+
+def section_defaults(name: str) -> dict:
+    """The defaults of one analysis section (``layer`` for one layer's keys)."""
+    out: dict = {}
+    _fill_defaults(out, {"properties": {k: {"default": None} | v for k, v in
+                                        _deref({"$ref": f"#/$defs/{name}"})["properties"].items()}})
+    return out
+
+
+def section(name: str, params: Mapping | None = None) -> dict:
+    """``params`` of one section merged over its defaults and checked.
+
+    Keys with the value None take the default (as a command's unset option does), so the
+    result holds every key of the section.
+    """
+    merged = section_defaults(name)
+    for key, value in (params or {}).items():
+        if key not in merged:
+            raise NemoError(f"unknown key '{name}.{key}'; valid keys: {', '.join(merged)}")
+        if value is not None:
+            merged[key] = value
+    _check(merged, {"$ref": f"#/$defs/{name}"}, where=name)
+    return merged
+
+
+def _merge(base: Any, override: Any) -> Any:
+    if isinstance(base, dict) and isinstance(override, dict):
+        out = dict(base)
+        for key, value in override.items():
+            out[key] = _merge(base.get(key), value)
+        return out
+    return copy.deepcopy(override)
+
+
+def analysis(cfg: Mapping, dataset: str | None = None) -> dict:
+    """The analysis sections for one dataset: top level, then ``datasets.NAME`` overrides.
+
+    Sections are deep-merged key by key; ``layers`` and ``alignment`` given for a dataset
+    replace the top-level ones; a null section (``curvature: null``) switches that step off.
+    Surfaces are then resolved (:func:`resolve_surfaces`).
+    """
+    out = {key: copy.deepcopy(cfg.get(key)) for key in ANALYSIS_SECTIONS}
+    if dataset is not None:
+        datasets = cfg.get("datasets") or {}
+        if dataset not in datasets:
+            raise NemoError(f"dataset {dataset!r} is not in the config (datasets: {', '.join(datasets) or 'none'})")
+        for key in ANALYSIS_SECTIONS:
+            if key not in datasets[dataset]:
+                continue
+            value = datasets[dataset][key]
+            if key in ("layers", "alignment") or value is None or out[key] is None:
+                out[key] = copy.deepcopy(value)
+            else:
+                out[key] = _merge(out[key], value)
+        for name, layer in (out["layers"] or {}).items():
+            out["layers"][name] = {**section_defaults("layer"), **layer}
+    return resolve_surfaces(out)
+
+
+def resolve_surfaces(sections: dict) -> dict:
+    """Resolve the null surfaces and check that every surface used is written by the mesh step.
+
+    A layer's null ``surface`` is ``inner`` when the mesh is split, else ``whole``; a
+    thickness with null ``from``/``to`` is inner → outer when split, and off otherwise.
+    """
+    split = sections["mesh"]["split"] != "none"
+    for name, layer in (sections["layers"] or {}).items():
+        if layer.get("surface") is None:
+            layer["surface"] = "inner" if split else "whole"
+        dmin, dmax = layer["range"]
+        if not dmax > dmin:
+            raise NemoError(f"config key 'layers.{name}.range': [{dmin}, {dmax}] needs d_max > d_min")
+    th = sections["thickness"]
+    if th is not None:
+        if th["from"] is None and th["to"] is None and not split:
+            sections["thickness"] = th = None
+        else:
+            th["from"] = th["from"] or "inner"
+            th["to"] = th["to"] or "outer"
+            if th["from"] == th["to"]:
+                raise NemoError(f"config key 'thickness.to': must differ from thickness.from ('{th['from']}')")
+    used = {layer["surface"] for layer in (sections["layers"] or {}).values()}
+    if th is not None:
+        used |= {th["from"], th["to"]}
+        for name, layer in (sections["layers"] or {}).items():
+            if layer["shift"] and layer["surface"] != th["from"]:
+                raise NemoError(
+                    f"config key 'layers.{name}.shift': the thickness is measured on '{th['from']}' but "
+                    f"this layer is peeled from '{layer['surface']}'; set thickness.from: "
+                    f"{layer['surface']} or shift: 0")
+    else:
+        for name, layer in (sections["layers"] or {}).items():
+            if layer["shift"]:
+                raise NemoError(f"config key 'layers.{name}.shift': shifting by a fraction of the "
+                                "thickness needs a thickness section")
+    used |= set(sections["measure"]["surfaces"] or [])
+    if not split and used & {"inner", "outer"}:
+        raise NemoError(f"config key 'mesh.split': is 'none' but the surfaces {sorted(used - {'whole'})} are "
+                        "used (layers, thickness or measure): set mesh.split: centre (or axis)")
+    if sections["mesh"]["split"] == "axis" and not sections["mesh"]["axis"]:
+        raise NemoError("config key 'mesh.axis': mesh.split: axis needs mesh.axis: [x, y, z]")
+    layers = sections["layers"] or {}
+    for i, pair in enumerate(sections["alignment"] or []):
+        for name in pair:
+            if name not in layers:
+                raise NemoError(f"config key 'alignment.{i}': layer '{name}' is not defined under 'layers' "
+                                f"(defined: {', '.join(layers) or 'none'})")
+        if pair[0] == pair[1]:
+            raise NemoError(f"config key 'alignment.{i}': aligns layer '{pair[0]}' with itself")
+    sections["surfaces"] = sorted(used | ({"whole"} if not used else set()))
+    return sections

@@ -1,0 +1,298 @@
+"""One function per step of the paper's analysis, with the defaults that follow the data.
+
+``nemo run``, the step commands (``nemo mesh``, ``nemo peel``, ...) and the workflow's rules all
+call these functions, so the same parameters give the same numbers whichever way a frame is
+analysed. Each takes its section of the config (:mod:`nemo.config`; None values = defaults),
+fills every data-derived default with a number and returns it next to the result, so the
+resolved values can be stored in the table's provenance and printed.
+
+Data-derived defaults (``edge`` = mean edge length of the analysed mesh, ``R_obj`` = the
+radius of a sphere of the same area, ``sqrt(area / 4π)``):
+
+==========================  =====================================================================
+``mesh.step``               1 voxel; 2 for stacks above :data:`STEP2_VOXELS` voxels (memory)
+``mesh.sigma``              half the marching-cubes sampling distance, ``step (dx + dy) / 4``
+``curvature.radius``        ``15 edge``, at most ``0.5 R_obj`` (a fit needs many neighbours but
+                            must stay below the radius of curvature)
+``directors.patch_radius``  ``0.1 R_obj`` (the paper: 20 µm on R = 200 µm), at least ``8 edge``
+``directors.n_patches``     30 per patch area, at most the number of vertices
+``directors.pixel``         ``edge / 4``, at least ``patch_radius / 97`` (micro-images ≤ 195 px)
+``order.radius``            ``2.5 patch_radius`` (the paper: 50 µm for 20 µm patches)
+``defects.min_distance``    the averaging radius; ``contour_radius``: 1.5 × it (nemo.defects)
+==========================  =====================================================================
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import trimesh
+
+from nemo import config as nconfig
+from nemo._log import logger
+from nemo.errors import NemoError
+
+#: Stacks with more voxels than this are meshed every 2 voxels by default.
+STEP2_VOXELS = 64_000_000
+#: Default curvature fitting radius in mean edge lengths (docs/benchmarks.md: 5 is noisy).
+CURVATURE_EDGES = 15.0
+#: Default director patch radius as a fraction of the object radius, and its floor in edges.
+PATCH_PER_RADIUS, PATCH_MIN_EDGES = 0.1, 8.0
+#: Default micro-image pixel as a fraction of the mean edge length.
+PIXEL_PER_EDGE = 0.25
+#: Default averaging radius in patch radii.
+ORDER_PER_PATCH = 2.5
+
+
+def object_radius(mesh: trimesh.Trimesh) -> float:
+    """Radius of the sphere with the mesh's area, ``sqrt(area / 4π)`` (the object's scale)."""
+    return float(math.sqrt(max(float(mesh.area), 0.0) / (4 * math.pi)))
+
+
+# ----------------------------------------------------------------------------- mesh
+def mesh(
+    volume: np.ndarray | None,
+    spacing: tuple[float, float, float],
+    params: dict | None = None,
+    mask: np.ndarray | None = None,
+    unit: str = "um",
+    centre: np.ndarray | None = None,
+) -> tuple[dict[str, trimesh.Trimesh], dict]:
+    """Surface reconstruction (method note §2), split into inner/outer walls if configured.
+
+    Parameters
+    ----------
+    volume : ndarray, shape (Z, Y, X)
+        The segmented channel (None when ``mask`` is given).
+    spacing : (dz, dy, dx)
+        Voxel size.
+    params : dict, optional
+        The ``mesh`` section.
+    mask : ndarray of bool, shape (Z, Y, X), optional
+        Object mask used instead of the threshold.
+
+    Returns
+    -------
+    meshes : dict
+        ``whole`` and, when split, ``inner`` and ``outer`` (trimesh.Trimesh, physical x, y, z).
+    resolved : dict
+        The section with ``step`` and ``sigma`` as numbers and the iso-level used.
+    """
+    from nemo.surface import default_sigma, face_components, reconstruct, split_mesh, submesh
+
+    p = nconfig.section("mesh", params)
+    shape = (volume if volume is not None else mask).shape
+    if p["step"] is None:
+        p["step"] = 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
+    if p["sigma"] is None:
+        p["sigma"] = default_sigma(spacing, p["step"])
+    split = p["split"] != "none"
+    whole = reconstruct(volume, spacing, sigma=float(p["sigma"]), threshold=p["threshold"], mask=mask,
+                        step=int(p["step"]), smooth_iter=int(p["smooth"]),
+                        keep="all" if split else p["keep"], edge=p["edge"], unit=unit)
+    p["level"] = float(whole.metadata["nemo_surface"]["level"])
+    meshes = {"whole": whole}
+    if split:
+        inner, outer = split_mesh(whole, by=p["split"], axis=p["axis"], centre=centre, keep=p["keep"])
+        if p["keep"] == "largest":  # the whole = the components the kept halves came from
+            labels = face_components(whole.faces, len(whole.vertices))
+            used = np.unique(labels[np.concatenate([inner.metadata["parent_faces"],
+                                                    outer.metadata["parent_faces"]])])
+            if len(used) < labels.max() + 1:
+                meshes["whole"] = submesh(whole, np.isin(labels, used))
+        meshes.update(inner=inner, outer=outer)
+    return meshes, p
+
+
+# ----------------------------------------------------------------------------- morphology
+def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:
+    """The ``curvature`` section with its radius resolved on ``mesh``."""
+    from nemo.mesh import mean_edge_length
+
+    p = nconfig.section("curvature", params)
+    if p["radius"] is None:
+        p["radius"] = min(CURVATURE_EDGES * mean_edge_length(mesh), 0.5 * object_radius(mesh))
+    return p
+
+
+def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.DataFrame, dict]:
+    """H, K at every vertex (method note §3); radius default ``15 edge`` ≤ ``0.5 R_obj``."""
+    from nemo.morphology import curvature as fit_curvature
+
+    p = curvature_defaults(mesh, params)
+    df = fit_curvature(mesh, float(p["radius"]), n_samples=p["samples"], fraction=p["fraction"],
+                       k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"])
+    p.update(fit_used=df.attrs.get("fit"), n_fitted=df.attrs.get("n_samples"))
+    return df, p
+
+
+def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
+              params: dict | None = None) -> tuple[pd.DataFrame, dict]:
+    """Distance from ``mesh_from`` to ``mesh_to`` along the normals (method note §3)."""
+    from nemo.morphology import thickness as ray_thickness
+
+    p = nconfig.section("thickness", params)
+    d = ray_thickness(mesh_from, mesh_to, direction=p["direction"], max_distance=p["max_distance"])
+    return pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d}), p
+
+
+# ----------------------------------------------------------------------------- nematics
+def peel(
+    volume: np.ndarray,
+    spacing: tuple[float, float, float],
+    mesh: trimesh.Trimesh,
+    params: dict,
+    shift: np.ndarray | None = None,
+    return_profile: bool = False,
+):
+    """One intensity per vertex over a depth range along the normals (method note §4).
+
+    ``params`` is one layer of the ``layers`` section (``range`` required); ``shift`` the
+    per-vertex thickness when the layer's ``shift`` fraction is non-zero. Returns the layer
+    table (vertex, intensity), the resolved layer and, with ``return_profile``, the samples
+    and their depths.
+    """
+    from nemo.mesh import vertex_normals
+    from nemo.peel import peel as sample
+
+    p = nconfig.section("layer", params)
+    normals = vertex_normals(mesh)
+    if p["inward"]:
+        normals = -normals
+    offset = None if shift is None or not p["shift"] else float(p["shift"]) * np.asarray(shift, dtype=np.float64)
+    dmin, dmax = (float(v) for v in p["range"])
+    result = sample(volume, spacing, np.asarray(mesh.vertices), normals, dmin, dmax,
+                    n_samples=int(p["samples"]), reduce=p["reduce"], interp=p["interp"], shift=offset,
+                    return_profile=return_profile)
+    intensity = result[0] if return_profile else result
+    df = pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity})
+    return (df, p, result[1], result[2]) if return_profile else (df, p)
+
+
+def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:
+    """The ``directors`` section with patch radius, pixel and patch count resolved on ``mesh``."""
+    from nemo.directors import default_n_patches
+    from nemo.mesh import mean_edge_length
+
+    p = nconfig.section("directors", params)
+    edge = mean_edge_length(mesh)
+    if p["patch_k"] is not None and params and params.get("patch_radius") is not None:
+        raise NemoError("give either directors.patch_radius or directors.patch_k, not both")
+    if p["patch_k"] is None:
+        if p["patch_radius"] is None:
+            p["patch_radius"] = max(PATCH_PER_RADIUS * object_radius(mesh), PATCH_MIN_EDGES * edge)
+        nominal = float(p["patch_radius"])
+    else:
+        p["patch_radius"] = None
+        nominal = math.sqrt(float(mesh.area) / len(mesh.vertices) * p["patch_k"] / math.pi)
+    if p["pixel"] is None:
+        p["pixel"] = max(PIXEL_PER_EDGE * edge, nominal / 97.0)
+    if p["n_patches"] is None:
+        p["n_patches"] = default_n_patches(float(mesh.area), nominal, len(mesh.vertices))
+    p["nominal_radius"] = nominal
+    return p
+
+
+def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
+              params: dict | None = None) -> tuple[pd.DataFrame, dict]:
+    """Tangential directors at random patch centres (method note §5)."""
+    from nemo.directors import directors as measure_directors
+
+    p = directors_defaults(mesh, params)
+    df = measure_directors(mesh, intensity, patch_radius=p["patch_radius"], patch_k=p["patch_k"],
+                           n_patches=int(p["n_patches"]), pixel=float(p["pixel"]), sigma=p["sigma"],
+                           frames=p["frames"], rng=int(p["seed"]))
+    return df, p
+
+
+def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None = None,
+          patch_radius: float | None = None) -> tuple[pd.DataFrame, dict]:
+    """S and the averaged director (method note §6); radius default 2.5 × the patch radius.
+
+    ``patch_radius`` is the directors' (nominal) patch radius, needed only for the default.
+    """
+    from nemo.order import order as q_average
+
+    p = nconfig.section("order", params)
+    if p["radius"] is None:
+        if not patch_radius:
+            raise NemoError("order.radius is not given and the directors' patch radius is unknown: "
+                            "give the averaging radius (e.g. 2.5 × the patch radius)")
+        p["radius"] = ORDER_PER_PATCH * float(patch_radius)
+    return q_average(mesh, directors_df, float(p["radius"]), targets=p["targets"]), p
+
+
+def defects(
+    mesh: trimesh.Trimesh,
+    order_df: pd.DataFrame,
+    directors_df: pd.DataFrame,
+    params: dict | None = None,
+    avg_radius: float | None = None,
+    curvature: np.ndarray | None = None,
+    intensity: np.ndarray | None = None,
+    director_params: dict | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame | None, dict]:
+    """Defects and their curvature-corrected charges, with the refinement pass (method note §7).
+
+    Parameters
+    ----------
+    avg_radius : float, optional
+        The order table's averaging radius (estimated from S when None).
+    curvature : ndarray, shape (N,), optional
+        Per-vertex K, used when ``defects.curvature_source`` is ``table``.
+    intensity, director_params : optional
+        The peeled layer and the directors' resolved parameters: with both, and
+        ``refine_directors > 0``, extra directors are measured near each first-pass defect and
+        the defects found again.
+
+    Returns
+    -------
+    defects : DataFrame
+    extra : DataFrame or None
+        The refinement directors (None without a refinement pass).
+    resolved : dict
+        The section with the thresholds and radii used (``find_defects``'s parameters).
+    """
+    from nemo.defects import find_defects, refine_with_directors
+
+    p = nconfig.section("defects", params)
+    if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
+        raise NemoError("defects.curvature_source is 'table' but no curvature table was given")
+    kwargs = dict(
+        curvature=curvature if p["curvature_source"] == "table" else None,
+        s_threshold=p["s_threshold"], min_distance=p["min_distance"], max_defects=p["max_defects"],
+        contour_radius=p["contour_radius"], curvature_correction=bool(p["curvature_correction"]),
+        avg_radius=avg_radius, winding_field=p["winding_field"], refine=p["refine"],
+    )
+    df = find_defects(mesh, order_df, directors_df, **kwargs)
+    extra = None
+    refine = (p["refine_directors"] > 0 and p["refine"] == "model" and len(df)
+              and intensity is not None and director_params is not None)
+    if refine:
+        df, extra = refine_with_directors(mesh, df, order_df, directors_df, intensity, director_params,
+                                          fraction=float(p["refine_directors"]),
+                                          seed=int(director_params.get("seed", 0)), **kwargs)
+    found = df.attrs["parameters"]
+    p.update({k: found[k] for k in ("s_threshold", "min_distance", "contour_radius", "avg_radius") if k in found})
+    p["n_refine_directors"] = 0 if extra is None else int(len(extra))
+    logger.info("defects: %d found (Σ charge %.3f, χ = %s)", len(df), df.attrs["euler_check"]["sum_charge"],
+                df.attrs["euler_check"]["euler_characteristic"])
+    return df, extra, p
+
+
+def tracking_distance(params: dict | None, defects_params: list[dict]) -> dict:
+    """The ``tracking`` section with ``max_distance`` resolved: the defects' suppression radius.
+
+    Two defects of one layer are at least ``defects.min_distance`` apart in a frame, so a link
+    shorter than that is unambiguous. ``defects_params`` are the defects tables' parameters.
+    """
+    p = nconfig.section("tracking", params)
+    if p["max_distance"] is None:
+        values = [float(d["min_distance"]) for d in defects_params if d.get("min_distance")]
+        if not values:
+            raise NemoError("tracking.max_distance is not given and no defects table records its "
+                            "min_distance: give tracking.max_distance")
+        p["max_distance"] = float(np.median(values))
+    return p
