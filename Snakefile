@@ -25,6 +25,16 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+
+
+# benchmark and validation protocol (docs/benchmarks.md): only with a `benchmark:` section; its
+# cases are datasets analysed by the rules below, so it comes before them
+BENCHMARK_TARGETS = []
+if config.get("benchmark"):
+
+    include: "workflow/rules/benchmark.smk"
+
+
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/mesh.smk"
 include: "workflow/rules/morphology.smk"
@@ -38,16 +48,19 @@ include: "workflow/rules/track.smk"
 include: "workflow/rules/report.smk"
 
 
-# benchmark and validation protocol (docs/benchmarks.md): only with a `benchmark:` section
-BENCHMARK_TARGETS = []
-if config.get("benchmark"):
+onstart:
+    # one warm worker for the many short `python -m nemo` jobs of a local run (nemo/worker.py):
+    # numpy, scipy, pandas and trimesh are imported once instead of once per job
+    if config["worker"] and workflow.local_exec and not workflow.remote_exec:
+        from nemo.worker import ENV, start
 
-    include: "workflow/rules/benchmark.smk"
+        if os.environ.get(ENV) is None:
+            os.environ[ENV] = start()
 
 
 rule all:
     default_target: True
     input:
-        [summary_targets(name) for name in DATA],
-        [render_targets(name) for name in DATA],
+        [summary_targets(name) for name in config["datasets"]],
+        [render_targets(name) for name in config["datasets"]],
         BENCHMARK_TARGETS,

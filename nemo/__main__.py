@@ -1,3 +1,10 @@
-from nemo.cli import main
+import sys
 
-raise SystemExit(main())
+from nemo.worker import forward
+
+code = forward(sys.argv[1:])  # a warm worker started by the workflow, if there is one
+if code is None:
+    from nemo.cli import main
+
+    code = main()
+raise SystemExit(code)

@@ -6,7 +6,7 @@ the rules compute and nothing about Snakemake:
 
 * :func:`expand_cases` turns the ``benchmark:`` section (a base case, sweeps over dotted keys,
   random rotations) into cases; each case is ``nemo synth`` options (the volume) plus
-  ``nemo run`` overrides (the analysis). Cases with the same volume share it.
+  per-dataset overrides of the workflow's analysis sections. Cases with the same volume share it.
 * :func:`shape_volume` generates analytic shapes (ellipsoid, torus, concentric shells of
   spheres/ellipsoids) as blurred solids from their signed distance, so that ``nemo mesh``
   reconstructs them exactly like a microscopy stack; :func:`score_shape` scores curvature and
@@ -78,7 +78,7 @@ def expand_cases(bench: dict) -> dict[str, dict]:
     Parameters
     ----------
     bench : dict
-        ``base`` (``synth``: ``nemo synth`` options, ``run``: ``nemo run`` overrides),
+        ``base`` (``synth``: ``nemo synth`` options, ``run``: overrides of the analysis sections),
         ``rotations`` (seeds of random rotations of the defect set; also the fibre/noise seed),
         ``sweeps`` (name -> ``{key: "synth.noise", values: [...], set: {dotted: value}}``) and
         ``cases`` (name -> ``{synth: ..., run: ..., rotations: [...]}`` or
@@ -586,7 +586,7 @@ def aggregate(
         timings = s.pop("timings_s", {}) or {}
         for stage, sec in timings.items():
             stage_rows.append({"case": s["case"], "sweep": s["sweep"], "stage": stage, "s": sec,
-                               "max_rss": np.nan, "source": "nemo run"})
+                               "max_rss": np.nan, "source": "workflow"})
         rows.append(s)
     cases = pd.DataFrame(rows)
     case_sweep = dict(zip(cases["case"], cases["sweep"])) if len(cases) else {}
@@ -644,6 +644,24 @@ def _table(df: pd.DataFrame, cols: list[tuple[str, str, int]]) -> str:
     return "\n".join(lines)
 
 
+def _stage_record(stage_files: list[str], defects_path: str) -> dict:
+    """Time per stage (Snakemake benchmark files of the frame's rules) and the surface's topology."""
+    from nemo.tables import read_provenance
+
+    timings: dict[str, float] = {}
+    rss = 0.0
+    for f in stage_files:
+        row = pd.read_csv(f, sep="\t").iloc[0]
+        stage = Path(f).parent.name
+        timings[stage] = round(timings.get(stage, 0.0) + float(row["s"]), 3)
+        rss = max(rss, float(pd.to_numeric(row.get("max_rss"), errors="coerce") or 0.0))
+    prov = read_provenance(defects_path)
+    check = prov.get("euler_check") or {}
+    return {"timings_s": timings, "time_total_s": round(sum(timings.values()), 3), "peak_rss_mb": rss or None,
+            "n_vertices": prov.get("n_vertices"), "closed": check.get("closed"),
+            "euler_characteristic": check.get("euler_characteristic")}
+
+
 def markdown(cases: pd.DataFrame, sweeps: pd.DataFrame, shapes: pd.DataFrame, stages: pd.DataFrame) -> str:
     """The benchmark summary as markdown tables (sweeps, shapes, stage times)."""
     parts = ["# NEMO benchmark summary", ""]
@@ -653,7 +671,8 @@ def markdown(cases: pd.DataFrame, sweeps: pd.DataFrame, shapes: pd.DataFrame, st
                   "localisation error (µm, matched defects); |Δq| = charge error; θ = raw director "
                   "angle error vs the analytic field (°, all directors / P90 / ordered region); "
                   "S = median S in the ordered region; H, K = median relative curvature errors; "
-                  "time = whole `nemo run` (s); RSS = peak memory (MB).", "",
+                  "time = the frame's per-stage jobs of the workflow, summed (s); RSS = largest job's peak "
+                  "memory (MB).", "",
                   _table(sweeps, [("sweep", "sweep", -1), ("value_label", "value", -1), ("n_cases", "n", 0),
                                   ("detection_rate", "detection", 2), ("false_positives", "FP", 2),
                                   ("loc_err_mean", "loc (µm)", 2), ("loc_err_max", "loc max", 2),
@@ -680,8 +699,8 @@ def markdown(cases: pd.DataFrame, sweeps: pd.DataFrame, shapes: pd.DataFrame, st
               .agg(n=("s", "size"), s_median=("s", "median"), s_max=("s", "max"),
                    max_rss_median=("max_rss", "median")).reset_index())
         parts += ["## Time per stage", "",
-                  "`nemo run`: in-process timing of each stage (median over the cases of a sweep); "
-                  "`snakemake`: the rule's benchmark file (whole job incl. start-up; max_rss MB).", "",
+                  "`workflow`: the benchmark files of the cases' per-stage jobs (median over the cases "
+                  "of a sweep); `snakemake`: other jobs (volumes, shapes); max_rss MB.", "",
                   _table(st, [("source", "source", -1), ("sweep", "group", -1), ("stage", "stage", -1),
                               ("n", "jobs", 0), ("s_median", "s (median)", 2), ("s_max", "s (max)", 2),
                               ("max_rss_median", "max_rss (MB)", 0)]), ""]
@@ -729,13 +748,13 @@ def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike) -
         sweep_plot(par == "synth.noise", "noise std (0-255 scale)", "error_vs_noise.png")
         sweep_plot(par == "synth.spacing", "voxel anisotropy dz/dx", "error_vs_anisotropy.png",
                    lambda v: float(v[0]) / float(v[2]))
-        for key, label, fname in (("run.mesh.step_um", "marching-cubes step (µm)", "error_vs_mc_step.png"),
+        for key, label, fname in (("run.mesh.step", "marching-cubes step (voxels)", "error_vs_mc_step.png"),
                                   ("run.directors.patch_radius", "director patch radius (µm)",
                                    "error_vs_patch_radius.png"),
                                   ("run.order.radius", "averaging radius (µm)", "error_vs_averaging_radius.png")):
             sweep_plot(par == key, label, fname)
     if len(stages):
-        run = stages[stages["source"] == "nemo run"]
+        run = stages[stages["source"] == "workflow"]
         smk = stages[stages["source"] == "snakemake"]
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
         if len(run):
@@ -744,7 +763,7 @@ def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike) -
             axes[0].boxplot(data)
             axes[0].set_xticks(range(1, len(order) + 1), order)
             axes[0].set_ylabel("wall time (s)")
-            axes[0].set_title("nemo run stages, all sweep cases")
+            axes[0].set_title("workflow stages, all sweep cases")
             axes[0].tick_params(axis="x", rotation=30)
         if len(smk):
             g = smk.groupby("stage").agg(s=("s", "median"), rss=("max_rss", "median")).sort_values("s")
@@ -795,7 +814,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     a.add_argument("--directors")
     a.add_argument("--order")
     a.add_argument("--curvature")
-    a.add_argument("--summary", help="nemo run summary.json (timings, peak memory)")
+    a.add_argument("--stage-files", nargs="*", default=[],
+                   help="Snakemake benchmark files (.tsv) of the frame's per-stage rules (time, memory)")
     a.add_argument("--case", default="{}", help="case metadata (JSON)")
     a.add_argument("--match-radius", type=float)
     a.add_argument("--ordered-distance", type=float)
@@ -825,13 +845,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             sc = score_vesicle(truth, _read(args.defects), _read(args.directors), _read(args.order),
                                _read(args.curvature), ordered_distance=args.ordered_distance,
                                match_radius=args.match_radius)
-            if args.summary:
-                s = json.loads(Path(args.summary).read_text())
-                sc.update(timings_s=s.get("timings_s", {}), time_total_s=s.get("total_s"),
-                          peak_rss_mb=s.get("peak_rss_mb"), n_vertices=s.get("mesh", {}).get("vertices"),
-                          mean_edge=s.get("mesh", {}).get("mean_edge"),
-                          closed=s.get("euler_check", {}).get("closed"),
-                          euler_characteristic=s.get("euler_check", {}).get("euler_characteristic"))
+            sc.update(_stage_record(args.stage_files, args.defects))
             sc.update(radius=truth["radius"], dz_dx=truth["spacing"][0] / truth["spacing"][2],
                       noise=truth.get("parameters", {}).get("noise"))
             _atomic_json({**case, **sc}, args.output)

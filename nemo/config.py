@@ -239,7 +239,8 @@ def resolve_surfaces(sections: dict) -> dict:
     used |= set(sections["measure"]["surfaces"] or [])
     if not split and used & {"inner", "outer"}:
         raise NemoError(f"config key 'mesh.split': is 'none' but the surfaces {sorted(used - {'whole'})} are "
-                        "used (layers, thickness or measure): set mesh.split: centre (or axis)")
+                        "used (layers, thickness or measure): set mesh.split: centre (or axis), or use the "
+                        "whole surface only (layers on surface: whole, thickness: null)")
     if sections["mesh"]["split"] == "axis" and not sections["mesh"]["axis"]:
         raise NemoError("config key 'mesh.axis': mesh.split: axis needs mesh.axis: [x, y, z]")
     layers = sections["layers"] or {}

@@ -595,7 +595,8 @@ def split_mesh(
         side = "inner" if n_in == 0 else "outer"
         raise NemoError(
             f"splitting by {ref} leaves the {side} half empty: the mesh has a single wall "
-            "(e.g. a filled object) or the reference is outside it; use the whole mesh or another --split/--axis"
+            "(e.g. a filled object or a droplet) or the reference is outside it; for one wall set "
+            "mesh.split: none (nemo mesh --split none), else another split reference (axis)"
         )
     inner = keep_components(submesh(mesh, inner_sel, flip=True), keep)
     outer = keep_components(submesh(mesh, outer_sel), keep)

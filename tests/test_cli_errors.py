@@ -94,7 +94,7 @@ def test_good_mask_is_used(hyperstack, tmp_path, run_cli):
     mask = _ball(radius=8.0) > 0
     write_hyperstack(tmp_path / "mask.tif", mask.astype(np.uint8), (1, 1, 1), axes="ZYX")
     code, out, err = run_cli("mesh", hyperstack, "-o", tmp_path / "m.ply", "--mask", tmp_path / "mask.tif",
-                             "--fit-sphere", "--step", "1")
+                             "--fit-sphere", "--step", "1", "--split", "none")
     assert code == 0, err
     import json
 

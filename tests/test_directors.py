@@ -15,7 +15,7 @@ from nemo.directors import default_n_patches, directors, fibre_angle, structure_
 from nemo.errors import NemoError, NemoWarning
 from nemo.frames import axis_frames, tangent_frames
 from nemo.mesh import make_mesh, mean_edge_length, save_mesh, vertex_normals
-from nemo.tables import read_table, write_table
+from nemo.tables import read_provenance, read_table, write_table
 
 WAVELENGTH = 6.0  # stripe period (µm); meshes have ~1 µm edges
 
@@ -267,9 +267,13 @@ def test_cli_directors(tmp_path, run_cli):
     assert len(df) == 200 and "median coherency" in stdout
     code, _, err = run_cli("directors", mpath, lpath, "-o", out, "--patch-k", "60", "--frames", "smooth")
     assert code == 0, err
-    with pytest.raises(SystemExit) as exit_info:  # argparse: --patch-radius or --patch-k required
-        run_cli("directors", mpath, lpath, "-o", out)
-    assert exit_info.value.code == 2
+    # no patch size: 0.1 × the object radius (R = 30 µm), at least 8 mean edge lengths
+    code, stdout, err = run_cli("directors", mpath, lpath, "-o", out)
+    assert code == 0, err
+    params = read_provenance(out)["parameters"]
+    edge = float(np.mean(mesh.edges_unique_length))
+    assert params["patch_radius"] == pytest.approx(max(3.0, 8 * edge), rel=0.01)
+    assert params["pixel"] == pytest.approx(max(edge / 4, params["patch_radius"] / 97), rel=0.01)
     small = tmp_path / "small.ply"
     save_mesh(sphere_mesh(30.0, subdivisions=2), small)
     code, _, err = run_cli("directors", small, lpath, "-o", out, "--patch-radius", "6")

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from nemo.errors import NemoError
-from nemo.pipeline import DEFAULTS, FILES, load_config, merge_config, run_frame
+from nemo import layout
+from nemo.pipeline import run_frame
 from nemo.synthetic import write_vesicle
 from nemo.tables import read_provenance, read_table
 
@@ -40,7 +41,7 @@ def assert_matches_truth(df, truth, max_error: float, charge_tol: float = 0.05) 
 
 #: Parameters for a small vesicle (R = 40 µm): the paper's ratios scaled to the size.
 SMALL = {
-    "mesh": {"step_um": 1.0},
+    "mesh": {"step": 1},
     "directors": {"patch_radius": 6.0, "n_patches": 4000},
     "order": {"radius": 12.0},
 }
@@ -64,59 +65,45 @@ def small_run(small_vesicle, tmp_path_factory):
     return out, summary, truth
 
 
-# ------------------------------------------------------------------------------------------------
-# configuration
-
-
-def test_config_defaults_are_the_papers():
-    cfg = load_config(None)
-    assert cfg["mesh"]["step_um"] == 2.0
-    assert cfg["peel"]["range"] == [0.0, 5.0]
-    assert cfg["directors"]["n_patches"] == 12000 and cfg["directors"]["patch_radius"] == 20.0
-    assert cfg["order"]["radius"] == 50.0
-    assert cfg["mesh"]["surface"] == "inner"
-
-
-def test_config_override_and_unknown_keys(tmp_path):
-    cfg = merge_config({"order": {"radius": 30}})
-    assert cfg["order"]["radius"] == 30 and cfg["directors"] == DEFAULTS["directors"]
-    with pytest.raises(NemoError, match="'order.radus'"):
-        merge_config({"order": {"radus": 30}})
-    with pytest.raises(NemoError, match="'ordre'"):
-        merge_config({"ordre": {}})
-    with pytest.raises(NemoError, match="must be a mapping"):
-        merge_config({"order": 3})
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("defects:\n  contour_radus: 3\n")
-    with pytest.raises(NemoError, match="defects.contour_radus"):
-        load_config(bad)
-    bad.write_text("order: [unclosed\n")
-    with pytest.raises(NemoError, match="not valid YAML"):
-        load_config(bad)
-    with pytest.raises(NemoError, match="not found"):
-        load_config(tmp_path / "missing.yaml")
-    from nemo.pipeline import _check
-
-    for bad_value in (1.5, -0.1, True, "yes"):
-        with pytest.raises(NemoError, match="defects.refine_directors"):
-            _check(merge_config({"defects": {"refine_directors": bad_value}}))
-    with pytest.raises(NemoError, match="directors.pixel"):
-        _check(merge_config({"directors": {"pixel": 0}}))
-
-
 def test_cli_run_config_errors(run_cli, tmp_path, small_vesicle):
     path, _ = small_vesicle
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("peel:\n  range: [5, 0]\n")
+    cfg.write_text("layers:\n  a:\n    range: [5, 0]\n")
     code, _, err = run_cli("run", path, "-o", tmp_path / "o", "--config", cfg)
-    assert code == 2 and "peel.range" in err and "Traceback" not in err
+    assert code == 2 and "layers.a.range" in err and "Traceback" not in err
     cfg.write_text("mesh:\n  stepum: 2\n")
     code, _, err = run_cli("run", path, "-o", tmp_path / "o", "--config", cfg)
-    assert code == 2 and "mesh.stepum" in err
-    code, out, _ = run_cli("run", path, "--print-config")
-    assert code == 0 and "radius: 50.0" in out
+    assert code == 2 and "'stepum' was unexpected" in err and "mesh" in err
     code, _, err = run_cli("run", tmp_path / "nothere.tif", "-o", tmp_path / "o")
     assert code == 2
+    code, _, err = run_cli("run", path, "--config", cfg, "--dataset", "nope", "-o", tmp_path / "o")
+    assert code == 2
+
+
+def test_print_config_resolves_every_length_on_the_frame(run_cli, small_vesicle, small_run, tmp_path):
+    """--print-config: the data-derived defaults as numbers, the given ones unchanged."""
+    import yaml
+
+    from nemo.mesh import load_mesh, mean_edge_length
+
+    path, truth = small_vesicle
+    h = mean_edge_length(load_mesh(small_run[0] / "mesh.inner.ply"))  # same mesh step (1 voxel)
+    code, out, err = run_cli("run", path, "--print-config")
+    assert code == 0, err
+    cfg = yaml.safe_load(out)
+    edge = cfg["resolved_per_layer"]["fibres"]["directors"]
+    r_obj = truth["radius"]  # the inner wall of the shell: R = 40 µm
+    assert edge["patch_radius"] == pytest.approx(max(0.1 * r_obj, 8 * h), rel=0.03)
+    assert cfg["resolved_per_layer"]["fibres"]["order"]["radius"] == pytest.approx(2.5 * edge["patch_radius"])
+    assert cfg["mesh"]["step"] == 1 and cfg["mesh"]["sigma"] > 0
+    for surface in ("inner", "outer"):
+        assert 0 < cfg["curvature"][surface]["radius"] <= 0.5 * (r_obj + 8)
+    given = tmp_path / "g.yaml"
+    given.write_text("directors:\n  patch_radius: 7.5\ncurvature: null\n")
+    code, out, _ = run_cli("run", path, "--print-config", "--config", given)
+    cfg = yaml.safe_load(out)
+    assert cfg["resolved_per_layer"]["fibres"]["directors"]["patch_radius"] == 7.5
+    assert cfg["resolved_per_layer"]["fibres"]["order"]["radius"] == 18.75 and cfg["curvature"] is None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -125,39 +112,57 @@ def test_cli_run_config_errors(run_cli, tmp_path, small_vesicle):
 
 def test_run_frame_writes_every_file_and_finds_the_defects(small_run):
     out, summary, truth = small_run
-    for key in ("mesh", "inner", "outer", "layer", "directors", "order", "curvature", "defects", "summary",
-                "refine_directors"):
-        assert (out / FILES[key]).exists(), key
-    saved = json.loads((out / FILES["summary"]).read_text())
-    assert saved["euler_check"]["closed"] and saved["euler_check"]["euler_characteristic"] == 2
-    assert saved["euler_check"]["matches"]
+    names = ["mesh.ply", "mesh.inner.ply", "mesh.outer.ply", "measure_inner.json", "measure_outer.json",
+             "curvature_inner.parquet", "curvature_outer.parquet", "thickness.parquet", "summary.json"]
+    names += [layout.layer_file(kind, "fibres") for kind in layout.LAYER_KINDS] + [layout.refined_file("fibres")]
+    for name in names:
+        assert (out / name).exists(), name
+    saved = json.loads((out / layout.SUMMARY_JSON).read_text())
+    check = saved["layers"]["fibres"]["euler_check"]
+    assert check["closed"] and check["euler_characteristic"] == 2 and check["matches"]
     assert set(saved["timings_s"]) >= {"mesh", "peel", "directors", "order", "curvature", "defects"}
-    df = read_table(out / FILES["defects"], kind="defects")
+    df = read_table(out / layout.layer_file("defects", "fibres"), kind="defects")
     err = assert_matches_truth(df, truth, max_error=3.0)
     assert np.median(err) < 2.0  # measured 0.7-2.1 µm (fibre spacing 3 µm, mesh edge ≈ 0.9 µm)
-    prov = read_provenance(out / FILES["defects"])
+    prov = read_provenance(out / layout.layer_file("defects", "fibres"))
     assert prov["euler_check"]["matches"] and prov["parameters"]["avg_radius"] == 12.0
-    assert read_provenance(out / FILES["order"])["radius"] == 12.0
+    assert read_provenance(out / layout.layer_file("order", "fibres"))["parameters"]["radius"] == 12.0
+    dprov = read_provenance(out / layout.layer_file("directors", "fibres"))["parameters"]
+    assert dprov["patch_radius"] == 6.0 and dprov["n_patches"] == 4000 and dprov["pixel"] > 0
     # refinement directors: near the defects only (within the fit radius 0.75 x 12 µm)
-    extra = read_table(out / FILES["refine_directors"], kind="directors")
-    assert saved["n_refine_directors"] == len(extra) > 0
+    extra = read_table(out / layout.refined_file("fibres"), kind="directors")
+    assert prov["parameters"]["n_refine_directors"] == len(extra) > 0
     d = np.linalg.norm(extra[["x", "y", "z"]].to_numpy()[:, None] - df[["x", "y", "z"]].to_numpy()[None], axis=2)
     assert d.min(axis=1).max() <= 0.75 * 12.0 + 3.0  # refined positions moved at most a few µm
 
 
+def test_run_keeps_unrelated_files_and_removes_its_stale_ones(small_vesicle, tmp_path):
+    """A second run with fewer stages leaves no stale result of the first, and nothing else goes."""
+    path, _ = small_vesicle
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    (out / "curvature_outer.parquet").write_text("stale")
+    run_frame(path, out, {**SMALL, "curvature": None, "thickness": None, "mesh": {"step": 2, "split": "centre"}})
+    assert (out / "notes.txt").read_text() == "mine"
+    assert not (out / "curvature_outer.parquet").exists() and not (out / "thickness.parquet").exists()
+
+
 def test_cli_defects_on_run_outputs(run_cli, small_run, tmp_path):
     out, _, truth = small_run
-    mesh, order, dirs = out / FILES["inner"], out / FILES["order"], out / FILES["directors"]
+    mesh, order = out / "mesh.inner.ply", out / layout.layer_file("order", "fibres")
+    dirs = out / layout.layer_file("directors", "fibres")
     code, stdout, _ = run_cli("defects", mesh, order, dirs, "-o", tmp_path / "d.parquet")
     assert code == 0
     assert "Euler check: sum of charges" in stdout and "chi = 2: ok" in stdout
     df = read_table(tmp_path / "d.parquet", kind="defects")
     assert_matches_truth(df, truth, max_error=3.0)
     # the K term from the curvature table instead of angle defects
-    code, stdout, _ = run_cli("defects", mesh, order, dirs, "--curvature", out / FILES["curvature"],
+    code, stdout, _ = run_cli("defects", mesh, order, dirs, "--curvature", out / "curvature_inner.parquet",
                               "-o", tmp_path / "k.parquet")
     assert code == 0
     dk = read_table(tmp_path / "k.parquet", kind="defects")
+    assert read_provenance(tmp_path / "k.parquet")["parameters"]["curvature_source"] == "table"
     assert_matches_truth(dk, truth, max_error=3.0)
     # without the K term the winding alone falls short by the enclosed curvature
     code, stdout, _ = run_cli("defects", mesh, order, dirs, "--no-curvature-correction",
@@ -170,10 +175,31 @@ def test_cli_defects_on_run_outputs(run_cli, small_run, tmp_path):
     np.testing.assert_allclose(dn["charge"] + dn["charge_curvature"], 0.5, atol=0.05)
     assert np.all(np.abs(dn["charge"] - (0.5 - (1 - math.cos(r_over_R)))) < 0.05)
     # a table computed on another mesh is refused with a clear message
-    code, _, err = run_cli("defects", out / FILES["mesh"], order, dirs, "-o", tmp_path / "x.parquet")
+    code, _, err = run_cli("defects", out / "mesh.ply", order, dirs, "-o", tmp_path / "x.parquet")
     assert code == 2 and "another mesh" in err
     code, _, err = run_cli("defects", mesh, dirs, order, "-o", tmp_path / "x.parquet")
     assert code == 2 and "lacks column" in err
+
+
+def test_step_commands_reproduce_run_frame(run_cli, small_vesicle, small_run, tmp_path):
+    """The step commands with the same options give run_frame's tables to the last bit."""
+    import pandas as pd
+
+    path, _ = small_vesicle
+    out = small_run[0]
+    mesh = tmp_path / "m.ply"
+    assert run_cli("mesh", path, "-o", mesh, "--step", "1")[0] == 0
+    assert run_cli("peel", path, tmp_path / "m.inner.ply", "-o", tmp_path / "l.parquet")[0] == 0
+    assert run_cli("directors", tmp_path / "m.inner.ply", tmp_path / "l.parquet", "-o", tmp_path / "d.parquet",
+                   "--patch-radius", "6", "--n-patches", "4000")[0] == 0
+    assert run_cli("order", tmp_path / "m.inner.ply", tmp_path / "d.parquet", "-o", tmp_path / "o.parquet",
+                   "--radius", "12")[0] == 0
+    assert run_cli("defects", tmp_path / "m.inner.ply", tmp_path / "o.parquet", tmp_path / "d.parquet",
+                   "--layer", tmp_path / "l.parquet", "-o", tmp_path / "f.parquet")[0] == 0
+    for mine, theirs in (("l", "layer"), ("d", "directors"), ("o", "order"), ("f", "defects")):
+        a = pd.read_parquet(tmp_path / f"{mine}.parquet")
+        b = pd.read_parquet(out / layout.layer_file(theirs, "fibres"))
+        pd.testing.assert_frame_equal(a, b)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -205,9 +231,9 @@ def test_paper_vesicle(case, tmp_path):
     nemo.pipeline), five-one 0.65–1.95 µm, two-plus-one 0.6 µm; charges within 0.015."""
     path = tmp_path / "vesicle.tif"
     truth = write_vesicle(path, **PAPER_CASES[case])
-    summary = run_frame(path, tmp_path / "out")
-    df = read_table(tmp_path / "out" / FILES["defects"], kind="defects")
+    summary = run_frame(path, tmp_path / "out")  # every parameter derived from the data
+    df = read_table(tmp_path / "out" / layout.layer_file("defects", "fibres"), kind="defects")
     err = assert_matches_truth(df, truth, max_error=2.0 if case in HEADLINE else 3.58)
     print(f"{case}: errors {np.round(err, 2)} µm, charges {np.round(df['charge'].to_numpy(), 3)}, "
           f"{summary['total_s']:.1f} s")
-    assert summary["euler_check"]["matches"]
+    assert summary["layers"]["fibres"]["euler_check"]["matches"]

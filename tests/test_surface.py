@@ -338,7 +338,8 @@ def test_cli_mesh_split_and_fit_sphere(tmp_path, run_cli):
     assert inner.units == "um"
     assert (_outward(inner, centre) > 0).all()
     # the file's own 0.5 µm calibration halves every length
-    code, stdout, err = run_cli("mesh", tmp_path / "shell.tif", "-o", tmp_path / "half.ply", "--fit-sphere", "--step", "1")
+    code, stdout, err = run_cli("mesh", tmp_path / "shell.tif", "-o", tmp_path / "half.ply", "--fit-sphere", "--step", "1",
+                                "--split", "none")
     assert code == 0, err
     half = json.loads((tmp_path / "half.sphere.json").read_text())
     assert half["whole"]["radius"] == pytest.approx((R + 5) / 2, abs=0.25)

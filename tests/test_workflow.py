@@ -128,6 +128,7 @@ BAD_CONFIGS = {
     "typo key": (lambda c: c["mesh"].update(stepp=2), "mesh"),
     "threshold": (lambda c: c["mesh"].update(threshold="median"), "mesh.threshold"),
     "split none": (lambda c: c["mesh"].update(split="none"), "mesh.split"),
+    "negative seed": (lambda c: c["directors"].update(seed=-1), "directors.seed"),
     "missing file": (lambda c: c["datasets"]["demo"].update(path="nothere.tif", synthetic=None),
                      "datasets.demo.path"),
     "shift": (lambda c: c["layers"]["apical"].update(shift=0.2, surface="outer"), "layers.apical.shift"),
@@ -302,6 +303,84 @@ def test_changing_one_layer_reruns_that_layer_only(demo_run, tmp_path):
 def test_changing_tracking_reruns_only_tracking(demo_run, tmp_path):
     counts = _rerun_counts(demo_run, tmp_path, lambda c: c["tracking"].update(max_distance=30))
     assert set(counts) <= {"track", "render_summary", "all"} and counts["track"] == 1, counts
+
+
+def test_nemo_run_with_the_workflow_config_gives_the_workflows_numbers(demo_run, tmp_path):
+    """The same config file through snakemake and through `nemo run`: identical per-frame tables."""
+    from nemo import layout
+    from nemo.tables import read_table
+
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "nemo", "run", "--config", str(DEFAULT_CONFIG), "--dataset", "demo",
+                           "--t", "1", "-o", str(out)], cwd=demo_run, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    frame = demo_run / "results" / "demo" / "t1" / "c0"
+    cfg = default_config()
+    for layer in cfg["layers"]:
+        a = read_table(frame / layout.layer_file("defects", layer), "defects")
+        b = read_table(out / layout.layer_file("defects", layer), "defects")
+        assert len(a) == len(b) == 4
+        np.testing.assert_allclose(a[["x", "y", "z"]], b[["x", "y", "z"]], atol=0.05)  # measured: 0.0
+        np.testing.assert_array_equal(a["charge_rounded"], b["charge_rounded"])
+        np.testing.assert_allclose(a["charge"], b["charge"], atol=1e-9)
+        for kind in ("layer", "directors", "order"):
+            pd.testing.assert_frame_equal(read_table(frame / layout.layer_file(kind, layer)),
+                                          read_table(out / layout.layer_file(kind, layer)))
+    for name in ("curvature_inner.parquet", "thickness.parquet", "align_basal_apical.parquet"):
+        pd.testing.assert_frame_equal(read_table(frame / name), read_table(out / name))
+    assert json.loads((frame / "measure_inner.json").read_text()) == json.loads((out / "measure_inner.json").read_text())
+
+
+def _droplets(path: Path, radii, spacing=(1.0, 0.42, 0.42)) -> None:
+    """An uncalibrated time-lapse of a filled droplet (one wall) of growing radius."""
+    import tifffile
+
+    dz, dy, dx = spacing
+    shape = (40, 72, 72)
+    z, y, x = np.meshgrid(*(np.arange(n) * d for n, d in zip(shape, spacing)), indexing="ij")
+    c = np.array([n * d for n, d in zip(shape, spacing)]) / 2
+    frames = []
+    for r in radii:
+        dist = np.sqrt((z - c[0]) ** 2 + (y - c[1]) ** 2 + (x - c[2]) ** 2)
+        frames.append((30 + 150 / (1 + np.exp((dist - r) / 0.4))).astype(np.uint8))
+    tifffile.imwrite(path, np.stack(frames)[:, :, None], imagej=True, metadata={"axes": "TZCYX"})
+
+
+def test_morphology_only_single_wall_uncalibrated_timelapse(tmp_path):
+    """A droplet time-lapse with one wall, no layers, thickness: null, spacing from the config:
+    every frame meshed, measured and summarised (area, volume, H of the analytic sphere)."""
+    from nemo.io import read_info
+
+    radii = [8.0, 9.0, 10.0]
+    _droplets(tmp_path / "drops.tif", radii)
+    assert not read_info(tmp_path / "drops.tif").calibrated
+    cfg = {"datasets": {"drops": {"path": "drops.tif", "spacing": [1.0, 0.42, 0.42]}},
+           "mesh": {"split": "none"}, "layers": {}, "thickness": None, "alignment": [],
+           "report": {"summary": False}}
+    smk(tmp_path, "--cores", "2", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    f = _summary(tmp_path, "frames", "drops")
+    assert f["t"].tolist() == [0, 1, 2] and set(f["surface"]) == {"whole"}
+    R = np.array(radii)
+    np.testing.assert_allclose(f["area"], 4 * np.pi * R**2, rtol=0.03)
+    np.testing.assert_allclose(f["volume"], 4 / 3 * np.pi * R**3, rtol=0.03)
+    np.testing.assert_allclose(f["H_fit_mean"] * R, 1.0, atol=0.05)
+    assert (f["euler_characteristic"] == 2).all() and f["n_defects"].isna().all()
+    assert len(_summary(tmp_path, "defects", "drops")) == 0 and len(_summary(tmp_path, "tracks", "drops")) == 0
+
+
+def test_one_config_holds_a_vesicle_and_a_droplet(tmp_path):
+    """Per-dataset overrides: the droplet is single-walled and morphology-only, the vesicle not."""
+    _droplets(tmp_path / "drops.tif", [8.0, 9.0])
+    cfg = default_config()
+    cfg["datasets"]["drops"] = {"path": "drops.tif", "spacing": [1.0, 0.42, 0.42],
+                                "mesh": {"split": "none"}, "layers": {}, "alignment": [], "curvature": None,
+                                "thickness": None}
+    counts = job_counts(smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c.yaml", cfg)))
+    frames = cfg["datasets"]["demo"]["synthetic"]["frames"]
+    assert counts["mesh"] == frames and counts["mesh_single"] == 2
+    assert counts["peel"] == frames * 2 and counts["measure"] == frames * 2 + 2
+    assert counts["curvature"] == frames * 2  # the droplet's curvature: null
+    assert counts["thickness"] == frames
 
 
 # ----------------------------------------------------------------------------- slow: real-looking data, failures, SLURM

@@ -1,12 +1,14 @@
-# Benchmark and validation protocol (issue 8; docs/benchmarks.md). Included by the Snakefile
-# when the config has a `benchmark:` section (config/benchmark.yaml, config/benchmark-ci.yaml).
+# Benchmark and validation protocol (docs/benchmarks.md). Included by the Snakefile, right after
+# common.smk, when the config has a `benchmark:` section (config/benchmark.yaml,
+# config/benchmark-ci.yaml).
 #
-# Vesicle cases (nemo.benchmark.expand_cases): volume (nemo synth) -> nemo run (mesh, peel,
-# directors, order, curvature, defects with the case's parameters) -> score against the truth.
-# Analytic shapes: volume (python -m nemo.benchmark shape) -> nemo mesh -> score curvature and
-# thickness. The datasets of the same config run through the ordinary per-stage rules, and
-# their defects are scored too (sweep "workflow"). Everything is collected by bench_aggregate
-# into results/benchmark/summary/. No science here: nemo.benchmark and the nemo CLI compute.
+# Every vesicle case (nemo.benchmark.expand_cases) becomes a dataset `bench.CASE` of one frame,
+# analysed by the workflow's own per-frame rules (mesh, morphology, peel, directors, order,
+# defects) with the case's `run` overrides as per-dataset sections: the protocol measures what
+# `snakemake` users get. Each case's defects are scored against the synthetic truth; the stage
+# times are Snakemake's benchmark files of those rules. Analytic shapes (python -m
+# nemo.benchmark shape) are meshed by nemo mesh and scored for curvature and thickness.
+# Everything is collected by bench_aggregate into results/benchmark/summary/.
 
 import json
 
@@ -17,16 +19,36 @@ BRES = RESULTS + "/benchmark"
 BCASES = expand_cases(BENCHMARK)
 BSHAPES = expand_shapes(BENCHMARK)
 BVOLUMES = {c["volume"]: c["synth"] for c in BCASES.values() if c["volume"]}
-for _cid, _c in BCASES.items():
-    if _c["dataset"] is not None and _c["dataset"] not in DATA:
-        config_error(f"benchmark.cases.{_cid}.dataset",
-                     f"'{_c['dataset']}' is not under datasets (defined: {', '.join(DATA)})")
-    if _c["dataset"] is not None and not DATA[_c["dataset"]]["synthetic"]:
-        config_error(f"benchmark.cases.{_cid}.dataset", "needs a synthetic dataset (its truth.json)")
 _BMATCH = BENCHMARK.get("match_radius")
 _BORDERED = BENCHMARK.get("ordered_distance")
 _BSCORE_OPTS = ((f" --match-radius {_BMATCH}" if _BMATCH else "")
                 + (f" --ordered-distance {_BORDERED}" if _BORDERED else ""))
+
+
+def _case_dataset(cid, case):
+    """The dataset a case is analysed as: a configured one, or `bench.CASE` on its volume."""
+    if case["dataset"] is not None:
+        if case["dataset"] not in DATA:
+            config_error(f"benchmark.cases.{cid}.dataset",
+                         f"'{case['dataset']}' is not under datasets (defined: {', '.join(DATA)})")
+        if not DATA[case["dataset"]]["synthetic"]:
+            config_error(f"benchmark.cases.{cid}.dataset", "needs a synthetic dataset (its truth.json)")
+        return case["dataset"]
+    name = f"bench.{cid}"
+    path = f"{BRES}/volumes/{case['volume']}.tif"
+    try:
+        overrides = nconfig.validate({"datasets": {name: {"path": path, **case["run"]}}})["datasets"][name]
+        SECTIONS[name] = nconfig.analysis({**config, "datasets": {name: overrides}}, name)
+    except NemoError as exc:
+        _fail(f"benchmark case '{cid}' (run: {case['run']}): {exc}")
+    spacing = case["synth"].get("spacing")
+    DATA[name] = {"path": path, "spacing": None, "mask": None, "synthetic": None, "seg": 0, "t": [0], "c": [0],
+                  "stack_mb": None if spacing is None else None}
+    return name
+
+
+BCASE_DATA = {cid: _case_dataset(cid, case) for cid, case in BCASES.items()}
+
 
 wildcard_constraints:
     case="|".join(sorted(BCASES)),
@@ -38,21 +60,40 @@ def _truth_of(path):
     return os.path.splitext(path)[0] + ".truth.json"
 
 
-def _case_image(wc):
-    c = BCASES[wc.case]
-    if c["dataset"] is not None:
-        return DATA[c["dataset"]]["path"]
-    return f"{BRES}/volumes/{c['volume']}.tif"
+def _scored_frame(name):
+    """(t, c, layer) scored for a dataset: its first frame and layer."""
+    frames = layer_frames(name)
+    if not frames:
+        _fail(f"benchmark: dataset '{name}' has no layer to score")
+    return frames[0]
 
 
-def _workflow_frames():
-    """(dataset, t, c, layer) of each synthetic dataset's first frame and layer: scored too."""
-    out = []
-    for name, d in DATA.items():
-        if d["synthetic"] and layer_frames(name):
-            t, c, layer = layer_frames(name)[0]
-            out.append((name, t, c, layer))
+def _stage_files(name):
+    """Snakemake benchmark files of the per-frame rules of the scored frame of a dataset."""
+    t, c, layer = _scored_frame(name)
+    b = BENCH.format(dataset=name)
+    s, seg = SECTIONS[name], DATA[name]["seg"]
+    out = [f"{b}/mesh/t{t}_c{seg}.tsv"] + [f"{b}/{rule}/t{t}_c{c}_{layer}.tsv"
+                                          for rule in ("peel", "directors", "order", "defects")]
+    out += [f"{b}/measure/t{t}_c{seg}_{x}.tsv" for x in (s["measure"]["surfaces"] or s["surfaces"])]
+    if s["curvature"] is not None:
+        out += [f"{b}/curvature/t{t}_c{seg}_{x}.tsv" for x in s["surfaces"]]
+    if s["thickness"] is not None:
+        out.append(f"{b}/thickness/t{t}_c{seg}.tsv")
     return out
+
+
+def _score_inputs(wc):
+    name = BCASE_DATA[wc.case]
+    t, c, layer = _scored_frame(name)
+    frame = layout.frame_dir(RESULTS, name, t, c)
+    seg = layout.frame_dir(RESULTS, name, t, DATA[name]["seg"])
+    inputs = {"truth": _truth_of(DATA[name]["path"]), "stages": _stage_files(name)}
+    for kind in ("defects", "directors", "order"):
+        inputs[kind] = f"{frame}/{layout.layer_file(kind, layer)}"
+    if SECTIONS[name]["curvature"] is not None:
+        inputs["curvature"] = f"{seg}/{layout.curvature_file(SECTIONS[name]['layers'][layer]['surface'])}"
+    return inputs
 
 
 rule bench_synth:
@@ -75,49 +116,16 @@ rule bench_synth:
         NEMO + " synth {output.image} {params.opts} > {log} 2>&1"
 
 
-rule bench_run:
-    input:
-        image=_case_image,
-    output:
-        config=BRES + "/cases/{case}/config.yaml",
-        summary=BRES + "/cases/{case}/summary.json",
-        defects=BRES + "/cases/{case}/defects.parquet",
-        directors=BRES + "/cases/{case}/directors.parquet",
-        order=BRES + "/cases/{case}/order.parquet",
-        curvature=BRES + "/cases/{case}/curvature.parquet",
-    params:
-        cfg=lambda wc: json.dumps(BCASES[wc.case]["run"], sort_keys=True),
-        outdir=lambda wc: f"{BRES}/cases/{wc.case}",
-    log:
-        BRES + "/logs/run/{case}.log",
-    benchmark:
-        BRES + "/benchmarks/cases/run/{case}.tsv"
-    threads: res("benchmark", "threads")
-    resources:
-        mem_mb=res("benchmark", "mem_mb"),
-        runtime=res("benchmark", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
-    shell:
-        "printf '%s\\n' '{params.cfg}' > {output.config} && "
-        + NEMO + " run {input.image} -o {params.outdir} --config {output.config} > {log} 2>&1"
-
-
 rule bench_score:
     input:
-        image=_case_image,
-        truth=lambda wc: _truth_of(_case_image(wc)),
-        summary=BRES + "/cases/{case}/summary.json",
-        defects=BRES + "/cases/{case}/defects.parquet",
-        directors=BRES + "/cases/{case}/directors.parquet",
-        order=BRES + "/cases/{case}/order.parquet",
-        curvature=BRES + "/cases/{case}/curvature.parquet",
+        unpack(_score_inputs),
     output:
         BRES + "/cases/{case}/score.json",
     params:
-        case=lambda wc: json.dumps({k: BCASES[wc.case][k] for k in
-                                    ("case", "sweep", "parameter", "value", "value_label", "rotation",
-                                     "synth", "run", "dataset")}).replace("'", ""),
+        case=lambda wc: json.dumps({**{k: BCASES[wc.case][k] for k in
+                                       ("case", "sweep", "parameter", "value", "value_label", "rotation",
+                                        "synth", "run")}, "dataset": BCASE_DATA[wc.case]}).replace("'", ""),
+        curvature=lambda wc, input: f"--curvature {shlex.quote(input.curvature)}" if "curvature" in input.keys() else "",
         opts=_BSCORE_OPTS,
     log:
         BRES + "/logs/score/{case}.log",
@@ -128,46 +136,9 @@ rule bench_score:
     conda:
         "../envs/nemo.yaml"
     shell:
-        "python -m nemo.benchmark score --truth {input.truth} --defects {input.defects}"
-        " --directors {input.directors} --order {input.order} --curvature {input.curvature}"
-        " --summary {input.summary} --case '{params.case}' {params.opts} -o {output} > {log} 2>&1"
-
-
-def _workflow_score_inputs(wc):
-    t, c, layer = (int(wc.t), int(wc.c), wc.layer)
-    frame = f"{RESULTS}/{wc.dataset}/t{t}/c{c}"
-    seg = f"{RESULTS}/{wc.dataset}/t{t}/c{DATA[wc.dataset]['seg']}"
-    inputs = {"truth": _truth_of(DATA[wc.dataset]["path"]), "defects": f"{frame}/defects_{layer}.parquet",
-              "directors": f"{frame}/directors_{layer}.parquet", "order": f"{frame}/order_{layer}.parquet"}
-    if CURVATURE is not None:
-        inputs["curvature"] = f"{seg}/curvature_{LAYERS[layer]['surface']}.parquet"
-    return inputs
-
-
-rule bench_score_workflow:
-    input:
-        unpack(_workflow_score_inputs),
-    output:
-        BRES + "/workflow/{dataset}/t{t}_c{c}_{layer}.score.json",
-    params:
-        case=lambda wc: json.dumps({"case": f"workflow-{wc.dataset}", "sweep": "workflow",
-                                    "parameter": None, "value": None, "value_label": wc.dataset,
-                                    "rotation": None, "synth": DATA[wc.dataset]["synthetic"],
-                                    "run": {}, "dataset": wc.dataset}).replace("'", ""),
-        curvature=lambda wc, input: f"--curvature {input.curvature}" if "curvature" in input.keys() else "",
-        opts=_BSCORE_OPTS,
-    log:
-        BRES + "/logs/score/workflow_{dataset}_t{t}_c{c}_{layer}.log",
-    threads: 1
-    resources:
-        mem_mb=res("benchmark", "mem_mb"),
-        runtime=res("benchmark", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
-    shell:
-        "python -m nemo.benchmark score --truth {input.truth} --defects {input.defects}"
-        " --directors {input.directors} --order {input.order} {params.curvature}"
-        " --case '{params.case}' {params.opts} -o {output} > {log} 2>&1"
+        "python -m nemo.benchmark score --truth {input.truth:q} --defects {input.defects:q}"
+        " --directors {input.directors:q} --order {input.order:q} {params.curvature}"
+        " --stage-files {input.stages:q} --case '{params.case}' {params.opts} -o {output:q} > {log:q} 2>&1"
 
 
 rule bench_shape:
@@ -200,6 +171,7 @@ rule bench_shape_mesh:
     params:
         opts=lambda wc, input: cli_opts({"threshold": json.load(open(input.truth))["threshold"],
                                          "keep": "all" if BSHAPES[wc.shape]["kind"] == "shells" else "largest",
+                                         "split": "none",
                                          **BSHAPES[wc.shape]["mesh"]}),
     log:
         BRES + "/logs/shape_mesh/{shape}.log",
@@ -236,27 +208,9 @@ rule bench_shape_score:
 
 
 def _bench_stage_files():
-    files = [f"{BRES}/benchmarks/cases/run/{c}.tsv" for c in BCASES]
-    files += [f"{BRES}/benchmarks/cases/synth/{v}.tsv" for v in BVOLUMES]
+    files = [f"{BRES}/benchmarks/cases/synth/{v}.tsv" for v in BVOLUMES]
     files += [f"{BRES}/benchmarks/shapes/{k}/{s}.tsv" for s in BSHAPES for k in ("mesh", "score")]
     return files
-
-
-def _workflow_stage_files():
-    """Snakemake benchmark files of the ordinary per-stage rules for the configured datasets."""
-    out = []
-    for name in DATA:
-        b = BENCH.format(dataset=name)
-        for t, c, layer in layer_frames(name):
-            seg = DATA[name]["seg"]
-            out += [f"{b}/mesh/t{t}_c{seg}.tsv", f"{b}/peel/t{t}_c{c}_{layer}.tsv",
-                    f"{b}/directors/t{t}_c{c}_{layer}.tsv", f"{b}/order/t{t}_c{c}_{layer}.tsv",
-                    f"{b}/defects/t{t}_c{c}_{layer}.tsv"]
-            if CURVATURE is not None:
-                out.append(f"{b}/curvature/t{t}_c{seg}_{LAYERS[layer]['surface']}.tsv")
-            if THICKNESS is not None:
-                out.append(f"{b}/thickness/t{t}_c{seg}.tsv")
-    return sorted(set(out))
 
 
 BENCHMARK_TARGETS = [BRES + "/summary/cases.parquet"]
@@ -265,10 +219,8 @@ BENCHMARK_TARGETS = [BRES + "/summary/cases.parquet"]
 rule bench_aggregate:
     input:
         scores=[f"{BRES}/cases/{c}/score.json" for c in BCASES],
-        workflow=[f"{BRES}/workflow/{n}/t{t}_c{c}_{l}.score.json" for n, t, c, l in _workflow_frames()],
         shapes=[f"{BRES}/shapes/{s}/score.json" for s in BSHAPES],
         stages=_bench_stage_files(),
-        workflow_stages=_workflow_stage_files(),
     output:
         cases=BRES + "/summary/cases.parquet",
         sweeps=BRES + "/summary/sweeps.parquet",
@@ -284,6 +236,5 @@ rule bench_aggregate:
     conda:
         "../envs/nemo.yaml"
     shell:
-        "python -m nemo.benchmark aggregate --scores {input.scores} {input.workflow}"
-        " --shapes {input.shapes} --stages {input.stages} {input.workflow_stages}"
-        " -o {BRES}/summary > {log} 2>&1"
+        "python -m nemo.benchmark aggregate --scores {input.scores:q}"
+        " --shapes {input.shapes:q} --stages {input.stages:q} -o {BRES}/summary > {log:q} 2>&1"

@@ -21,7 +21,7 @@ _MESH_SHELL = (
 
 if _SPLIT:
 
-    rule mesh_split:
+    rule mesh:
         input:
             image=image,
             mask=lambda wc: DATA[wc.dataset]["mask"] or [],

@@ -1,0 +1,89 @@
+"""Stage functions (nemo.stages): data-derived defaults against analytic spheres."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import trimesh
+
+from nemo import stages
+from nemo.errors import NemoError
+from nemo.mesh import make_mesh, mean_edge_length
+
+
+def sphere(radius: float, subdivisions: int = 4) -> trimesh.Trimesh:
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return make_mesh(np.asarray(ico.vertices) * radius, ico.faces)
+
+
+@pytest.mark.parametrize("radius", [7.0, 40.0, 230.0])
+def test_object_radius_is_the_sphere_radius(radius):
+    assert stages.object_radius(sphere(radius)) == pytest.approx(radius, rel=0.01)
+
+
+@pytest.mark.parametrize("radius, subdivisions", [(10.0, 3), (50.0, 4), (200.0, 5)])
+def test_default_lengths_follow_edge_and_size(radius, subdivisions):
+    m = sphere(radius, subdivisions)
+    h, r_obj = mean_edge_length(m), stages.object_radius(m)  # r_obj: radius of equal area ≈ R
+    c = stages.curvature_defaults(m)
+    assert c["radius"] == pytest.approx(min(15 * h, 0.5 * r_obj))
+    d = stages.directors_defaults(m)
+    assert d["patch_radius"] == pytest.approx(max(0.1 * r_obj, 8 * h))
+    assert d["pixel"] == pytest.approx(max(h / 4, d["patch_radius"] / 97))
+    area = float(m.area)
+    assert d["n_patches"] == min(len(m.vertices), round(30 * area / (np.pi * d["patch_radius"] ** 2)))
+    # a value the user gives is used exactly
+    assert stages.directors_defaults(m, {"patch_radius": 3.3})["patch_radius"] == 3.3
+    assert stages.curvature_defaults(m, {"radius": 2.5})["radius"] == 2.5
+
+
+@pytest.mark.parametrize("radius", [12.0, 60.0])
+def test_curvature_with_the_default_radius_on_spheres(radius):
+    """H = 1/R and K = 1/R² from the default fitting radius, at two sizes."""
+    df, p = stages.curvature(sphere(radius, 5))
+    assert np.nanmedian(df["H"]) * radius == pytest.approx(1.0, abs=0.02)
+    assert np.nanmedian(df["K"]) * radius**2 == pytest.approx(1.0, abs=0.03)
+    assert p["radius"] > 0 and p["n_fitted"] > 0
+
+
+def test_order_radius_defaults_to_two_and_a_half_patches():
+    m = sphere(30.0, 3)
+    rng = np.random.default_rng(0)
+    idx = rng.choice(len(m.vertices), 200, replace=False)
+    v = np.asarray(m.vertices)[idx]
+    t = np.cross(v, [0.31, 0.52, 0.79])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    dirs = pd.DataFrame({"vertex": idx, "x": v[:, 0], "y": v[:, 1], "z": v[:, 2], "nx": t[:, 0], "ny": t[:, 1],
+                         "nz": t[:, 2], "coherency": 1.0})
+    _, p = stages.order(m, dirs, patch_radius=4.0)
+    assert p["radius"] == 10.0
+    _, p = stages.order(m, dirs, {"radius": 7.0}, patch_radius=4.0)
+    assert p["radius"] == 7.0
+    with pytest.raises(NemoError, match="order.radius"):
+        stages.order(m, dirs)
+
+
+def test_mesh_step_follows_the_stack_size(monkeypatch):
+    z, y, x = np.mgrid[:24, :24, :24]
+    ball = ((np.sqrt((z - 11.5) ** 2 + (y - 11.5) ** 2 + (x - 11.5) ** 2) < 7) * 200).astype(np.uint8)
+    _, p = stages.mesh(ball, (1.0, 1.0, 1.0), {"split": "none"})
+    assert p["step"] == 1 and p["sigma"] == pytest.approx(0.5)
+    monkeypatch.setattr(stages, "STEP2_VOXELS", ball.size - 1)
+    meshes, p = stages.mesh(ball, (1.0, 1.0, 1.0), {"split": "none"})
+    assert p["step"] == 2 and p["sigma"] == pytest.approx(1.0) and list(meshes) == ["whole"]
+    assert stages.object_radius(meshes["whole"]) == pytest.approx(7.0, abs=0.6)
+
+
+def test_tracking_distance_is_the_suppression_radius():
+    assert stages.tracking_distance(None, [{"min_distance": 20.0}, {"min_distance": 30.0}, {}])["max_distance"] == 25
+    assert stages.tracking_distance({"max_distance": 7}, [])["max_distance"] == 7
+    with pytest.raises(NemoError, match="tracking.max_distance"):
+        stages.tracking_distance(None, [])
+
+
+def test_defects_table_source_needs_a_curvature_table():
+    m = sphere(20.0, 2)
+    empty = pd.DataFrame(columns=["vertex", "S", "nx", "ny", "nz"])
+    with pytest.raises(NemoError, match="curvature table"):
+        stages.defects(m, empty, empty, {"curvature_source": "table"})
