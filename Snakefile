@@ -55,7 +55,7 @@ onstart:
         from nemo.worker import ENV, start
 
         if os.environ.get(ENV) is None:
-            os.environ[ENV] = start()
+            os.environ[ENV] = start(wait=False)  # imports while the DAG is scheduled
 
 
 rule all:

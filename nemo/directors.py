@@ -321,14 +321,14 @@ def directors(
         raise NemoError(f"pixel size must be > 0 µm, got {pixel}")
     if pixel < MIN_PIXEL_PER_EDGE * edge:
         raise NemoError(
-            f"--pixel {pixel:g} is below {MIN_PIXEL_PER_EDGE:g} × the mean edge length ({edge:.3g}): "
-            f"the micro-image would over-resolve the mesh at great cost; use --pixel "
+            f"`pixel` {pixel:g} is below {MIN_PIXEL_PER_EDGE:g} × the mean edge length ({edge:.3g}): "
+            f"the micro-image would over-resolve the mesh at great cost; use `pixel` "
             f"{PIXEL_PER_EDGE * edge:.3g} (half an edge, the default) or at least {MIN_PIXEL_PER_EDGE * edge:.3g}"
         )
     if nominal_radius < 2 * pixel:
         raise NemoError(
             f"the patch (radius ≈ {nominal_radius:.3g}) is smaller than 2 micro-image pixels "
-            f"({pixel:.3g}): use a larger patch or a smaller --pixel"
+            f"({pixel:.3g}): use a larger patch or a smaller `pixel`"
         )
 
     rng = np.random.default_rng(rng)
@@ -357,9 +357,9 @@ def directors(
     half = int(np.ceil(grid_radius / pixel)) + _MARGIN_PX
     if half > MAX_HALF_WIDTH_LIMIT:
         raise NemoError(
-            f"a patch of radius {grid_radius:.3g} with --pixel {pixel:.3g} needs micro-images of "
+            f"a patch of radius {grid_radius:.3g} with `pixel` {pixel:.3g} needs micro-images of "
             f"{2 * half + 1} × {2 * half + 1} pixels (at most {2 * MAX_HALF_WIDTH_LIMIT + 1}): use "
-            f"--pixel {max(PIXEL_PER_EDGE * edge, grid_radius / MAX_HALF_WIDTH_PX):.3g} (the default) or "
+            f"`pixel` {max(PIXEL_PER_EDGE * edge, grid_radius / MAX_HALF_WIDTH_PX):.3g} (the default) or "
             f"at least {grid_radius / (MAX_HALF_WIDTH_LIMIT - _MARGIN_PX):.3g}, or a smaller patch"
         )
     size = 2 * half + 1

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import tifffile
-import zarr
 
 from nemo.errors import NemoError, NemoWarning
 
@@ -152,7 +151,7 @@ def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, floa
     dy = dy if dy is not None else dx
     if dz is None:
         warnings.warn(
-            "the file has no z spacing: assuming dz = dx; set it with --spacing if wrong",
+            "the file has no z spacing: assuming dz = dx; set it with `spacing` if wrong",
             NemoWarning, stacklevel=3,
         )
     dz = float(dz) if dz is not None else dx
@@ -258,6 +257,8 @@ def read_stack(
         key = tuple(
             {"T": int(t), "C": int(c)}.get(a, slice(None)) for a in axes
         )
+        import zarr  # only to read pixels (0.2 s to import; the workflow's parse reads headers only)
+
         store = series.aszarr(level=0)
         try:
             arr = zarr.open(store, mode="r")
@@ -275,7 +276,7 @@ def read_stack(
     elif not info.calibrated:
         warnings.warn(
             f"{path} has no spatial calibration: using spacing 1 with unit 'pixel'. "
-            "Set it with --spacing DZ DY DX (or 'spacing' in the config).",
+            "Set it with `spacing` (dz, dy, dx).",
             NemoWarning,
             stacklevel=2,
         )

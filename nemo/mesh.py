@@ -222,6 +222,8 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
     match = _SPACING_COMMENT.search(header)
     if match:
         mesh.metadata["spacing"] = tuple(float(v) for v in match.groups())
+    # written by nemo's mesh step (outward normals by construction: no orientation check needed)
+    mesh.metadata["nemo_surface"] = b"\ncomment nemo params " in header
     ply_raw = loaded.metadata.get("_ply_raw", {})
     vertex_data = ply_raw.get("vertex", {}).get("data")
     if isinstance(vertex_data, dict):  # ASCII PLY: trimesh returns a dict of arrays
@@ -278,7 +280,8 @@ def load_mesh(path: str | os.PathLike, unit: str | None = None) -> trimesh.Trime
     if unit is not None:
         mesh.units = unit
     check_mesh(mesh, str(path))
-    if mesh.is_watertight and signed_volume(mesh.vertices, mesh.faces) < 0:
+    trusted = mesh.metadata.get("nemo_surface") is True
+    if not trusted and mesh.is_watertight and signed_volume(mesh.vertices, mesh.faces) < 0:
         mesh.faces = mesh.faces[:, ::-1]
         warnings.warn(
             f"{path} is wound inward (negative enclosed volume): its faces were flipped so that "

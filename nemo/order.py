@@ -208,7 +208,7 @@ def order(
         navg[empty] = np.nan
         warnings.warn(
             f"{int(empty.sum())} of {n_t} targets have no director within {radius:g}: S is NaN "
-            "there (use a larger --radius or more patches)",
+            "there (use a larger `radius` or more patches)",
             NemoWarning, stacklevel=2,
         )
     return pd.DataFrame({

@@ -84,14 +84,14 @@ def check_mesh_image(mesh, spacing, unit: str, mesh_name: str = "the mesh", imag
         raise NemoError(
             f"{mesh_name} is in unit '{mesh_unit}' but {image_name} is in '{unit}' (spacing "
             f"{' '.join(f'{v:g}' for v in sp)}): make the mesh from this image with the same "
-            "--spacing, or give the image the --spacing the mesh was made with"
+            "`spacing`, or give the image the `spacing` the mesh was made with"
         )
     made = mesh.metadata.get("spacing") if hasattr(mesh, "metadata") else None
     if made is not None and not np.allclose(np.asarray(made, dtype=np.float64), sp, rtol=1e-5, atol=0.0):
         raise NemoError(
             f"{mesh_name} was made from an image with spacing (dz, dy, dx) = "
             f"({', '.join(f'{v:g}' for v in made)}) but {image_name} has "
-            f"({', '.join(f'{v:g}' for v in sp)}): pass --spacing {' '.join(f'{v:g}' for v in made)} "
+            f"({', '.join(f'{v:g}' for v in sp)}): pass `spacing` {' '.join(f'{v:g}' for v in made)} "
             "(as for 'nemo mesh'), or remake the mesh from this image"
         )
 
@@ -168,11 +168,11 @@ def peel(
     if not (np.isfinite(d_min) and np.isfinite(d_max)) or d_max < d_min:
         raise NemoError(f"bad depth range [{d_min}, {d_max}]: need finite DMIN <= DMAX")
     if int(n_samples) < 1:
-        raise NemoError(f"--samples must be >= 1, got {n_samples}")
+        raise NemoError(f"`n_samples` must be >= 1, got {n_samples}")
     cap = max_samples(d_min, d_max, spacing)
     if int(n_samples) > cap:
         raise NemoError(
-            f"--samples {n_samples} puts samples closer than 1/20 of a voxel over [{d_min:g}, {d_max:g}]: "
+            f"`n_samples` {n_samples} puts samples closer than 1/20 of a voxel over [{d_min:g}, {d_max:g}]: "
             f"use at most {cap} (the default 11 is plenty for a layer a few voxels deep)"
         )
     if reduce not in ("mean", "max"):
@@ -229,7 +229,7 @@ def peel(
     if n_nan == n:
         raise NemoError(
             "every sampling segment lies (partly) outside the image or on NaN voxels: check that the "
-            "mesh was made from this image, the spacing/unit, and the --range"
+            "mesh was made from this image, the spacing/unit, and the depth range (`d_min`, `d_max`)"
         )
     if n_nan:
         n_shift = int(np.isnan(shift).sum()) if shift is not None else 0
@@ -259,7 +259,7 @@ def _check_inside(vertices: np.ndarray, box: np.ndarray, spacing: np.ndarray) ->
             f"{100 * frac:.0f} % of the mesh's vertices lie outside the image (mesh x, y, z from "
             f"({lo[0]:.4g}, {lo[1]:.4g}, {lo[2]:.4g}) to ({hi[0]:.4g}, {hi[1]:.4g}, {hi[2]:.4g}), image "
             f"box (0, 0, 0) to ({box[0]:.4g}, {box[1]:.4g}, {box[2]:.4g})): the mesh was not made "
-            "from this image or at this spacing/unit; use the image and --spacing of 'nemo mesh'"
+            "from this image or at this spacing/unit; use the image and `spacing` the mesh was made with"
         )
 
 

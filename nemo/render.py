@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from nemo import layout
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
 
@@ -145,8 +146,8 @@ def charge_text(q: float) -> str:
 # discovery
 
 _MESH_PREFIX = re.compile(r"^mesh[._-]?")
-_TABLE = re.compile(
-    r"^(?P<kind>layer|directors|order|defects|curvature|thickness|align)(?:[._-](?P<name>.+))?$"
+_TABLE = re.compile(  # the per-frame tables of nemo.layout (named, or unnamed single files)
+    rf"^(?P<kind>{'|'.join((*layout.LAYER_KINDS, 'curvature', 'thickness', 'align'))})(?:[._-](?P<name>.+))?$"
 )
 _FRAME_DIR = re.compile(r"^t(\d+)$")
 _CHANNEL_DIR = re.compile(r"^c(\d+)$")

@@ -273,7 +273,7 @@ def _check_finite(volume: np.ndarray) -> None:
     if bad:
         raise NemoError(
             f"the image has {bad} NaN or infinite voxels ({100 * bad / volume.size:.2g} % of it): "
-            "replace them (e.g. by the background intensity) before meshing, or give a --mask"
+            "replace them (e.g. by the background intensity) before meshing, or give a `mask`"
         )
 
 
@@ -439,7 +439,7 @@ def reconstruct(
         if vmin == vmax:
             raise NemoError(
                 f"the image is constant (every voxel = {vmin:g}, e.g. an all-dark stack): no object to "
-                "threshold; check --t/--c and the file, or give a --mask"
+                "threshold; check the time point/channel and the file, or give a `mask`"
             )
         if isinstance(how, str):
             thr, level = _auto_level(inner, how, edge)
@@ -449,12 +449,12 @@ def reconstruct(
         if level >= vmax:
             raise NemoError(
                 f"threshold {threshold!r} (level {level:.4g}) selects no voxel ({rng}): the object is empty; "
-                "lower --threshold, use 'yen'/'otsu', or check --t/--c"
+                "lower `threshold`, use 'yen'/'otsu', or check the time point/channel"
             )
         if level <= vmin:
             raise NemoError(
                 f"threshold {threshold!r} (level {level:.4g}) selects every voxel ({rng}): there is no "
-                "boundary; raise --threshold or use 'yen'/'otsu'"
+                "boundary; raise `threshold` or use 'yen'/'otsu'"
             )
     logger.info("iso-level %.4g (%s threshold %.4g)", level, how, thr)
     pad_value = vmin
@@ -568,7 +568,7 @@ def split_mesh(
         ref = f"centre ({centre[0]:.4g}, {centre[1]:.4g}, {centre[2]:.4g})"
     elif by == "axis":
         if axis is None:
-            raise NemoError("split by axis needs an axis: give --axis X Y Z")
+            raise NemoError("split by axis needs an axis: give `axis` (x, y, z)")
         axis = np.asarray(axis, dtype=np.float64).reshape(3)
         norm = np.linalg.norm(axis)
         if not np.isfinite(norm) or norm == 0:
@@ -596,7 +596,7 @@ def split_mesh(
         raise NemoError(
             f"splitting by {ref} leaves the {side} half empty: the mesh has a single wall "
             "(e.g. a filled object or a droplet) or the reference is outside it; for one wall set "
-            "mesh.split: none (nemo mesh --split none), else another split reference (axis)"
+            "`split` none (config mesh.split: none), else another split reference (`axis`)"
         )
     inner = keep_components(submesh(mesh, inner_sel, flip=True), keep)
     outer = keep_components(submesh(mesh, outer_sel), keep)

@@ -767,7 +767,7 @@ def vesicle(
         raise NemoError(
             f"the requested image ({shape[2]} x {shape[1]} x {shape[0]} voxels x {frames} frame(s) x "
             f"{channels} channel(s)) needs about {need / 1e9:.3g} GB of memory but {avail / 1e9:.3g} GB "
-            "are available: reduce the size (--size, --spacing, --radius), frames or channels"
+            "are available: reduce the size (`size`, `spacing`, `radius`), frames or channels"
         )
     centre = centre_zyx[::-1].copy()  # physical (x, y, z)
 

@@ -29,7 +29,7 @@ import time
 ENV = "NEMO_WORKER"
 #: Modules imported once by the worker (the heavy ones every command needs).
 PRELOAD = ("numpy", "scipy.ndimage", "scipy.sparse", "scipy.spatial", "pandas", "pyarrow.parquet",
-           "trimesh", "skimage.measure", "skimage.filters", "tifffile", "nemo.cli", "nemo.stages",
+           "trimesh", "skimage.measure", "skimage.filters", "tifffile", "zarr", "nemo.cli", "nemo.stages",
            "nemo.defects", "nemo.directors", "nemo.morphology", "nemo.order", "nemo.peel", "nemo.io",
            "nemo.surface", "nemo.summary", "nemo.track")
 
@@ -61,7 +61,13 @@ def _recv_exact(conn: socket.socket, n: int) -> bytes | None:
 def forward(argv: list[str]) -> int | None:
     """Run ``nemo argv`` in the worker named by :data:`ENV`; None when there is none to use."""
     path = os.environ.get(ENV)
-    if not path or path == "off" or os.environ.get("SLURM_JOB_ID") or not os.path.exists(path):
+    if not path or path == "off" or os.environ.get("SLURM_JOB_ID"):
+        return None
+    for _ in range(100):  # a worker still importing: its folder exists, the socket not yet
+        if os.path.exists(path) or not os.path.isdir(os.path.dirname(path)):
+            break
+        time.sleep(0.05)
+    if not os.path.exists(path):
         return None
     conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
@@ -146,14 +152,17 @@ def serve(path: str, idle_timeout: float = 900.0, parent: int | None = None) -> 
     import importlib
     import select
 
-    for name in PRELOAD:
-        importlib.import_module(name)
-    signal.signal(signal.SIGCHLD, signal.SIG_IGN)  # children are reaped by the kernel
     server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    server.bind(path)
-    server.listen(64)
-    last = time.monotonic()
-    try:
+    try:  # whatever happens, the socket and its folder go: callers then run commands themselves
+        for name in PRELOAD:
+            importlib.import_module(name)
+        import gc
+
+        gc.freeze()  # the children's garbage collector leaves the imported objects (and their pages) alone
+        signal.signal(signal.SIGCHLD, signal.SIG_IGN)  # children are reaped by the kernel
+        server.bind(path)
+        server.listen(64)
+        last = time.monotonic()
         while time.monotonic() - last < idle_timeout:
             if parent is not None and not _alive(parent):
                 break
@@ -191,10 +200,11 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def start(idle_timeout: float = 900.0) -> str:
+def start(idle_timeout: float = 900.0, wait: bool = True) -> str:
     """Start a worker in the background for this process; returns its socket path.
 
-    The worker stops when this process ends (or after ``idle_timeout`` s without work).
+    The worker stops when this process ends (or after ``idle_timeout`` s without work). With
+    ``wait=False`` it returns at once; callers wait for the socket while the folder exists.
     """
     import subprocess
     import tempfile
@@ -206,10 +216,11 @@ def start(idle_timeout: float = 900.0) -> str:
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         start_new_session=True,
     )
-    for _ in range(300):  # the imports take about a second
-        if os.path.exists(path):
-            break
-        time.sleep(0.05)
+    if wait:
+        for _ in range(300):  # the imports take about a second
+            if os.path.exists(path):
+                break
+            time.sleep(0.05)
     return path
 
 

@@ -101,7 +101,7 @@ def test_uncalibrated_file_warns_and_uses_pixels(tmp_path, rng):
     tifffile.imwrite(tmp_path / "raw.tif", data, photometric="minisblack")
     info = read_info(tmp_path / "raw.tif")
     assert info.unit == "pixel" and not info.calibrated and info.spacing == (1.0, 1.0, 1.0)
-    with pytest.warns(NemoWarning, match="--spacing"):
+    with pytest.warns(NemoWarning, match="`spacing`"):
         stack, info = read_stack(tmp_path / "raw.tif")
     np.testing.assert_array_equal(stack, data)
     # an explicit spacing overrides silently

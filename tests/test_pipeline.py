@@ -13,7 +13,6 @@ import math
 import numpy as np
 import pytest
 
-from nemo.errors import NemoError
 from nemo import layout
 from nemo.pipeline import run_frame
 from nemo.synthetic import write_vesicle

@@ -251,7 +251,7 @@ def test_option_sizes_are_bounded(shell):
 
     mesh = load_mesh(shell / "m.inner.ply")
     intensity = np.ones(len(mesh.vertices))
-    with pytest.raises(NemoError, match="--pixel"):
+    with pytest.raises(NemoError, match="`pixel`"):
         directors(mesh, intensity, patch_radius=6.0, pixel=0.01)
     with pytest.raises(NemoError, match="micro-images of"):
         directors(mesh, intensity, patch_radius=20.0, pixel=0.1)

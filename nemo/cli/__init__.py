@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 import warnings
 
@@ -36,8 +37,18 @@ Lengths are physical (the image's unit, usually µm); tables use physical x, y, 
 Run 'nemo COMMAND --help' for a command's options."""
 
 
+#: Library argument names whose command-line flag is not ``--name-with-dashes``.
+_FLAGS = {"n_samples": "--samples", "smooth_iter": "--smooth", "d_min": "DMIN", "d_max": "DMAX"}
+
+
+def as_flags(message: str) -> str:
+    """The library names its arguments in backquotes (`pixel`); on the command line they are flags."""
+    return re.sub(r"`([a-z_]+)`", lambda m: _FLAGS.get(m.group(1), "--" + m.group(1).replace("_", "-")),
+                  str(message))
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
-    print(f"nemo: warning: {message}", file=sys.stderr)
+    print(f"nemo: warning: {as_flags(message)}", file=sys.stderr)
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -86,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = _show_warning  # one line on stderr, restored on exit
             return int(args._run(args) or 0)
     except NemoError as exc:
-        print(f"nemo {args._command}: error: {exc}", file=sys.stderr)
+        print(f"nemo {args._command}: error: {as_flags(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"nemo {args._command}: interrupted", file=sys.stderr)
