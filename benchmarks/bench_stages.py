@@ -217,7 +217,7 @@ def director_loop(mesh, intensity, centres, patch_radius, pixel, sigma, half):
 
 def st_loop_vs_vectorised(wd, n_loop, phase, data=None):
     from nemo.benchmark import director_errors
-    from nemo.directors import MAX_HALF_WIDTH_PX, PIXEL_PER_EDGE, _MARGIN_PX, directors
+    from nemo.directors import SIGMA_PX, _MARGIN_PX, default_pixel, directors
     from nemo.mesh import mean_edge_length
     from nemo.synthetic import truth_directors
 
@@ -226,9 +226,9 @@ def st_loop_vs_vectorised(wd, n_loop, phase, data=None):
     mesh, inten = data
     r = 20.0
     centres = np.sort(np.random.default_rng(0).choice(len(mesh.vertices), 12000, replace=False))
-    pixel = max(PIXEL_PER_EDGE * mean_edge_length(mesh), r / MAX_HALF_WIDTH_PX)  # directors' default
+    pixel = default_pixel(mean_edge_length(mesh), r)  # directors' default
     half = int(np.ceil(r / pixel)) + _MARGIN_PX
-    sigma = (r / pixel) / 2.0
+    sigma = SIGMA_PX
     t0 = time.perf_counter()
     vec = directors(mesh, inten, patch_radius=r, centres=centres, pixel=pixel, sigma=sigma)
     t_vec = time.perf_counter() - t0

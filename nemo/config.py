@@ -86,6 +86,27 @@ def _messages(errors) -> list[str]:
     return lines
 
 
+#: Keys of the former ``nemo run`` config and what replaced them (named in the error).
+RENAMED = {
+    "peel": "layers.NAME (range, samples, reduce, interp, inward)",
+    "mesh.step_um": "mesh.step (voxels)", "mesh.smooth_iter": "mesh.smooth",
+    "mesh.surface": "layers.NAME.surface", "curvature.enabled": "curvature: null to switch it off",
+    "peel.n_samples": "layers.NAME.samples",
+}
+
+
+def _renamed_hint(instance: Any) -> list[str]:
+    if not isinstance(instance, dict):
+        return []
+    hints = []
+    for old, new in RENAMED.items():
+        section, _, key = old.partition(".")
+        value = instance.get(section)
+        if (not key and section in instance) or (key and isinstance(value, dict) and key in value):
+            hints.append(f"'{old}' is now {new}")
+    return hints
+
+
 def _check(instance: Any, node: dict, where: str = "") -> None:
     import jsonschema
 
@@ -96,6 +117,7 @@ def _check(instance: Any, node: dict, where: str = "") -> None:
                                                                                   f"'{where}'")
                  for line in lines]
     if lines:
+        lines += _renamed_hint(instance) if not where else []
         raise NemoError("invalid configuration\n  " + "\n  ".join(lines)
                         + "\n  (schema: nemo/schemas/config.schema.yaml; keys: docs/workflow.md)")
 

@@ -38,20 +38,26 @@ from scipy.spatial import cKDTree
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
 from nemo.frames import tangent_frames
-from nemo.mesh import mean_edge_length
+from nemo.mesh import mean_edge_length, object_radius
 
 #: Default patch density: patches per patch area (the paper's 12 000 patches of 20 µm on a
 #: sphere of R = 200 µm is 30 × 4πR² / (π r²)).
 PATCHES_PER_AREA = 30.0
 
 #: Default micro-image pixel as a fraction of the mean edge length (finer than the vertex
-#: spacing: the σ = 1 px gradient kernel then resolves fibres a few edges apart; on the
-#: synthetic vesicle 0.5 lowers the median angle error by ~25 % over 1.0).
-PIXEL_PER_EDGE = 0.5
+#: spacing: the σ = 1 px gradient kernel and the SIGMA_PX integration then measure the field at
+#: about one edge, which keeps defect cores sharp; docs/benchmarks.md).
+PIXEL_PER_EDGE = 0.25
 
-#: Default pixel is at least patch radius / this (bounds the micro-image to ~47 × 47 pixels
-#: on very fine meshes, where half an edge would over-resolve the image anyway).
-MAX_HALF_WIDTH_PX = 20
+#: Default pixel is at least patch radius / this (micro-images of at most 195 × 195 pixels).
+MAX_HALF_WIDTH_PX = 97
+
+#: Default structure-tensor integration scale (micro-image pixels).
+SIGMA_PX = 4.0
+
+#: Default patch radius: this fraction of the object radius sqrt(area / 4π) (the paper's 20 µm
+#: on R = 200 µm), at least PATCH_MIN_EDGES mean edge lengths.
+PATCH_PER_RADIUS, PATCH_MIN_EDGES = 0.1, 8.0
 
 #: Largest micro-image half-width (pixels) accepted from user options (201 × 201 pixels): wider
 #: images cost seconds and gigabytes per chunk without resolving more of the layer.
@@ -233,6 +239,16 @@ def micro_images(
 # directors on a mesh
 
 
+def default_patch_radius(mesh: trimesh.Trimesh) -> float:
+    """``PATCH_PER_RADIUS`` × the object radius, at least ``PATCH_MIN_EDGES`` mean edge lengths."""
+    return max(PATCH_PER_RADIUS * object_radius(mesh), PATCH_MIN_EDGES * mean_edge_length(mesh))
+
+
+def default_pixel(edge: float, patch_radius: float) -> float:
+    """``PIXEL_PER_EDGE`` × the mean edge length, at least ``patch_radius / MAX_HALF_WIDTH_PX``."""
+    return max(PIXEL_PER_EDGE * edge, patch_radius / MAX_HALF_WIDTH_PX)
+
+
 def default_n_patches(area: float, patch_radius: float, n_vertices: int) -> int:
     """``PATCHES_PER_AREA`` patches per patch area ``π r²`` of the surface, at most ``n_vertices``."""
     return int(min(n_vertices, max(1, round(PATCHES_PER_AREA * area / (np.pi * patch_radius**2)))))
@@ -310,12 +326,12 @@ def directors(
             raise NemoError(f"patch k must be between {MIN_PATCH_VERTICES} and the {n_vert} vertices, got {patch_k}")
         nominal_radius = spacing_v * np.sqrt(patch_k / np.pi)
     else:
-        patch_radius = 10.0 * edge if patch_radius is None else float(patch_radius)
+        patch_radius = default_patch_radius(mesh) if patch_radius is None else float(patch_radius)
         if not patch_radius > 0:
             raise NemoError(f"patch radius must be > 0 µm, got {patch_radius}")
         nominal_radius = patch_radius
     if pixel is None:  # finer than the mesh, but at most MAX_HALF_WIDTH_PX across the radius
-        pixel = max(PIXEL_PER_EDGE * edge, nominal_radius / MAX_HALF_WIDTH_PX)
+        pixel = default_pixel(edge, nominal_radius)
     pixel = float(pixel)
     if not pixel > 0:
         raise NemoError(f"pixel size must be > 0 µm, got {pixel}")
@@ -323,7 +339,7 @@ def directors(
         raise NemoError(
             f"`pixel` {pixel:g} is below {MIN_PIXEL_PER_EDGE:g} × the mean edge length ({edge:.3g}): "
             f"the micro-image would over-resolve the mesh at great cost; use `pixel` "
-            f"{PIXEL_PER_EDGE * edge:.3g} (half an edge, the default) or at least {MIN_PIXEL_PER_EDGE * edge:.3g}"
+            f"{PIXEL_PER_EDGE * edge:.3g} (a quarter edge, the default) or at least {MIN_PIXEL_PER_EDGE * edge:.3g}"
         )
     if nominal_radius < 2 * pixel:
         raise NemoError(
@@ -359,11 +375,11 @@ def directors(
         raise NemoError(
             f"a patch of radius {grid_radius:.3g} with `pixel` {pixel:.3g} needs micro-images of "
             f"{2 * half + 1} × {2 * half + 1} pixels (at most {2 * MAX_HALF_WIDTH_LIMIT + 1}): use "
-            f"`pixel` {max(PIXEL_PER_EDGE * edge, grid_radius / MAX_HALF_WIDTH_PX):.3g} (the default) or "
+            f"`pixel` {default_pixel(edge, grid_radius):.3g} (the default) or "
             f"at least {grid_radius / (MAX_HALF_WIDTH_LIMIT - _MARGIN_PX):.3g}, or a smaller patch"
         )
     size = 2 * half + 1
-    sigma = (grid_radius / pixel) / 2.0 if sigma is None else float(sigma)
+    sigma = SIGMA_PX if sigma is None else float(sigma)
     if not sigma > 0:
         raise NemoError(f"sigma must be > 0 pixels, got {sigma}")
     smooth = max(0.5, 0.6 * spacing_v / pixel)

@@ -171,6 +171,11 @@ def merge_coincident_vertices(
     return sv[new], f[keep], index
 
 
+def object_radius(mesh: trimesh.Trimesh) -> float:
+    """Radius of the sphere with the mesh's area, ``sqrt(area / 4π)``: the object's scale."""
+    return float(np.sqrt(max(float(mesh.area), 0.0) / (4 * np.pi)))
+
+
 def mean_edge_length(mesh: trimesh.Trimesh) -> float:
     """Mean edge length: the mesh spacing that default length scales follow."""
     return float(np.mean(mesh.edges_unique_length))

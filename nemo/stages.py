@@ -17,6 +17,7 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 ``directors.patch_radius``  ``0.1 R_obj`` (the paper: 20 µm on R = 200 µm), at least ``8 edge``
 ``directors.n_patches``     30 per patch area, at most the number of vertices
 ``directors.pixel``         ``edge / 4``, at least ``patch_radius / 97`` (micro-images ≤ 195 px)
+                            (these three: nemo.directors, the same defaults as ``directors()``)
 ``order.radius``            ``2.5 patch_radius`` (the paper: 50 µm for 20 µm patches)
 ``defects.min_distance``    the averaging radius; ``contour_radius``: 1.5 × it (nemo.defects)
 ==========================  =====================================================================
@@ -33,22 +34,19 @@ import trimesh
 from nemo import config as nconfig
 from nemo._log import logger
 from nemo.errors import NemoError
+from nemo.mesh import object_radius  # the object's scale, used by the defaults below
+
+__all__ = ["object_radius", "mesh", "curvature", "curvature_defaults", "thickness", "peel", "directors",
+           "directors_defaults", "order", "defects", "tracking_distance"]
 
 #: Stacks with more voxels than this are meshed every 2 voxels by default.
 STEP2_VOXELS = 64_000_000
 #: Default curvature fitting radius in mean edge lengths (docs/benchmarks.md: 5 is noisy).
 CURVATURE_EDGES = 15.0
-#: Default director patch radius as a fraction of the object radius, and its floor in edges.
-PATCH_PER_RADIUS, PATCH_MIN_EDGES = 0.1, 8.0
-#: Default micro-image pixel as a fraction of the mean edge length.
-PIXEL_PER_EDGE = 0.25
 #: Default averaging radius in patch radii.
 ORDER_PER_PATCH = 2.5
 
 
-def object_radius(mesh: trimesh.Trimesh) -> float:
-    """Radius of the sphere with the mesh's area, ``sqrt(area / 4π)`` (the object's scale)."""
-    return float(math.sqrt(max(float(mesh.area), 0.0) / (4 * math.pi)))
 
 
 # ----------------------------------------------------------------------------- mesh
@@ -173,7 +171,7 @@ def peel(
 
 def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:
     """The ``directors`` section with patch radius, pixel and patch count resolved on ``mesh``."""
-    from nemo.directors import default_n_patches
+    from nemo.directors import default_n_patches, default_patch_radius, default_pixel
     from nemo.mesh import mean_edge_length
 
     p = nconfig.section("directors", params)
@@ -182,13 +180,13 @@ def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
         raise NemoError("give either directors.patch_radius or directors.patch_k, not both")
     if p["patch_k"] is None:
         if p["patch_radius"] is None:
-            p["patch_radius"] = max(PATCH_PER_RADIUS * object_radius(mesh), PATCH_MIN_EDGES * edge)
+            p["patch_radius"] = default_patch_radius(mesh)
         nominal = float(p["patch_radius"])
     else:
         p["patch_radius"] = None
         nominal = math.sqrt(float(mesh.area) / len(mesh.vertices) * p["patch_k"] / math.pi)
     if p["pixel"] is None:
-        p["pixel"] = max(PIXEL_PER_EDGE * edge, nominal / 97.0)
+        p["pixel"] = default_pixel(edge, nominal)
     if p["n_patches"] is None:
         p["n_patches"] = default_n_patches(float(mesh.area), nominal, len(mesh.vertices))
     p["nominal_radius"] = nominal

@@ -120,3 +120,9 @@ def test_every_section_key_is_an_option_of_its_command():
     assert {"--range", "--samples", "--reduce", "--interp", "--inward", "--shift-fraction"} <= flags
     assert yaml.safe_load(config.SCHEMA_PATH.read_text())["$defs"]["thickness"]["properties"].keys() >= {
         "direction", "max_distance"}
+
+
+def test_keys_of_the_former_run_config_say_what_replaced_them():
+    with pytest.raises(NemoError) as exc:
+        config.validate({"peel": {"range": [0, 5]}, "mesh": {"step_um": 2.0}})
+    assert "'peel' is now layers.NAME" in str(exc.value) and "'mesh.step_um' is now mesh.step" in str(exc.value)

@@ -206,13 +206,14 @@ def _two_layer_vesicle(rotation):
 
 
 @pytest.mark.parametrize("rotation,sign", [(90.0, -1), (0.0, +1)])
-def test_two_fibre_layers_in_one_channel(rotation, sign):
+def test_two_fibre_layers_in_one_channel(rotation, sign, wide_scale):
     """Two layers 6 µm apart in one channel, peeled at two depths: mean c ≤ −0.9 / ≥ +0.9."""
     from nemo.directors import directors
 
     inner, low, high = _two_layer_vesicle(rotation)
-    da = directors(inner, low, patch_radius=10.0, rng=0)
-    db = directors(inner, high, patch_radius=10.0, rng=1)  # other centres than A
+    scale = wide_scale(inner, 10.0)  # the paper's integration over half the patch
+    da = directors(inner, low, patch_radius=10.0, rng=0, **scale)
+    db = directors(inner, high, patch_radius=10.0, rng=1, **scale)  # other centres than A
     c = alignment(da, db, mesh_a=inner)["c"].to_numpy()
     if sign < 0:
         assert c.mean() <= -0.9, c.mean()
