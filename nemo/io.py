@@ -283,6 +283,32 @@ def read_stack(
     return data, info
 
 
+def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...]) -> np.ndarray:
+    """A binary object mask (nonzero = object) for time point ``t``, channel ``c`` of an image.
+
+    The mask file may have its own T and C axes (then ``t``/``c`` select from them) or none.
+
+    Returns
+    -------
+    ndarray of bool, shape (Z, Y, X) = ``shape``
+
+    Raises
+    ------
+    NemoError
+        A mask of another (Z, Y, X) size than the image.
+    """
+    info = read_info(path)
+    mt = t if info.shape["T"] > 1 else 0
+    mc = c if info.shape["C"] > 1 else 0
+    data, _ = read_stack(path, mt, mc, spacing=(1.0, 1.0, 1.0))  # the mask's calibration is irrelevant
+    if data.shape != tuple(shape):
+        raise NemoError(
+            f"the mask {path} has shape (Z, Y, X) = {data.shape} but the image stack has {tuple(shape)}; "
+            "give a mask of the same size"
+        )
+    return data != 0
+
+
 def write_hyperstack(
     path: str | os.PathLike,
     data: np.ndarray,

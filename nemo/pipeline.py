@@ -86,7 +86,7 @@ def run_frame(
     dict
         The run summary (also written to ``summary.json``).
     """
-    from nemo.io import read_stack
+    from nemo.io import read_mask, read_stack
 
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
     frame = frame_setup(cfg, dataset, image, spacing)
@@ -106,17 +106,12 @@ def run_frame(
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     with timed("read"):
         volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    mask = None
-    if frame["mask"]:
-        from nemo.cli.mesh import _read_mask
-
-        mask = _read_mask(frame["mask"], t, frame["seg"], volume.shape)
+    mask = read_mask(frame["mask"], t, frame["seg"], volume.shape) if frame["mask"] else None
     summary = {"image": frame["image"], "dataset": frame["dataset"], "t": t, "c": c,
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
                "outdir": str(out)}
     written: list[str] = []
-    with timed("mesh"):
-        meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed)
+    meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed)
     if c != frame["seg"]:
         with timed("read"):
             volume, info = read_stack(frame["image"], t, c, spacing=sp)
@@ -180,15 +175,17 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
     from nemo.morphology import measure
     from nemo.tables import write_table
 
-    meshes, params = stages.mesh(volume, info.spacing, sections["mesh"], mask=mask, unit=info.unit)
-    for name, m in meshes.items():
-        m.metadata["nemo_params"] = params
-        save_mesh(m, out / layout.MESH[name])
-        written.append(layout.MESH[name])
-    # read back, as the workflow's next jobs do (PLY stores float32 vertices)
-    meshes = {name: load_mesh(out / layout.MESH[name]) for name in meshes}
+    with timed("mesh"):
+        meshes, params = stages.mesh(volume, info.spacing, sections["mesh"], mask=mask, unit=info.unit)
+        for name, m in meshes.items():
+            m.metadata["nemo_params"] = params
+            save_mesh(m, out / layout.MESH[name])
+            written.append(layout.MESH[name])
+        # read back, as the workflow's next jobs do (PLY stores float32 vertices)
+        meshes = {name: load_mesh(out / layout.MESH[name]) for name in meshes}
     for surface in sections["measure"]["surfaces"] or sections["surfaces"]:
-        write_json(measure(meshes[surface]), out / layout.measure_file(surface))
+        with timed("measure"):
+            write_json(measure(meshes[surface]), out / layout.measure_file(surface))
         written.append(layout.measure_file(surface))
     if sections["curvature"] is not None:
         for surface in sections["surfaces"]:

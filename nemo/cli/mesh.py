@@ -87,21 +87,6 @@ def _sibling(path: Path, tag: str) -> Path:
     return path.with_name(f"{path.stem}.{tag}{path.suffix}")
 
 
-def _read_mask(path: str, t: int, c: int, shape: tuple[int, ...]) -> np.ndarray:
-    from nemo.io import read_info, read_stack
-
-    info = read_info(path)
-    mt = t if info.shape["T"] > 1 else 0
-    mc = c if info.shape["C"] > 1 else 0
-    data, _ = read_stack(path, mt, mc, spacing=(1.0, 1.0, 1.0))  # the mask's calibration is irrelevant
-    if data.shape != shape:
-        raise NemoError(
-            f"the mask {path} has shape (Z, Y, X) = {data.shape} but the image stack has {shape}; "
-            "give a mask of the same size"
-        )
-    return data != 0
-
-
 def _describe(name: str, mesh) -> str:
     return f"{name}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, area {mesh.area:.6g} {mesh.units}²"
 
@@ -110,7 +95,7 @@ def run(args) -> int:
     from nemo import stages
     from nemo._log import logger
     from nemo.cli.common import section_params
-    from nemo.io import read_stack
+    from nemo.io import read_mask, read_stack
     from nemo.mesh import save_mesh
     from nemo.surface import fit_sphere
 
@@ -121,7 +106,7 @@ def run(args) -> int:
     volume, info = read_stack(args.image, args.t, args.c, spacing=args.spacing)
     logger.info("read %s t=%d c=%d: %s %s, spacing %s %s", args.image, args.t, args.c,
                 "x".join(map(str, volume.shape)), volume.dtype, tuple(info.spacing), info.unit)
-    mask = _read_mask(args.mask, args.t, args.c, volume.shape) if args.mask else None
+    mask = read_mask(args.mask, args.t, args.c, volume.shape) if args.mask else None
     meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
                                  unit=info.unit, centre=args.centre)
     del volume, mask
