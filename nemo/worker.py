@@ -143,11 +143,19 @@ def _child(conn: socket.socket) -> None:
     _send(conn, {"status": int(code or 0)})
 
 
+def _source_stamp() -> int:
+    """A fingerprint of NEMO's own source files (names and modification times)."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    return hash(tuple(sorted((os.path.join(d, f), os.stat(os.path.join(d, f)).st_mtime_ns)
+                             for d, _, files in os.walk(root) for f in files if f.endswith(".py"))))
+
+
 def serve(path: str, idle_timeout: float = 900.0, parent: int | None = None) -> None:
     """Listen on the Unix socket ``path`` and fork a child per request.
 
-    Stops after ``idle_timeout`` seconds without a request, or when process ``parent`` (the
-    Snakemake run that started it) is gone.
+    Stops after ``idle_timeout`` seconds without a request, when process ``parent`` (the
+    Snakemake run that started it) is gone, or when NEMO's source files change (the caller
+    then runs the command itself, with the new code).
     """
     import importlib
     import select
@@ -159,6 +167,7 @@ def serve(path: str, idle_timeout: float = 900.0, parent: int | None = None) -> 
         import gc
 
         gc.freeze()  # the children's garbage collector leaves the imported objects (and their pages) alone
+        stamp = _source_stamp()
         signal.signal(signal.SIGCHLD, signal.SIG_IGN)  # children are reaped by the kernel
         server.bind(path)
         server.listen(64)
@@ -169,6 +178,9 @@ def serve(path: str, idle_timeout: float = 900.0, parent: int | None = None) -> 
             if not select.select([server], [], [], 2.0)[0]:
                 continue
             conn, _ = server.accept()
+            if _source_stamp() != stamp:  # NEMO's code changed: never mix it with what we imported
+                conn.close()  # the caller runs the command itself
+                break
             last = time.monotonic()
             sys.stdout.flush()
             sys.stderr.flush()

@@ -77,3 +77,21 @@ def test_the_worker_stops_with_its_parent(tmp_path):
     # a stale socket path is ignored: the command runs in the caller
     r = nemo(["info", "--help"], tmp_path, path)
     assert r.returncode == 0
+
+
+def test_a_worker_never_runs_changed_code(tmp_path):
+    """After NEMO's sources change, the worker refuses (and stops): the caller runs the new code."""
+    path = worker.start(idle_timeout=120)
+    source = Path(worker.__file__).parent / "layout.py"
+    before = os.stat(source)
+    try:
+        os.utime(source, (before.st_atime, before.st_mtime + 5))
+        r = nemo(["info", "--help"], tmp_path, path)
+        assert r.returncode == 0 and "usage" in r.stdout
+        for _ in range(100):
+            if not os.path.exists(path):
+                break
+            time.sleep(0.05)
+        assert not os.path.exists(path)
+    finally:
+        os.utime(source, (before.st_atime, before.st_mtime))

@@ -493,10 +493,15 @@ def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_ru
     rows = [line.split("|") for line in sacct.splitlines() if line.strip()]
     ours = [r for r in rows if Path(r[3]).resolve() == tmp_path.resolve()]
     local_jobs = job_counts(smk(tmp_path, "-n", "--forceall", "--cores", "1"))
-    n_jobs = sum(v for k, v in local_jobs.items() if k != "all")
-    assert len(ours) >= n_jobs, (len(ours), n_jobs, sacct[-2000:])
+    per_frame = {"mesh", "measure", "curvature", "thickness", "peel", "directors", "order", "defects", "align"}
+    n_other = sum(v for k, v in local_jobs.items() if k not in per_frame | {"all"})
+    frames = default_config()["datasets"]["demo"]["synthetic"]["frames"]
+    # one submission per time point (the group 'frame': its mesh, morphology and every layer's
+    # jobs), one per other job (synth, aggregation, tracking, figures)
+    assert len(ours) == frames + n_other, (len(ours), frames, n_other, sacct[-2000:])
     assert all(r[1] == "COMPLETED" for r in ours), ours
-    for rule in ("mesh", "peel", "defects", "track"):
+    assert sum("frame" in r[2] for r in ours) == frames, [r[2] for r in ours]
+    for rule in ("synth", "aggregate_frames", "track"):
         assert any(rule in r[2] for r in ours), (rule, ours[:5])
     # and gave the same summaries as the local run
     for name in ("frames", "defects", "tracks", "alignment"):
