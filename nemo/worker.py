@@ -75,8 +75,11 @@ def forward(argv: list[str]) -> int | None:
     except OSError:
         return None  # a worker that went away: run here
     request = json.dumps({"argv": argv, "cwd": os.getcwd(), "env": dict(os.environ)}).encode()
-    socket.send_fds(conn, [struct.pack("!I", len(request)) + request], [0, 1, 2])
-    reply = _recv(conn)
+    try:
+        socket.send_fds(conn, [struct.pack("!I", len(request)) + request], [0, 1, 2])
+        reply = _recv(conn)
+    except OSError:  # the worker stopped (e.g. NEMO's code changed) before starting the command
+        reply = None
     if reply is None:
         return None  # refused before starting: run here
     pid = int(reply["pid"])
@@ -89,7 +92,10 @@ def forward(argv: list[str]) -> int | None:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, relay)
-    status = _recv(conn)
+    try:
+        status = _recv(conn)
+    except OSError:
+        status = None
     if status is None:
         print(f"nemo: the worker's process {pid} ended without a status (killed?)", file=sys.stderr)
         return 1
