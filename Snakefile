@@ -49,13 +49,9 @@ include: "workflow/rules/report.smk"
 
 
 onstart:
-    # one warm worker for the many short `python -m nemo` jobs of a local run (nemo/worker.py):
-    # numpy, scipy, pandas and trimesh are imported once instead of once per job
-    if config["worker"] and workflow.local_exec and not workflow.remote_exec:
-        from nemo.worker import ENV, start
-
-        if os.environ.get(ENV) is None:
-            os.environ[ENV] = start(wait=False)  # imports while the DAG is scheduled
+    # the warm worker serves local runs only: a cluster's jobs start their own interpreters
+    if not workflow.local_exec and os.environ.get(WORKER_ENV, "off") != "off":
+        stop_worker()
 
 
 rule all:

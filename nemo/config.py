@@ -107,10 +107,17 @@ def _renamed_hint(instance: Any) -> list[str]:
     return hints
 
 
-def _check(instance: Any, node: dict, where: str = "") -> None:
+@functools.cache
+def _validator(ref: str | None):
+    """A validator of the whole schema (None) or of one ``$defs`` entry, built once."""
     import jsonschema
 
-    validator = jsonschema.Draft202012Validator({**node, "$defs": schema()["$defs"]})
+    node = schema() if ref is None else {"$ref": f"#/$defs/{ref}", "$defs": schema()["$defs"]}
+    return jsonschema.Draft202012Validator(node)
+
+
+def _check(instance: Any, ref: str | None, where: str = "") -> None:
+    validator = _validator(ref)
     lines = _messages(validator.iter_errors(instance))
     if where:
         lines = [line.replace("config key '", f"config key '{where}.", 1).replace(f"'{where}.(top level)'",
@@ -141,7 +148,7 @@ def validate(config: Mapping | None) -> dict:
         Listing every invalid key with its dotted path and the reason.
     """
     cfg = copy.deepcopy(dict(config or {}))
-    _check(cfg, schema())
+    _check(cfg, None)
     _fill_defaults(cfg, schema())
     return cfg
 
@@ -184,7 +191,7 @@ def section(name: str, params: Mapping | None = None) -> dict:
             raise NemoError(f"unknown key '{name}.{key}'; valid keys: {', '.join(merged)}")
         if value is not None:
             merged[key] = value
-    _check(merged, {"$ref": f"#/$defs/{name}"}, where=name)
+    _check(merged, name, where=name)
     return merged
 
 

@@ -177,8 +177,14 @@ def object_radius(mesh: trimesh.Trimesh) -> float:
 
 
 def mean_edge_length(mesh: trimesh.Trimesh) -> float:
-    """Mean edge length: the mesh spacing that default length scales follow."""
-    return float(np.mean(mesh.edges_unique_length))
+    """Mean length of the unique edges: the mesh spacing that default length scales follow."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    edges = np.sort(np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    # one int64 key per edge: faster than trimesh's row hashing (the workflow's steps each need it)
+    _, first = np.unique(edges[:, 0] * len(v) + edges[:, 1], return_index=True)
+    a, b = edges[first, 0], edges[first, 1]
+    return float(np.mean(np.linalg.norm(v[a] - v[b], axis=1)))
 
 
 def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:

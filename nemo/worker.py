@@ -160,8 +160,8 @@ def serve(path: str, idle_timeout: float = 900.0, parent: int | None = None) -> 
     """Listen on the Unix socket ``path`` and fork a child per request.
 
     Stops after ``idle_timeout`` seconds without a request, when process ``parent`` (the
-    Snakemake run that started it) is gone, or when NEMO's source files change (the caller
-    then runs the command itself, with the new code).
+    Snakemake run that started it) is gone, when its folder is removed (:func:`stop`), or when
+    NEMO's source files change (the caller then runs the command itself, with the new code).
     """
     import importlib
     import select
@@ -170,6 +170,10 @@ def serve(path: str, idle_timeout: float = 900.0, parent: int | None = None) -> 
     try:  # whatever happens, the socket and its folder go: callers then run commands themselves
         for name in PRELOAD:
             importlib.import_module(name)
+        from nemo import config
+
+        for section in ("mesh", "curvature", "thickness", "layer", "directors", "order", "defects", "tracking"):
+            config.section(section, {"range": [0, 1]} if section == "layer" else None)  # schema read once
         import gc
 
         gc.freeze()  # the children's garbage collector leaves the imported objects (and their pages) alone
@@ -179,8 +183,8 @@ def serve(path: str, idle_timeout: float = 900.0, parent: int | None = None) -> 
         server.listen(64)
         last = time.monotonic()
         while time.monotonic() - last < idle_timeout:
-            if parent is not None and not _alive(parent):
-                break
+            if (parent is not None and not _alive(parent)) or not os.path.isdir(os.path.dirname(path)):
+                break  # the run that started us is over, or stop() removed our folder
             if not select.select([server], [], [], 2.0)[0]:
                 continue
             conn, _ = server.accept()
@@ -240,6 +244,13 @@ def start(idle_timeout: float = 900.0, wait: bool = True) -> str:
                 break
             time.sleep(0.05)
     return path
+
+
+def stop(path: str) -> None:
+    """Stop the worker at ``path`` (it exits within seconds; callers then run commands themselves)."""
+    import shutil
+
+    shutil.rmtree(os.path.dirname(path), ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -95,3 +95,13 @@ def test_a_worker_never_runs_changed_code(tmp_path):
         assert not os.path.exists(path)
     finally:
         os.utime(source, (before.st_atime, before.st_mtime))
+
+
+def test_stop_ends_the_worker(tmp_path):
+    path = worker.start(idle_timeout=120)
+    worker.stop(path)
+    time.sleep(3)  # the worker checks its folder every 2 s
+    r = nemo(["info", "--help"], tmp_path, path)
+    assert r.returncode == 0 and not os.path.exists(os.path.dirname(path))
+    alive = subprocess.run(["pgrep", "-f", path], capture_output=True, text=True).stdout.split()
+    assert not alive, alive  # the worker process is gone

@@ -44,6 +44,33 @@ if _bindir not in os.environ.get("PATH", "").split(os.pathsep)[:1]:
 os.environ["PYTHONPATH"] = os.pathsep.join(
     p for p in (workflow.basedir, os.environ.get("PYTHONPATH")) if p
 )
+# One warm worker for the many short `python -m nemo` jobs of a local run (nemo/worker.py):
+# numpy, scipy, pandas and trimesh are imported once instead of once per job. Started while
+# the workflow is parsed, so its imports overlap with building the DAG; not for dry runs,
+# linting or reports, and stopped in `onstart` when the jobs go to a cluster.
+from nemo.worker import ENV as WORKER_ENV  # noqa: E402
+
+_NO_JOBS = {"-n", "--dry-run", "--dryrun", "--lint", "--report", "--list-rules", "-l", "--summary",
+            "--detailed-summary", "--dag", "--rulegraph", "--filegraph", "--unlock", "--cleanup-metadata"}
+
+
+def start_worker():
+    from nemo.worker import start
+
+    if (config["worker"] and workflow.exec_mode.name == "DEFAULT" and WORKER_ENV not in os.environ
+            and not _NO_JOBS & set(sys.argv)):
+        os.environ[WORKER_ENV] = start(wait=False)
+
+
+def stop_worker():
+    from nemo.worker import stop
+
+    stop(os.environ[WORKER_ENV])
+    os.environ[WORKER_ENV] = "off"
+
+
+start_worker()
+
 # each job gets `threads` BLAS/OpenMP threads, so --cores N runs N single-threaded frames in parallel
 NEMO = (
     "OMP_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} MKL_NUM_THREADS={threads} "
