@@ -91,34 +91,34 @@ def sphere_mesh(radius=30.0, subdivisions=5):
     return make_mesh(ico.vertices, ico.faces)
 
 
-@pytest.mark.parametrize("alpha_deg", [0.0, 30.0, 72.0, 90.0, 135.0])
-def test_flat_stripes_known_angle(alpha_deg, wide_scale):
+def flat_stripes(alpha_deg: float):
+    """Stripes along direction α on a flat mesh: mesh, intensity, the true direction, centres."""
     mesh = flat_mesh()
     v = mesh.vertices
     a = np.deg2rad(alpha_deg)
     e = np.array([np.cos(a), np.sin(a), 0.0])
     intensity = np.cos(2 * np.pi * (v @ np.array([-np.sin(a), np.cos(a), 0.0])) / WAVELENGTH)
     inner = np.flatnonzero(np.all((v[:, :2] > 15) & (v[:, :2] < 45), axis=1))
-    centres = inner[:: max(1, len(inner) // 150)]
+    return mesh, intensity, e, inner[:: max(1, len(inner) // 150)]
+
+
+@pytest.mark.parametrize("alpha_deg", [0.0, 30.0, 72.0, 90.0, 135.0])
+def test_flat_stripes_known_angle(alpha_deg, wide_scale):
+    mesh, intensity, e, centres = flat_stripes(alpha_deg)
     df = directors(mesh, intensity, patch_radius=6.0, centres=centres, **wide_scale(mesh, 6.0))
     assert len(df) == len(centres) and (df["vertex"].to_numpy() == centres).all()
     err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), np.tile(e, (len(df), 1)))
     assert err.max() < 2.0, err.max()
     assert df["coherency"].median() > 0.8
     np.testing.assert_allclose(np.linalg.norm(df[["nx", "ny", "nz"]], axis=1), 1.0)
-    np.testing.assert_allclose(df[["x", "y", "z"]].to_numpy(), v[centres])
+    np.testing.assert_allclose(df[["x", "y", "z"]].to_numpy(), mesh.vertices[centres])
 
 
 @pytest.mark.parametrize("alpha_deg", [0.0, 72.0, 135.0])
 def test_flat_stripes_at_the_default_scale(alpha_deg):
     """The defaults (σ = 4 px of ¼ edge): measured median 0.4-0.7°, max 2.3-3.8°."""
-    mesh = flat_mesh()
-    v = mesh.vertices
-    a = np.deg2rad(alpha_deg)
-    e = np.array([np.cos(a), np.sin(a), 0.0])
-    intensity = np.cos(2 * np.pi * (v @ np.array([-np.sin(a), np.cos(a), 0.0])) / WAVELENGTH)
-    inner = np.flatnonzero(np.all((v[:, :2] > 15) & (v[:, :2] < 45), axis=1))
-    df = directors(mesh, intensity, patch_radius=6.0, centres=inner[:: max(1, len(inner) // 150)])
+    mesh, intensity, e, centres = flat_stripes(alpha_deg)
+    df = directors(mesh, intensity, patch_radius=6.0, centres=centres)
     err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), np.tile(e, (len(df), 1)))
     assert np.median(err) < 1.0 and err.max() < 5.0, (np.median(err), err.max())
 
