@@ -504,7 +504,7 @@ def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_ru
     # jobs), one per other job (synth, aggregation, tracking, figures)
     assert len(ours) == frames + n_other, (len(ours), frames, n_other, sacct[-2000:])
     assert all(r[1] == "COMPLETED" for r in ours), ours
-    assert sum("frame" in r[2] for r in ours) == frames, [r[2] for r in ours]
+    assert sum(r[2].startswith("rule_frame_") for r in ours) == frames, [r[2] for r in ours]
     for rule in ("synth", "aggregate_frames", "track"):
         assert any(rule in r[2] for r in ours), (rule, ours[:5])
     # and gave the same summaries as the local run
