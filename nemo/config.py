@@ -234,51 +234,60 @@ def resolve_surfaces(sections: dict) -> dict:
 
     A layer's null ``surface`` is ``inner`` when the mesh is split, else ``whole``; a
     thickness with null ``from``/``to`` is inner → outer when split, and off otherwise.
+    ``sections["surfaces"]`` lists the surfaces used (measured and fitted for curvature).
     """
     split = sections["mesh"]["split"] != "none"
-    for name, layer in (sections["layers"] or {}).items():
+    layers = sections["layers"] or {}
+    for name, layer in layers.items():
         if layer.get("surface") is None:
             layer["surface"] = "inner" if split else "whole"
         dmin, dmax = layer["range"]
         if not dmax > dmin:
             raise NemoError(f"config key 'layers.{name}.range': [{dmin}, {dmax}] needs d_max > d_min")
-    th = sections["thickness"]
-    if th is not None:
-        if th["from"] is None and th["to"] is None and not split:
-            sections["thickness"] = th = None
-        else:
-            th["from"] = th["from"] or "inner"
-            th["to"] = th["to"] or "outer"
-            if th["from"] == th["to"]:
-                raise NemoError(f"config key 'thickness.to': must differ from thickness.from ('{th['from']}')")
-    used = {layer["surface"] for layer in (sections["layers"] or {}).values()}
-    if th is not None:
-        used |= {th["from"], th["to"]}
-        for name, layer in (sections["layers"] or {}).items():
-            if layer["shift"] and layer["surface"] != th["from"]:
-                raise NemoError(
-                    f"config key 'layers.{name}.shift': the thickness is measured on '{th['from']}' but "
-                    f"this layer is peeled from '{layer['surface']}'; set thickness.from: "
-                    f"{layer['surface']} or shift: 0")
-    else:
-        for name, layer in (sections["layers"] or {}).items():
-            if layer["shift"]:
-                raise NemoError(f"config key 'layers.{name}.shift': shifting by a fraction of the "
-                                "thickness needs a thickness section")
-    used |= set(sections["measure"]["surfaces"] or [])
+    th = sections["thickness"] = _resolve_thickness(sections["thickness"], split)
+    _check_shifts(layers, th)
+    used = {layer["surface"] for layer in layers.values()} | set(sections["measure"]["surfaces"] or [])
+    used |= {th["from"], th["to"]} if th is not None else set()
     if not split and used & {"inner", "outer"}:
         raise NemoError(f"config key 'mesh.split': is 'none' but the surfaces {sorted(used - {'whole'})} are "
                         "used (layers, thickness or measure): set mesh.split: centre (or axis), or use the "
                         "whole surface only (layers on surface: whole, thickness: null)")
     if sections["mesh"]["split"] == "axis" and not sections["mesh"]["axis"]:
         raise NemoError("config key 'mesh.axis': mesh.split: axis needs mesh.axis: [x, y, z]")
-    layers = sections["layers"] or {}
-    for i, pair in enumerate(sections["alignment"] or []):
+    _check_alignment(sections["alignment"] or [], layers)
+    sections["surfaces"] = sorted(used or {"whole"})
+    return sections
+
+
+def _resolve_thickness(th: dict | None, split: bool) -> dict | None:
+    if th is None or (th["from"] is None and th["to"] is None and not split):
+        return None
+    th["from"] = th["from"] or "inner"
+    th["to"] = th["to"] or "outer"
+    if th["from"] == th["to"]:
+        raise NemoError(f"config key 'thickness.to': must differ from thickness.from ('{th['from']}')")
+    return th
+
+
+def _check_shifts(layers: dict, th: dict | None) -> None:
+    for name, layer in layers.items():
+        if not layer["shift"]:
+            continue
+        if th is None:
+            raise NemoError(f"config key 'layers.{name}.shift': shifting by a fraction of the "
+                            "thickness needs a thickness section")
+        if layer["surface"] != th["from"]:
+            raise NemoError(
+                f"config key 'layers.{name}.shift': the thickness is measured on '{th['from']}' but "
+                f"this layer is peeled from '{layer['surface']}'; set thickness.from: "
+                f"{layer['surface']} or shift: 0")
+
+
+def _check_alignment(pairs: list, layers: dict) -> None:
+    for i, pair in enumerate(pairs):
         for name in pair:
             if name not in layers:
                 raise NemoError(f"config key 'alignment.{i}': layer '{name}' is not defined under 'layers' "
                                 f"(defined: {', '.join(layers) or 'none'})")
         if pair[0] == pair[1]:
             raise NemoError(f"config key 'alignment.{i}': aligns layer '{pair[0]}' with itself")
-    sections["surfaces"] = sorted(used | ({"whole"} if not used else set()))
-    return sections
