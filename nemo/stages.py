@@ -47,8 +47,6 @@ CURVATURE_EDGES = 15.0
 ORDER_PER_PATCH = 2.5
 
 
-
-
 # ----------------------------------------------------------------------------- mesh
 def mesh(
     volume: np.ndarray | None,
