@@ -173,10 +173,8 @@ def load(path: str | os.PathLike | None) -> dict:
 
 def section_defaults(name: str) -> dict:
     """The defaults of one analysis section (``layer`` for one layer's keys)."""
-    out: dict = {}
-    _fill_defaults(out, {"properties": {k: {"default": None} | v for k, v in
-                                        _deref({"$ref": f"#/$defs/{name}"})["properties"].items()}})
-    return out
+    props = _deref({"$ref": f"#/$defs/{name}"})["properties"]
+    return {key: copy.deepcopy(_deref(node).get("default")) for key, node in props.items()}
 
 
 def section(name: str, params: Mapping | None = None) -> dict:

@@ -115,6 +115,9 @@ COLUMNS = (
 # geometry helpers
 
 
+#: Default contour radius in averaging radii (the suppression radius default is one averaging radius).
+CONTOUR_PER_AVERAGING = 1.5
+
 def edge_graph(mesh: trimesh.Trimesh) -> sparse.csr_matrix:
     """Symmetric sparse graph of the mesh edges weighted by their length, shape (N, N).
 
@@ -553,7 +556,7 @@ def find_defects(
         logger.info("averaging radius not given: estimated %.3g from the S field", avg_radius)
     if min_distance is None:
         min_distance = avg_radius
-    r_contour_default = contour_radius if contour_radius is not None else 1.5 * avg_radius
+    r_contour_default = contour_radius if contour_radius is not None else CONTOUR_PER_AVERAGING * avg_radius
     if s_ordered is None:
         s_ordered = s_threshold  # raised per defect to 3x the isotropic floor (see module doc)
 

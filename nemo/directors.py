@@ -244,6 +244,11 @@ def default_patch_radius(mesh: trimesh.Trimesh) -> float:
     return max(PATCH_PER_RADIUS * object_radius(mesh), PATCH_MIN_EDGES * mean_edge_length(mesh))
 
 
+def nominal_radius(mesh: trimesh.Trimesh, patch_k: int) -> float:
+    """Radius of the disc holding ``patch_k`` vertices at the mesh's mean vertex density."""
+    return float(np.sqrt(float(mesh.area) / len(mesh.vertices)) * np.sqrt(patch_k / np.pi))
+
+
 def default_pixel(edge: float, patch_radius: float) -> float:
     """``PIXEL_PER_EDGE`` × the mean edge length, at least ``patch_radius / MAX_HALF_WIDTH_PX``."""
     return max(PIXEL_PER_EDGE * edge, patch_radius / MAX_HALF_WIDTH_PX)
@@ -324,14 +329,14 @@ def directors(
         patch_k = int(patch_k)
         if patch_k < MIN_PATCH_VERTICES or patch_k > n_vert:
             raise NemoError(f"patch k must be between {MIN_PATCH_VERTICES} and the {n_vert} vertices, got {patch_k}")
-        nominal_radius = spacing_v * np.sqrt(patch_k / np.pi)
+        nominal = nominal_radius(mesh, patch_k)
     else:
         patch_radius = default_patch_radius(mesh) if patch_radius is None else float(patch_radius)
         if not patch_radius > 0:
             raise NemoError(f"patch radius must be > 0 µm, got {patch_radius}")
-        nominal_radius = patch_radius
+        nominal = patch_radius
     if pixel is None:  # finer than the mesh, but at most MAX_HALF_WIDTH_PX across the radius
-        pixel = default_pixel(edge, nominal_radius)
+        pixel = default_pixel(edge, nominal)
     pixel = float(pixel)
     if not pixel > 0:
         raise NemoError(f"pixel size must be > 0 µm, got {pixel}")
@@ -341,15 +346,15 @@ def directors(
             f"the micro-image would over-resolve the mesh at great cost; use `pixel` "
             f"{PIXEL_PER_EDGE * edge:.3g} (a quarter edge, the default) or at least {MIN_PIXEL_PER_EDGE * edge:.3g}"
         )
-    if nominal_radius < 2 * pixel:
+    if nominal < 2 * pixel:
         raise NemoError(
-            f"the patch (radius ≈ {nominal_radius:.3g}) is smaller than 2 micro-image pixels "
+            f"the patch (radius ≈ {nominal:.3g}) is smaller than 2 micro-image pixels "
             f"({pixel:.3g}): use a larger patch or a smaller `pixel`"
         )
 
     rng = np.random.default_rng(rng)
     if centres is None:
-        n = default_n_patches(area, nominal_radius, n_vert) if n_patches is None else int(n_patches)
+        n = default_n_patches(area, nominal, n_vert) if n_patches is None else int(n_patches)
         if n < 1:
             raise NemoError(f"number of patches must be >= 1, got {n}")
         if n > n_vert:
@@ -368,7 +373,7 @@ def directors(
         radii = dist_k[:, -1]
     else:
         radii = np.full(n_c, patch_radius)
-    grid_radius = float(np.quantile(radii, 0.99)) if n_c else nominal_radius
+    grid_radius = float(np.quantile(radii, 0.99)) if n_c else nominal
     radii = np.minimum(radii, grid_radius)
     half = int(np.ceil(grid_radius / pixel)) + _MARGIN_PX
     if half > MAX_HALF_WIDTH_LIMIT:

@@ -38,7 +38,7 @@ def write_json(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def frame_setup(cfg: dict, dataset: str | None, image, spacing, mask=None) -> dict:
+def frame_setup(cfg: dict, dataset: str | None, image, spacing) -> dict:
     """Image, spacing, mask and segmented channel of a frame: from the dataset, else given."""
     if dataset is None and image is None and len(cfg["datasets"]) == 1:
         dataset = next(iter(cfg["datasets"]))
@@ -51,7 +51,7 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing, mask=None) -> di
         raise NemoError("give an image (or a config with a dataset and --dataset NAME)")
     seg = d.get("segment_channel")
     return {"dataset": dataset, "image": str(image), "spacing": spacing or d.get("spacing"),
-            "mask": mask or d.get("mask"), "seg": cfg["segment_channel"] if seg is None else seg}
+            "mask": d.get("mask"), "seg": cfg["segment_channel"] if seg is None else seg}
 
 
 def run_frame(
@@ -141,6 +141,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     on the mesh (curvature radius, director patch radius, pixel and count, averaging radius,
     defect suppression and contour radii, tracking distance).
     """
+    from nemo.defects import CONTOUR_PER_AVERAGING
     from nemo.io import read_stack
 
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
@@ -159,7 +160,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
         radius = sections["order"]["radius"] or stages.ORDER_PER_PATCH * dp["nominal_radius"]
         fp = nconfig.section("defects", sections["defects"])
         fp["min_distance"] = fp["min_distance"] or radius
-        fp["contour_radius"] = fp["contour_radius"] or 1.5 * radius
+        fp["contour_radius"] = fp["contour_radius"] or CONTOUR_PER_AVERAGING * radius
         per_layer[name] = {"directors": dp, "order": {**sections["order"], "radius": radius}, "defects": fp}
     sections["resolved_per_layer"] = per_layer
     if per_layer:
@@ -208,6 +209,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
 
 def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov) -> dict:
     """Peel → directors → order → defects of one layer (the workflow's per-layer rules)."""
+    from nemo.mesh import mean_edge_length
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
 
     surface = layer["surface"]
@@ -251,7 +253,7 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
     if dsec["refine_directors"] > 0:
         save("refined", extra if extra is not None else ddf.iloc[:0], parameters=dp)
     s = odf["S"].to_numpy()
-    return {"surface": surface, "vertices": n, "mean_edge": float(mesh.edges_unique_length.mean()),
+    return {"surface": surface, "vertices": n, "mean_edge": mean_edge_length(mesh),
             "peel": lp, "directors": dp, "order": op, "defects_parameters": fp,
             "n_directors": int(len(ddf)), "S": {"mean": float(np.nanmean(s)), "median": float(np.nanmedian(s))},
             "defects": fdf[["x", "y", "z", "charge", "charge_rounded", "S"]].to_dict(orient="records"),

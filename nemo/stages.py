@@ -25,7 +25,6 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pandas as pd
@@ -169,7 +168,7 @@ def peel(
 
 def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:
     """The ``directors`` section with patch radius, pixel and patch count resolved on ``mesh``."""
-    from nemo.directors import default_n_patches, default_patch_radius, default_pixel
+    from nemo.directors import default_n_patches, default_patch_radius, default_pixel, nominal_radius
     from nemo.mesh import mean_edge_length
 
     p = nconfig.section("directors", params)
@@ -182,7 +181,7 @@ def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
         nominal = float(p["patch_radius"])
     else:
         p["patch_radius"] = None
-        nominal = math.sqrt(float(mesh.area) / len(mesh.vertices) * p["patch_k"] / math.pi)
+        nominal = nominal_radius(mesh, int(p["patch_k"]))
     if p["pixel"] is None:
         p["pixel"] = default_pixel(edge, nominal)
     if p["n_patches"] is None:
@@ -278,7 +277,7 @@ def defects(
     return df, extra, p
 
 
-def tracking_distance(params: dict | None, defects_params: list[dict]) -> dict:
+def tracking_distance(params: dict | None, defects_params: list[dict], n_defects: int | None = None) -> dict:
     """The ``tracking`` section with ``max_distance`` resolved: the defects' suppression radius.
 
     Two defects of one layer are at least ``defects.min_distance`` apart in a frame, so a link
@@ -287,6 +286,8 @@ def tracking_distance(params: dict | None, defects_params: list[dict]) -> dict:
     p = nconfig.section("tracking", params)
     if p["max_distance"] is None:
         values = [float(d["min_distance"]) for d in defects_params if d.get("min_distance")]
+        if not values and n_defects == 0:
+            values = [1.0]  # nothing to link: any distance gives the same (empty) tracks
         if not values:
             raise NemoError("tracking.max_distance is not given and no defects table records its "
                             "min_distance: give tracking.max_distance")

@@ -87,3 +87,7 @@ def test_defects_table_source_needs_a_curvature_table():
     empty = pd.DataFrame(columns=["vertex", "S", "nx", "ny", "nz"])
     with pytest.raises(NemoError, match="curvature table"):
         stages.defects(m, empty, empty, {"curvature_source": "table"})
+
+
+def test_tracking_without_defects_needs_no_distance():
+    assert stages.tracking_distance(None, [], n_defects=0)["max_distance"] > 0

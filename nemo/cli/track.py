@@ -48,10 +48,8 @@ def run(args) -> int:
     linked_path = output_path(args.linked) if args.linked else None
     defects = read_table(args.defects, columns=("t", "x", "y", "z", "charge_rounded"))
     recorded = defects["min_distance"].dropna().unique() if "min_distance" in defects else []
-    if not len(defects) and args.max_distance is None:
-        args.max_distance = 1.0  # nothing to link: any distance gives the same (empty) tracks
     params = stages.tracking_distance(section_params(args, "tracking"),
-                                      [{"min_distance": float(v)} for v in recorded])
+                                      [{"min_distance": float(v)} for v in recorded], n_defects=len(defects))
     linked = link_defects(
         defects, max_distance=params["max_distance"], gap_frames=params["gap_frames"],
         gap_max_distance=params["gap_max_distance"], frames=args.frames,

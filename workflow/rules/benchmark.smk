@@ -41,9 +41,8 @@ def _case_dataset(cid, case):
         SECTIONS[name] = nconfig.analysis({**config, "datasets": {name: overrides}}, name)
     except NemoError as exc:
         _fail(f"benchmark case '{cid}' (run: {case['run']}): {exc}")
-    spacing = case["synth"].get("spacing")
     DATA[name] = {"path": path, "spacing": None, "mask": None, "synthetic": None, "seg": 0, "t": [0], "c": [0],
-                  "stack_mb": None if spacing is None else None}
+                  "stack_mb": None}
     return name
 
 
