@@ -36,6 +36,7 @@ import pandas as pd
 from scipy.optimize import linear_sum_assignment
 from scipy.special import erf
 
+from nemo import atomic
 from nemo.errors import NemoError
 
 #: Default matching radius for defects as a fraction of the vesicle radius.
@@ -790,9 +791,7 @@ def _read(path, kind=None):
 def _atomic_json(obj: dict, path: str | os.PathLike) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
-    os.replace(tmp, path)
+    atomic.write_json(path, obj, indent=1)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
+from nemo.atomic import atomic_path
 from nemo.errors import NemoError, NemoWarning
 
 AXES = "TZCYX"
@@ -341,25 +342,25 @@ def write_hyperstack(
     """
     dz, dy, dx = check_spacing(spacing)
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    if ome:
-        ome_unit = "µm" if unit in ("um", "µm", "μm", "micron") else unit
-        tifffile.imwrite(
-            tmp, data, ome=True, photometric="minisblack", compression=compression,
-            metadata={
-                "axes": axes, "PhysicalSizeX": dx, "PhysicalSizeY": dy, "PhysicalSizeZ": dz,
-                "PhysicalSizeXUnit": ome_unit, "PhysicalSizeYUnit": ome_unit, "PhysicalSizeZUnit": ome_unit,
-            },
-        )
-    else:
-        if not re.fullmatch("T?Z?C?YX", axes):
-            raise NemoError(f"ImageJ hyperstacks need axes in the order TZCYX, got {axes!r}")
-        ij_unit = "micron" if unit in ("um", "µm", "μm", "micron") else unit  # ImageJ metadata is ASCII
-        md = {"axes": axes, "spacing": dz, "unit": ij_unit}
-        if metadata:
-            md["Info"] = json.dumps(metadata)
-        tifffile.imwrite(
-            tmp, data, imagej=True, resolution=(1.0 / dx, 1.0 / dy),
-            metadata=md, compression=compression,
-        )
-    os.replace(tmp, path)
+    if not ome and not re.fullmatch("T?Z?C?YX", axes):
+        raise NemoError(f"ImageJ hyperstacks need axes in the order TZCYX, got {axes!r}")
+    with atomic_path(path) as tmp:
+        if ome:
+            ome_unit = "µm" if unit in ("um", "µm", "μm", "micron") else unit
+            tifffile.imwrite(
+                tmp, data, ome=True, photometric="minisblack", compression=compression,
+                metadata={
+                    "axes": axes, "PhysicalSizeX": dx, "PhysicalSizeY": dy, "PhysicalSizeZ": dz,
+                    "PhysicalSizeXUnit": ome_unit, "PhysicalSizeYUnit": ome_unit, "PhysicalSizeZUnit": ome_unit,
+                },
+            )
+        else:
+            ij_unit = "micron" if unit in ("um", "µm", "μm", "micron") else unit  # ImageJ metadata is ASCII
+            md = {"axes": axes, "spacing": dz, "unit": ij_unit}
+            if metadata:
+                md["Info"] = json.dumps(metadata)
+            tifffile.imwrite(
+                tmp, data, imagej=True, resolution=(1.0 / dx, 1.0 / dy),
+                metadata=md, compression=compression,
+            )
+

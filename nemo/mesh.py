@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from nemo.atomic import atomic_path
 from nemo.errors import NemoError, NemoWarning
 
 _UNIT_COMMENT = re.compile(rb"comment nemo unit (\S+)")
@@ -191,7 +192,8 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
     """Write a mesh as PLY (binary, with unit and per-vertex fields) or OBJ, atomically."""
     path = Path(path)
     suffix = path.suffix.lower()
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    if suffix not in (".ply", ".obj"):
+        raise NemoError(f"cannot write mesh {path}: use a .ply or .obj file name")
     if suffix == ".ply":
         out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
         for name, values in mesh.vertex_attributes.items():
@@ -208,12 +210,10 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
         if params:  # the resolved mesh parameters (provenance), one JSON line
             comments += f"comment nemo params {json.dumps(params, default=str)}\n"
         data = data.replace(b"\nelement vertex", f"\n{comments}element vertex".encode(), 1)
-        tmp.write_bytes(data)  # trimesh stores vertices as float32: ~1e-7 relative precision
-    elif suffix == ".obj":
-        tmp.write_text(mesh.export(file_type="obj"))
     else:
-        raise NemoError(f"cannot write mesh {path}: use a .ply or .obj file name")
-    os.replace(tmp, path)
+        data = mesh.export(file_type="obj").encode()
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)  # trimesh stores vertices as float32: ~1e-7 relative precision
 
 
 def _load_ply(path: Path) -> trimesh.Trimesh:

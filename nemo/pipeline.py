@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from nemo import atomic
 from nemo import config as nconfig
 from nemo import layout, stages
 from nemo._log import logger, step
@@ -33,9 +34,7 @@ def _peak_rss_mb() -> float:
 
 def write_json(obj, path: Path) -> None:
     """Write JSON atomically (temporary file + rename)."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
-    os.replace(tmp, path)
+    atomic.write_json(path, obj, default=_json_default)
 
 
 def frame_setup(cfg: dict, dataset: str | None, image, spacing) -> dict:

@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from nemo import atomic
 from nemo import layout
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
@@ -893,21 +894,16 @@ def surface_plotter(
     return p
 
 
-def _atomic_png(path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-
-
 def render_surface(out: str | os.PathLike, mesh, **kwargs) -> Path:
     """Render :func:`surface_plotter` to a PNG (atomically) and return its path."""
     out = Path(out)
-    tmp = _atomic_png(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     p = surface_plotter(mesh, **kwargs)
     try:
-        p.screenshot(str(tmp))
+        with atomic.atomic_path(out, keep_suffix=True) as tmp:
+            p.screenshot(str(tmp))
     finally:
         p.close()
-    os.replace(tmp, out)
     return out
 
 
@@ -928,10 +924,10 @@ def save_figure(fig, out: str | os.PathLike, dpi: int = 130) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     out = Path(out)
-    tmp = _atomic_png(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
-    fig.savefig(tmp, dpi=dpi, facecolor="white")
-    os.replace(tmp, out)
+    with atomic.atomic_path(out, keep_suffix=True) as tmp:
+        fig.savefig(tmp, dpi=dpi, facecolor="white")
     return out
 
 
@@ -1269,9 +1265,7 @@ def _write_manifest(outdir: Path, figures: list[Figure]) -> Path:
     for f in figures:
         old[f.path.name] = {"kind": f.kind, "caption": f.caption, "sources": f.sources,
                             "names": f.names, "parameters": _params([Path(s) for s in f.sources])}
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(old, indent=1, default=str, ensure_ascii=False))
-    os.replace(tmp, path)
+    atomic.write_json(path, old, default=str, indent=1)
     return path
 
 

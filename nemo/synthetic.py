@@ -52,6 +52,7 @@ from scipy import ndimage
 from scipy.special import erf
 from scipy.spatial.transform import Rotation
 
+from nemo import atomic
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
 from nemo.frames import axis_frames
@@ -950,9 +951,7 @@ def write_vesicle(path: str | os.PathLike, **kwargs) -> dict[str, Any]:
                       "centre": truth["centre"], "truth": truth_path(path).name},
         )
     tp = truth_path(path)
-    tmp = tp.with_name(f".{tp.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(truth, indent=1))
-    os.replace(tmp, tp)
+    atomic.write_json(tp, truth, indent=1)
     logger.info("ground truth written to %s", tp)
     return truth
 

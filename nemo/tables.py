@@ -21,6 +21,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from nemo import __version__
+from nemo.atomic import atomic_path
 from nemo.errors import NemoError
 
 #: Required columns of each table kind (more columns may follow).
@@ -54,9 +55,8 @@ def write_table(df: pd.DataFrame, path: str | os.PathLike, **provenance) -> None
     meta = dict(table.schema.metadata or {})
     meta[b"nemo"] = json.dumps({"version": __version__, **provenance}, default=_json_default).encode()
     table = table.replace_schema_metadata(meta)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    pq.write_table(table, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp)
 
 
 def _json_default(obj):

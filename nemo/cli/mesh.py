@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
+from nemo import atomic
 from nemo.cli.common import add_common, output_path, positive
 from nemo.errors import NemoError
 
@@ -126,9 +125,7 @@ def run(args) -> int:
         print(line)
     if params["fit_sphere"]:
         sidecar = out.with_name(f"{out.stem}.sphere.json")
-        tmp = sidecar.with_name(f".{sidecar.name}.tmp{os.getpid()}")
-        tmp.write_text(json.dumps(spheres, indent=2) + "\n")
-        os.replace(tmp, sidecar)
+        atomic.write_json(sidecar, spheres)
         print(f"sphere fit -> {sidecar}")
     print(f"step {params['step']} voxels, sigma {params['sigma']:.4g}, iso-level {params['level']:.4g}; "
           f"done in {time.perf_counter() - start:.2f} s")
