@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import resource
+import shutil
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -84,14 +85,55 @@ def run_frame(
     -------
     dict
         The run summary (also written to ``summary.json``).
-    """
-    from nemo.io import read_mask, read_stack
 
+    Notes
+    -----
+    The run writes into a hidden folder beside ``outdir`` and moves its files into ``outdir``
+    only when every step succeeded: a failed or interrupted run leaves earlier results intact.
+    """
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
     frame = frame_setup(cfg, dataset, image, spacing)
     sections = nconfig.analysis(cfg, frame["dataset"])
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
+    final = Path(outdir)
+    out = _staging_folder(final)
+    try:
+        summary = _run_in(out, final, cfg, frame, sections, t, c)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)  # the previous results in `final` stay as they were
+        raise
+    _publish(out, final, summary["files"])
+    logger.info("nemo run: %d layer(s) in %.1f s, peak memory %.0f MB", len(summary["layers"]),
+                summary["total_s"], summary["peak_rss_mb"])
+    return summary
+
+
+def _staging_folder(final: Path) -> Path:
+    """A fresh, empty folder beside ``final`` where a run writes until it succeeds."""
+    if final.exists() and not final.is_dir():
+        raise NemoError(f"the output {final} is a file: give a folder (-o OUTDIR)")
+    parent = final.absolute().parent
+    blocker = next((p for p in (parent, *parent.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise NemoError(f"cannot create the folder {final}: {blocker} is a file; choose another output folder")
+    stage = parent / f".{final.name}.partial{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir(parents=True)
+    return stage
+
+
+def _publish(stage: Path, final: Path, written: list[str]) -> None:
+    """Move a successful run's files from ``stage`` into ``final``; drop the stale ones there."""
+    final.mkdir(parents=True, exist_ok=True)
+    for name in [*written, layout.SUMMARY_JSON]:
+        os.replace(stage / name, final / name)
+    _remove_stale(final, written)
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: int, c: int) -> dict:
+    """The body of :func:`run_frame`: files written into ``out``, provenance naming ``final``."""
+    from nemo.io import read_mask, read_stack
+
     timings: dict[str, float] = {}
     start = time.perf_counter()
 
@@ -108,28 +150,26 @@ def run_frame(
     mask = read_mask(frame["mask"], t, frame["seg"], volume.shape) if frame["mask"] else None
     summary = {"image": frame["image"], "dataset": frame["dataset"], "t": t, "c": c,
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
-               "outdir": str(out)}
+               "outdir": str(final)}
     written: list[str] = []
-    meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed)
+    meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed, final=final)
     if c != frame["seg"]:
         with timed("read"):
             volume, info = read_stack(frame["image"], t, c, spacing=sp)
     layers = {name: layer for name, layer in (sections["layers"] or {}).items()
               if layer["channels"] == "all" or c in layer["channels"]}
     results = {name: layer_frame(name, layer, volume, info, meshes, sections, out, written, timed,
-                                 prov={"image": frame["image"], "t": t, "c": c, "unit": info.unit})
+                                 prov={"image": frame["image"], "t": t, "c": c, "unit": info.unit},
+                                 final=final)
                for name, layer in layers.items()}
     del volume
     for a, b in sections["alignment"] or []:
         if a in results and b in results:
             align_frame(a, b, meshes[layers[a]["surface"]], out, written)
-    _remove_stale(out, written)
     summary.update(config=sections, mesh=mesh_params, layers=results, files=sorted(written),
                    timings_s=timings, total_s=round(time.perf_counter() - start, 3),
                    peak_rss_mb=round(_peak_rss_mb(), 1))
     write_json(summary, out / layout.SUMMARY_JSON)
-    logger.info("nemo run: %d layer(s) in %.1f s, peak memory %.0f MB", len(results), summary["total_s"],
-                summary["peak_rss_mb"])
     return summary
 
 
@@ -169,8 +209,12 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     return json.loads(json.dumps(sections, default=_json_default))
 
 
-def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed):
-    """Mesh, measure, curvature and thickness of a time point (the workflow's mesh/morphology rules)."""
+def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None):
+    """Mesh, measure, curvature and thickness of a time point (the workflow's mesh/morphology rules).
+
+    Files go to ``out``; provenance names them in ``final`` (default ``out``), where they end up.
+    """
+    final = final or out
     from nemo.mesh import load_mesh, save_mesh
     from nemo.morphology import measure
     from nemo.tables import write_table
@@ -192,7 +236,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
             with timed("curvature"):
                 df, cp = stages.curvature(meshes[surface], sections["curvature"])
             write_table(df, out / layout.curvature_file(surface), command="curvature",
-                        mesh=str(out / layout.MESH[surface]), n_vertices=len(df), parameters=cp,
+                        mesh=str(final / layout.MESH[surface]), n_vertices=len(df), parameters=cp,
                         unit=info.unit)
             written.append(layout.curvature_file(surface))
             params[f"curvature_{surface}"] = cp
@@ -200,21 +244,25 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
     if th is not None:
         with timed("thickness"):
             df, tp = stages.thickness(meshes[th["from"]], meshes[th["to"]], th)
-        write_table(df, out / layout.THICKNESS, command="thickness", mesh=str(out / layout.MESH[th["from"]]),
+        write_table(df, out / layout.THICKNESS, command="thickness", mesh=str(final / layout.MESH[th["from"]]),
                     n_vertices=len(df), parameters=tp, unit=info.unit)
         written.append(layout.THICKNESS)
     return meshes, params
 
 
-def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov) -> dict:
-    """Peel → directors → order → defects of one layer (the workflow's per-layer rules)."""
+def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov,
+                final: Path | None = None) -> dict:
+    """Peel → directors → order → defects of one layer (the workflow's per-layer rules).
+
+    Files go to ``out``; provenance names them in ``final`` (default ``out``), where they end up.
+    """
     from nemo.mesh import mean_edge_length
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
 
     surface = layer["surface"]
     mesh = meshes[surface]
     n = len(mesh.vertices)
-    prov = {**prov, "mesh": str(out / layout.MESH[surface]), "n_vertices": n}
+    prov = {**prov, "mesh": str((final or out) / layout.MESH[surface]), "n_vertices": n}
 
     def save(kind, df, **extra):
         path = out / (layout.refined_file(name) if kind == "refined" else layout.layer_file(kind, name))

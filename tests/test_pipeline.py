@@ -236,3 +236,31 @@ def test_paper_vesicle(case, tmp_path):
     print(f"{case}: errors {np.round(err, 2)} µm, charges {np.round(df['charge'].to_numpy(), 3)}, "
           f"{summary['total_s']:.1f} s")
     assert summary["layers"]["fibres"]["euler_check"]["matches"]
+
+
+def test_a_failed_run_leaves_the_previous_results_intact(small_vesicle, small_run, tmp_path, monkeypatch):
+    """nemo run replaces its folder's files only on success: a failure mid-way changes nothing."""
+    import shutil
+
+    from nemo import stages
+    from nemo.errors import NemoError
+
+    out = tmp_path / "o"
+    shutil.copytree(small_run[0], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def broken(*args, **kwargs):
+        raise NemoError("directors failed")
+
+    monkeypatch.setattr(stages, "directors", broken)  # after mesh, curvature, thickness and peel
+    with pytest.raises(NemoError, match="directors failed"):
+        run_frame(small_vesicle[0], out, SMALL)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert not [p for p in tmp_path.iterdir() if p.name != "o"], "a staging folder was left behind"
+
+
+def test_provenance_names_the_final_folder(small_run):
+    """Tables record the mesh path where it ends up, not the staging folder."""
+    out, _, _ = small_run
+    prov = read_provenance(out / layout.layer_file("order", "fibres"))
+    assert prov["mesh"] == str(out / layout.MESH["inner"])

@@ -88,9 +88,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     from nemo import _log
+    from nemo.cli.common import check_outputs_are_not_inputs
 
     _log.configure(getattr(args, "verbose", 0) + 1)
     try:
+        check_outputs_are_not_inputs(args)
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             warnings.simplefilter("always", NemoWarning)
@@ -102,3 +104,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"nemo {args._command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # the system refused a read or write: no bug of ours, say what and where
+        where = f" {exc.filename}" if exc.filename else ""
+        print(f"nemo {args._command}: error: cannot access{where} ({exc.strerror or exc}); check the path, "
+              "its permissions and the free disk space", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"nemo {args._command}: error: out of memory; use a machine with more memory, a coarser mesh "
+              "step (mesh.step / --step), or a cropped image", file=sys.stderr)
+        return 2

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -48,13 +49,78 @@ def positive(kind=float):
     return parse
 
 
+def seed(text: str) -> int:
+    """argparse type: a random seed, an integer in [0, 2**32 - 1] (numpy's range)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not 0 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"must be between 0 and {2**32 - 1}, got {text}")
+    return value
+
+
 def output_path(path: str | Path, suffixes: tuple[str, ...] = (".parquet",)) -> Path:
-    """Check an output path's suffix and create its folder."""
+    """Check an output path's suffix and create its folder.
+
+    Raises
+    ------
+    NemoError
+        Wrong suffix, an existing folder of that name, or a folder that cannot be created
+        (a file in the way, no permission).
+    """
     path = Path(path)
     if suffixes and path.suffix.lower() not in suffixes:
         raise NemoError(f"output {path} should end in {' or '.join(suffixes)}")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise NemoError(f"output {path} is a folder: give a file name ending in {' or '.join(suffixes)}")
+    make_folder(path.parent)
     return path
+
+
+def make_folder(folder: str | Path) -> Path:
+    """Create ``folder`` (and parents) or raise :class:`NemoError` saying why it cannot be."""
+    folder = Path(folder)
+    blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise NemoError(f"cannot create the folder {folder}: {blocker} is a file; choose another output path")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise NemoError(f"cannot create the folder {folder} ({exc.strerror}); choose a writable output path") \
+            from None
+    if not os.access(folder, os.W_OK):
+        raise NemoError(f"the folder {folder} is not writable; choose a writable output path")
+    return folder
+
+
+#: Option names (argparse ``dest``) that name files a command writes.
+OUTPUT_OPTIONS = ("output", "refined", "linked", "candidates")
+
+
+def check_outputs_are_not_inputs(args: argparse.Namespace) -> None:
+    """Refuse a command whose output file is one of its input files (it would be replaced).
+
+    Every argument that names an existing file and is not an output counts as an input.
+    """
+    outputs = {name: getattr(args, name) for name in OUTPUT_OPTIONS if getattr(args, name, None)}
+    inputs = []
+    for name, value in vars(args).items():
+        if name in OUTPUT_OPTIONS or name.startswith("_"):
+            continue
+        for item in value if isinstance(value, list) else [value]:
+            if isinstance(item, str) and os.path.isfile(item):
+                inputs.append(item)
+    for name, out in outputs.items():
+        if not os.path.exists(out):
+            continue
+        same = next((i for i in inputs if os.path.samefile(i, out)), None)
+        if same is not None:
+            flag = "-o" if name == "output" else f"--{name}"
+            raise NemoError(
+                f"the output {out} ({flag}) is the input {same}: writing it would destroy the input; "
+                "choose another output file name"
+            )
 
 
 def print_json(obj) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nemo.cli.common import add_common, output_path, positive
+from nemo.cli.common import add_common, output_path, positive, seed
 
 HELP = "mean and Gaussian curvature (H, K) per vertex from local surface fits"
 DESCRIPTION = """\
@@ -44,7 +44,7 @@ def add_arguments(parser) -> None:
                         help="nearest fitted vertices used for the interpolation (default 8)")
     parser.add_argument("--fit", choices=("auto", "quadric", "quadratic", "quartic"),
                         help="fitted surface (default auto)")
-    parser.add_argument("--seed", type=int, metavar="S", help="random seed of the sample (default 0)")
+    parser.add_argument("--seed", type=seed, metavar="S", help="random seed of the sample (default 0)")
     add_common(parser, output_help="output table (.parquet)")
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nemo.cli.common import add_common, mesh_and_table, output_path, positive
+from nemo.cli.common import add_common, mesh_and_table, output_path, positive, seed
 
 HELP = "tangential fibre directors of a layer (structure tensor of surface micro-images)"
 DESCRIPTION = """\
@@ -38,7 +38,7 @@ def add_arguments(parser) -> None:
                              "length, at least radius/97)")
     parser.add_argument("--sigma", type=positive(), metavar="PX",
                         help="structure-tensor integration scale in pixels (default 4)")
-    parser.add_argument("--seed", type=int, metavar="S", help="random seed of the centres (default 0)")
+    parser.add_argument("--seed", type=seed, metavar="S", help="random seed of the centres (default 0)")
     parser.add_argument("--frames", choices=("axis", "smooth"),
                         help="tangent frames: N × x̂ (default) or potpourri3d transport")
     add_common(parser, output_help="directors table (.parquet)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from nemo.cli.common import add_common, positive
+from nemo.cli.common import add_common, positive, seed
 from nemo.errors import NemoError
 
 HELP = "generate a synthetic nematic vesicle (TZCYX hyperstack + ground-truth JSON)"
@@ -56,7 +56,7 @@ def add_arguments(parser) -> None:
                    help="named defect set (default tetrahedron: 4 x +1/2)")
     x.add_argument("--defects", metavar="SPEC",
                    help='defects as "x,y,z:charge;..." (directions from the centre, Σ charge = 2)')
-    d.add_argument("--rotate-random", type=int, metavar="SEED",
+    d.add_argument("--rotate-random", type=seed, metavar="SEED",
                    help="rotate the defect set by a uniformly random rotation drawn with SEED")
     f = parser.add_argument_group("fibres and image")
     f.add_argument("--fibre-spacing", type=positive(), default=5.0, metavar="UM",
@@ -87,7 +87,7 @@ def add_arguments(parser) -> None:
                    help="axis of the per-frame rotation (default 0 1 0)")
     t.add_argument("--channels", type=positive(int), metavar="C",
                    help="number of channels (default: as many as the layers use)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed for fibres and noise (default 0)")
+    parser.add_argument("--seed", type=seed, default=0, help="random seed for fibres and noise (default 0)")
     add_common(parser, output=False)
 
 
