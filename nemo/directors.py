@@ -249,6 +249,20 @@ def nominal_radius(mesh: trimesh.Trimesh, patch_k: int) -> float:
     return float(np.sqrt(float(mesh.area) / len(mesh.vertices)) * np.sqrt(patch_k / np.pi))
 
 
+def check_patch_size(radius: float, obj_radius: float, name: str = "patch_radius") -> None:
+    """Refuse a patch wider than the object: a tangent-plane image of it would not be local.
+
+    The limit is the object radius ``sqrt(area / 4π)`` (the default patch is a tenth of it).
+    """
+    if radius > obj_radius:
+        raise NemoError(
+            f"the patch (`{name}`, radius {radius:.4g}) is larger than the object itself (radius "
+            f"{obj_radius:.4g} from its area): a patch must be a small, nearly flat piece of the surface. "
+            f"Use a `patch_radius` well below {obj_radius:.4g} (the default is {PATCH_PER_RADIUS:g} × that, "
+            f"{PATCH_PER_RADIUS * obj_radius:.3g}), or check that the mesh is in the unit of the lengths given"
+        )
+
+
 def default_pixel(edge: float, patch_radius: float) -> float:
     """``PIXEL_PER_EDGE`` × the mean edge length, at least ``patch_radius / MAX_HALF_WIDTH_PX``."""
     return max(PIXEL_PER_EDGE * edge, patch_radius / MAX_HALF_WIDTH_PX)
@@ -335,6 +349,7 @@ def directors(
         if not patch_radius > 0:
             raise NemoError(f"patch radius must be > 0 µm, got {patch_radius}")
         nominal = patch_radius
+    check_patch_size(nominal, object_radius(mesh), "patch_radius" if patch_k is None else "patch_k")
     if pixel is None:  # finer than the mesh, but at most MAX_HALF_WIDTH_PX across the radius
         pixel = default_pixel(edge, nominal)
     pixel = float(pixel)

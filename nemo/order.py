@@ -220,6 +220,22 @@ def order(
     })
 
 
+#: Largest median distance between matched directors, as a fraction of layer A's size.
+MAX_MATCH_DISTANCE_PER_SIZE = 0.5
+
+
+def _check_overlap(dist: np.ndarray, pos_a: np.ndarray) -> None:
+    """Refuse two director sets that do not lie on the same object (median match too far)."""
+    size = float(np.sqrt(np.mean(np.sum((pos_a - pos_a.mean(axis=0)) ** 2, axis=1))))
+    median = float(np.median(dist))
+    if median > MAX_MATCH_DISTANCE_PER_SIZE * size:
+        raise NemoError(
+            f"the two director tables do not overlap: the nearest director of B is a median {median:.4g} "
+            f"away from those of A, while A's layer spans about {size:.4g} (rms radius). Pass tables of the "
+            "same object, frame and unit (e.g. two layers of one `nemo run`)"
+        )
+
+
 def alignment(
     dir_a: pd.DataFrame,
     dir_b: pd.DataFrame,
@@ -269,6 +285,7 @@ def alignment(
         raise NemoError("a directors table has no valid director: rerun 'nemo directors'")
     normals = nrm_mesh if normals_a is None else normals_a
     dist, j = cKDTree(pos_b).query(pos_a[ok_a], workers=-1)
+    _check_overlap(dist, pos_a[ok_a])
     na, nb = n_a[ok_a], n_b[j]
     if normals is not None:
         nrm = _unit(normals[ok_a])

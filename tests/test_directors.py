@@ -292,3 +292,26 @@ def test_cli_directors(tmp_path, run_cli):
     save_mesh(sphere_mesh(30.0, subdivisions=2), small)
     code, _, err = run_cli("directors", small, lpath, "-o", out, "--patch-radius", "6")
     assert code == 2 and "another mesh" in err and "Traceback" not in err
+
+
+def test_patch_wider_than_the_object_is_refused(tmp_path, run_cli):
+    """--patch-radius 1e6 on a 20 µm sphere used to give one director silently."""
+    import pandas as pd
+    import trimesh
+
+    from nemo.directors import directors
+    from nemo.errors import NemoError
+    from nemo.mesh import make_mesh, save_mesh
+    from nemo.tables import write_table
+
+    ico = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    mesh = make_mesh(ico.vertices, ico.faces)
+    intensity = np.cos(mesh.vertices[:, 0])
+    with pytest.raises(NemoError, match="larger than the object"):
+        directors(mesh, intensity, patch_radius=1e6)
+    mpath, lpath = tmp_path / "s.ply", tmp_path / "layer.parquet"
+    save_mesh(mesh, mpath)
+    write_table(pd.DataFrame({"vertex": np.arange(len(intensity)), "intensity": intensity}), lpath,
+                n_vertices=len(intensity))
+    code, _, err = run_cli("directors", mpath, lpath, "--patch-radius", "1e6", "-o", tmp_path / "d.parquet")
+    assert code == 2 and "--patch-radius" in err and "larger than the object" in err

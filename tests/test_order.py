@@ -252,3 +252,23 @@ def test_cli_order_and_align(tmp_path, run_cli):
     write_table(pd.DataFrame({"vertex": [0], "intensity": [1.0]}), layer)
     code, _, err = run_cli("order", mpath, layer, "-o", out, "--radius", "5")
     assert code == 2 and "lacks column" in err
+
+
+def test_alignment_refuses_tables_that_do_not_overlap(tmp_path, run_cli):
+    """Two layers of different objects (or frames, or units) are an error, not one number."""
+    mesh = sphere_mesh()
+    vert = np.arange(0, len(mesh.vertices), 3)
+    da = directors_table(mesh, vert, e_phi(mesh.vertices[vert] + [1e-3, 0, 0]))
+    near = da.copy()
+    near[["x", "y", "z"]] *= (R + 0.4 * R) / R  # a second wall 0.4 R outside: still the same object
+    assert np.isfinite(alignment(da, near, mesh_a=mesh)["c"]).all()
+    far = da.copy()
+    far["x"] += 836.0
+    with pytest.raises(NemoError, match="do not overlap"):
+        alignment(da, far, mesh_a=mesh)
+    pa, pb = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    write_table(da, pa)
+    write_table(far, pb)
+    code, _, err = run_cli("align", pa, pb, "-o", tmp_path / "al.parquet")
+    assert code == 2 and "nemo align: error: the two director tables do not overlap" in err
+
