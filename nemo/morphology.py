@@ -581,6 +581,7 @@ def thickness(
     u_from, u_to = _unit_name(mesh_from), _unit_name(mesh_to)
     if u_from != u_to:
         raise NemoError(f"the two meshes are in different units ({u_from} and {u_to}); convert one")
+    check_same_object(mesh_from, mesh_to)
     vertices = np.asarray(mesh_from.vertices, dtype=np.float64)
     normals = vertex_normals(mesh_from)
     valid = np.isfinite(normals[:, 0])
@@ -612,7 +613,45 @@ def thickness(
     if max_distance is not None:
         res[np.abs(res) > float(max_distance)] = np.nan
     d[valid] = res
+    _warn_misses(d, direction)
     return d
+
+
+#: Largest size ratio of two surfaces of one object (walls of a shell, layers of a tissue).
+MAX_SIZE_RATIO = 4.0
+
+
+def check_same_object(mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh) -> None:
+    """Refuse two surfaces that cannot be walls of one object: sizes far apart or no overlap.
+
+    Catches a mesh exported in another unit (nm instead of µm: ×1000) or from another image.
+    """
+    lo_a, hi_a = np.asarray(mesh_a.vertices).min(0), np.asarray(mesh_a.vertices).max(0)
+    lo_b, hi_b = np.asarray(mesh_b.vertices).min(0), np.asarray(mesh_b.vertices).max(0)
+    size_a, size_b = float(np.linalg.norm(hi_a - lo_a)), float(np.linalg.norm(hi_b - lo_b))
+    ratio = max(size_a, size_b) / max(min(size_a, size_b), 1e-300)
+    if ratio > MAX_SIZE_RATIO:
+        raise NemoError(
+            f"the two meshes differ in size by × {ratio:.3g} (bounding-box diagonals {size_a:.4g} and "
+            f"{size_b:.4g}): they cannot be two walls of one object. Is one of them in another unit "
+            "(nm, mm) or from another image? Re-export both in the image's unit"
+        )
+    if np.any(hi_a < lo_b) or np.any(hi_b < lo_a):
+        raise NemoError(
+            "the two meshes do not overlap (their bounding boxes are disjoint): they are not walls of "
+            "one object; pass two surfaces of the same frame, in the same unit"
+        )
+
+
+def _warn_misses(d: np.ndarray, direction: str) -> None:
+    """Warn when most rays found no surface: a thickness of mostly NaN is no measurement."""
+    missed = float(np.mean(np.isnan(d))) if len(d) else 1.0
+    if missed > 0.5:
+        warnings.warn(
+            f"{100 * missed:.0f} % of the rays ({direction}) met no surface: check that `direction` "
+            "points from `mesh_from` towards `mesh_to` and that `max_distance` is not too small",
+            NemoWarning, stacklevel=3,
+        )
 
 
 # --------------------------------------------------------------------------------------------

@@ -443,6 +443,25 @@ def test_thickness_bad_input(sphere15):
         thickness(sphere15, sphere15, max_distance=0)
 
 
+def test_thickness_refuses_a_mesh_in_another_unit_and_warns_on_misses(tmp_path, run_cli):
+    """A wall exported in nm (× 1000) gave 100 % NaN with exit 0 and no word."""
+    c = np.array([0.0, 0.0, 0.0])
+    inner, outer = sphere_mesh(12.0, ISO, c), sphere_mesh(17.0, ISO, c)
+    outer_nm = make_mesh(np.asarray(outer.vertices) * 1000.0, outer.faces)
+    with pytest.raises(NemoError, match="differ in size by × 1e\\+03|another unit"):
+        thickness(inner, outer_nm)
+    far = make_mesh(np.asarray(outer.vertices) + [500.0, 0, 0], outer.faces)
+    with pytest.raises(NemoError, match="do not overlap"):
+        thickness(inner, far)
+    with pytest.warns(NemoWarning, match="100 % of the rays"):
+        thickness(outer, inner, "outward")  # the inner wall lies inward: every ray misses
+    save_mesh(inner, tmp_path / "in.ply")
+    save_mesh(outer_nm, tmp_path / "out_nm.ply")
+    code, _, err = run_cli("thickness", tmp_path / "in.ply", tmp_path / "out_nm.ply", "-o", tmp_path / "t.parquet")
+    assert code == 2 and "nemo thickness: error: the two meshes differ in size" in err
+    assert not (tmp_path / "t.parquet").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # CLI
 # --------------------------------------------------------------------------------------------
