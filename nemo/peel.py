@@ -96,6 +96,49 @@ def check_mesh_image(mesh, spacing, unit: str, mesh_name: str = "the mesh", imag
         )
 
 
+#: A foreign mesh whose extent differs from the bright object's by more than this factor
+#: (either way) is probably in another unit or scaled: a warning says so.
+MAX_EXTENT_RATIO = 1.6
+
+#: At most this many voxels are looked at to find the bright object's extent.
+_EXTENT_VOXELS = 2_000_000
+
+
+def mesh_object_extent_ratio(mesh, volume: np.ndarray, spacing) -> float:
+    """Extent of the mesh over the extent of the image's bright object (geometric mean of x, y, z).
+
+    The object is the voxels above Otsu's threshold (on at most ``_EXTENT_VOXELS`` voxels); both
+    extents run from the 1st to the 99th percentile of the coordinates, so specks do not count.
+    Near 1 for a surface of the object; near 0.5 or 1000 for a mesh scaled or in another unit.
+    """
+    from skimage.filters import threshold_otsu
+
+    stride = max(1, int(np.ceil((volume.size / _EXTENT_VOXELS) ** (1 / 3))))
+    sub = np.asarray(volume[::stride, ::stride, ::stride], dtype=np.float64)
+    finite = np.isfinite(sub)
+    if finite.sum() < 2 or np.ptp(sub[finite]) == 0:
+        return float("nan")
+    zyx = np.argwhere(finite & (sub > threshold_otsu(sub[finite])))
+    xyz_object = zyx[:, ::-1] * stride * np.asarray(check_spacing(spacing))[::-1]
+    lo, hi = np.percentile(xyz_object, [1, 99], axis=0)
+    mlo, mhi = np.percentile(np.asarray(mesh.vertices, dtype=np.float64), [1, 99], axis=0)
+    step = stride * np.asarray(check_spacing(spacing))[::-1]
+    ratios = (mhi - mlo + step) / (hi - lo + step)
+    return float(np.exp(np.mean(np.log(ratios))))
+
+
+def warn_if_mesh_off_object(mesh, volume: np.ndarray, spacing, mesh_name: str = "the mesh") -> None:
+    """Warn when a mesh made elsewhere (no NEMO metadata) does not match the bright object's size."""
+    ratio = mesh_object_extent_ratio(mesh, volume, spacing)
+    if np.isfinite(ratio) and not 1 / MAX_EXTENT_RATIO <= ratio <= MAX_EXTENT_RATIO:
+        warnings.warn(
+            f"{mesh_name} spans {ratio:.2g} × the extent of the image's bright object: a mesh made "
+            "elsewhere may be in another unit (nm, mm) or scaled. NEMO needs the mesh in the image's "
+            "physical unit and frame (x = column, y = row, z = plane); check it before trusting the layer",
+            NemoWarning, stacklevel=2,
+        )
+
+
 def peel(
     volume: np.ndarray,
     spacing: tuple[float, float, float],

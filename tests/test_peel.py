@@ -196,3 +196,21 @@ def test_cli_peel_bad_input(tmp_path, run_cli):
     code, _, err = run_cli("peel", img, mpath, "-o", tmp_path / "l.parquet", "--range", "0", "5",
                            "--spacing", "0.01", "0.01", "0.01")
     assert code == 2 and "outside the image" in err
+
+
+def test_a_foreign_mesh_at_the_wrong_scale_is_warned_about(tmp_path, run_cli):
+    """A mesh made elsewhere and scaled × 0.5 (still inside the image) used to be peeled silently."""
+    from nemo.peel import mesh_object_extent_ratio
+
+    vol, centre = shell_volume(R + 2)
+    img = tmp_path / "shell.tif"
+    write_hyperstack(img, (vol * 200).astype(np.uint8), SPACING, axes="ZYX")
+    good = sphere_mesh(centre)
+    half = make_mesh(centre + 0.5 * (np.asarray(good.vertices) - centre), good.faces)
+    assert mesh_object_extent_ratio(good, vol, SPACING) == pytest.approx(R / (R + 2), rel=0.1)
+    assert mesh_object_extent_ratio(half, vol, SPACING) == pytest.approx(0.5 * R / (R + 2), rel=0.1)
+    for mesh, name, warned in ((good, "good.ply", False), (half, "half.ply", True)):
+        save_mesh(mesh, tmp_path / name)  # no spacing in the header: a mesh made elsewhere
+        code, _, err = run_cli("peel", img, tmp_path / name, "-o", tmp_path / f"{name}.parquet", "--range", "0", "4")
+        assert code == 0, err
+        assert ("× the extent of the image's bright object" in err) == warned, err

@@ -75,7 +75,7 @@ def run(args) -> int:
     from nemo._log import step
     from nemo.io import read_stack
     from nemo.mesh import load_mesh
-    from nemo.peel import check_mesh_image
+    from nemo.peel import check_mesh_image, warn_if_mesh_off_object
     from nemo.tables import write_table
 
     out = output_path(args.output)
@@ -91,6 +91,8 @@ def run(args) -> int:
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
     check_mesh_image(mesh, info.spacing, info.unit, mesh_name=f"the mesh {args.mesh}",
                      image_name=f"the image {args.image}")
+    if mesh.metadata.get("spacing") is None:  # made elsewhere: check its scale against the image
+        warn_if_mesh_off_object(mesh, volume, info.spacing, mesh_name=f"the mesh {args.mesh}")
     with step(f"peeling {len(mesh.vertices)} vertices in [{dmin:g}, {dmax:g}]"):
         result = stages.peel(volume, info.spacing, mesh, layer, shift=shift, return_profile=args.profile)
     df, params = result[:2]
