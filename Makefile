@@ -15,7 +15,7 @@ $(BIN)/nemo: pyproject.toml
 	touch $(BIN)/nemo
 
 demo: $(BIN)/nemo
-	$(BIN)/snakemake --cores $(CORES) --configfile config/config.yaml
+	$(BIN)/snakemake --cores $(CORES) --configfile config/config.yaml --rerun-incomplete
 
 test: $(BIN)/nemo
 	$(BIN)/python -m pytest -n 2 tests
