@@ -11,10 +11,17 @@ uncalibrated file gives spacing 1 with unit ``"pixel"`` and a :class:`~nemo.erro
 from __future__ import annotations
 
 import json
+import logging
+import operator
 import os
 import re
+import struct
+import threading
 import warnings
 import xml.etree.ElementTree as ET
+import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -162,18 +169,155 @@ def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, floa
     return (dz * scale, dy * scale, dx * scale), "um", True
 
 
+_FIX = ("the file was cut off or damaged (incomplete copy or download, full disk): copy it again "
+        "from the source, or re-save it from Fiji")
+# tifffile's log messages that mean offsets in the file point nowhere: a cut or damaged file
+_BROKEN_LOG = re.compile(
+    r"invalid (page |value |next page |offset to (first )?page)|corrupted tag list|circular reference|"
+    r"missing (data offset|data ByteCounts|ByteCounts)|incorrect Strip"
+)
+# tifffile's messages about metadata it ignored and replaced (checked by _check_intact): kept quiet
+_QUIET_LOG = re.compile(r"corrupted file")
+
+
+class _BrokenFileLog(logging.Filter):
+    """Collect (and keep off stderr) tifffile's complaints about a broken file, in this thread."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.messages: list[str] = []
+        self._thread = threading.get_ident()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if record.thread != self._thread:
+            return True
+        if _BROKEN_LOG.search(message):
+            self.messages.append(re.sub(r"^<[^>]*>\s*", "", message))  # drop tifffile's object repr
+            return False
+        return not _QUIET_LOG.search(message)
+
+
+@contextmanager
+def _catch_broken_file_log() -> Iterator[_BrokenFileLog]:
+    """Catch tifffile's messages about broken offsets logged while the block runs."""
+    catcher = _BrokenFileLog()
+    log = logging.getLogger("tifffile")
+    log.addFilter(catcher)
+    try:
+        yield catcher
+    finally:
+        log.removeFilter(catcher)
+
+
+def _truncated(path: str | os.PathLike, detail: str) -> NemoError:
+    return NemoError(f"{path} is truncated or corrupt: {detail}; {_FIX}")
+
+
+def _page_end(page: tifffile.TiffPage | tifffile.TiffFrame) -> int:
+    """The byte just past the last pixel data of a page, from its header."""
+    offsets, counts = page.dataoffsets, page.databytecounts
+    if len(offsets) == 1:
+        return offsets[0] + counts[0]
+    return max(map(operator.add, offsets, counts), default=0)
+
+
+def _images(series: tifffile.TiffPageSeries) -> int:
+    """The number of pages (2-D images) the series' shape spans."""
+    return series.size // max(series.keyframe.size, 1)
+
+
+def _held(tif: tifffile.TiffFile, series: tifffile.TiffPageSeries, size: int) -> tuple[int, int | None]:
+    """(complete images the file holds, bytes the series' pixel data need or None), headers only."""
+    page = tif.pages.first
+    if series.kind not in ("imagej", "ome") and tif.is_imagej:  # tifffile rejected the ImageJ header
+        held = max(0, size - page.dataoffsets[0]) // max(page.nbytes, 1) if page.compression == 1 else len(tif.pages)
+        return held, None
+    if series.dataoffset is not None:  # contiguous uncompressed data (ImageJ, tifffile)
+        per = max(series.nbytes // max(_images(series), 1), 1)
+        return max(0, size - series.dataoffset) // per, int(series.dataoffset + series.nbytes)
+    pages = [p for p in series._pages if p is not None]  # parsed headers; iterating the series reads IFDs
+    ends = [_page_end(p) for p in pages]
+    return sum(end <= size for end in ends), max(ends, default=0)
+
+
+def _imagej_images(tif: tifffile.TiffFile) -> int | None:
+    """The number of pages (2-D images) an ImageJ header announces, None if not ImageJ.
+
+    Counted the way tifffile does: channels stored as samples of one page count once.
+    """
+    ij = tif.imagej_metadata if tif.is_imagej else None
+    try:
+        frames, slices, channels, images = (int(ij.get(k) or 1) for k in ("frames", "slices", "channels", "images"))
+    except (AttributeError, TypeError, ValueError):  # no ImageJ header, or one tifffile ignores too
+        return None
+    shaped = tif.pages.first.shaped
+    samples = channels == 1 or shaped[0] == channels or (images == frames * slices and shaped[4] == channels)
+    n = frames * slices * (1 if samples else channels)
+    return images if n == 1 else n
+
+
+def _check_intact(tif: tifffile.TiffFile, path: str | os.PathLike, log: list[str]) -> None:
+    """Raise a NemoError if the headers of ``tif`` announce more than the file holds (header reads only).
+
+    The images announced (by the ImageJ header, else by the series tifffile built) are compared
+    with the images whose pixel data (offsets + byte counts) lie inside the file; then tifffile's
+    own complaints about invalid offsets (a list of pages running past the end of the file).
+    """
+    size = tif.filehandle.size
+    series = tif.series[0]
+    announced = _imagej_images(tif)
+    header = "ImageJ header" if announced is not None else "pages"
+    if announced is None or series.kind == "ome":
+        announced = _images(series)
+    held, need = _held(tif, series, size)
+    if held < announced or (tif.is_imagej and series.kind not in ("imagej", "ome")):
+        if need is None and tif.pages.first.compression == 1:
+            need = tif.pages.first.dataoffsets[0] + announced * tif.pages.first.nbytes
+        needs = f", the pixel data need {need} bytes" if need and need > size else ""
+        raise _truncated(path, f"its {header} announce{'s' if header != 'pages' else ''} {announced} images "
+                               f"but the file holds only {min(held, announced - 1)} "
+                               f"(file size {size} bytes{needs})")
+    if log:
+        raise _truncated(path, f"its list of images breaks off after {len(tif.pages)} of them "
+                               f"(file size {size} bytes; tifffile: {log[0]})")
+
+
+def _has_tiff_magic(path: Path) -> bool:
+    """Whether the file starts like a TIFF or BigTIFF file."""
+    with open(path, "rb") as fh:
+        return fh.read(4) in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")
+
+
 def _open_tiff(path: str | os.PathLike) -> tifffile.TiffFile:
+    """Open a TIFF file whose headers are intact, with its series parsed."""
     path = Path(path)
     if not path.exists():
         raise NemoError(f"image file not found: {path}")
     if path.is_dir():
         raise NemoError(f"{path} is a folder, not a TIFF image")
-    try:
-        return tifffile.TiffFile(path)
-    except (tifffile.TiffFileError, ValueError, OSError) as exc:
-        raise NemoError(
-            f"{path} is not a readable TIFF file ({exc}); NEMO reads ImageJ hyperstacks and OME-TIFF"
-        ) from None
+    if path.stat().st_size == 0:
+        raise NemoError(f"{path} is empty (0 bytes); {_FIX}")
+    with _catch_broken_file_log() as log:
+        try:
+            tif = tifffile.TiffFile(path)
+        except (tifffile.TiffFileError, ValueError, OSError, struct.error) as exc:
+            if log.messages or _has_tiff_magic(path):  # a TIFF whose first page is cut off or broken
+                raise _truncated(path, f"its first image header cannot be read ({(log.messages or [exc])[0]})") from None
+            raise NemoError(
+                f"{path} is not a readable TIFF file ({exc}); NEMO reads ImageJ hyperstacks and OME-TIFF"
+            ) from None
+        try:
+            try:
+                if not tif.series:
+                    raise _truncated(path, "it holds no image that tifffile can read")
+            except (tifffile.TiffFileError, ValueError, OSError) as exc:
+                raise _truncated(path, f"its image headers cannot be parsed ({exc})") from None
+            _check_intact(tif, path, log.messages)
+        except BaseException:
+            tif.close()
+            raise
+    return tif
 
 
 def _info_from_tiff(tif: tifffile.TiffFile, path: str) -> ImageInfo:
@@ -203,7 +347,9 @@ def read_info(path: str | os.PathLike) -> ImageInfo:
     Raises
     ------
     NemoError
-        If the file is missing, not a TIFF, or has no Z axis.
+        If the file is missing, not a TIFF, has no Z axis, or is truncated or corrupt (its
+        headers announce more images or pixel data than the file holds; checked from the
+        headers only).
     """
     with _open_tiff(path) as tif:
         return _info_from_tiff(tif, str(path))
@@ -242,6 +388,12 @@ def read_stack(
         The pixels, in the file's dtype.
     info : ImageInfo
         The file's description, with ``spacing`` overridden when given.
+
+    Raises
+    ------
+    NemoError
+        As :func:`read_info`; also when ``t``/``c`` are out of range, or when the pixels cannot
+        be read or decoded (a truncated or corrupt file), never a shorter stack.
     """
     with _open_tiff(path) as tif:
         info = _info_from_tiff(tif, str(path))
@@ -258,16 +410,7 @@ def read_stack(
         key = tuple(
             {"T": int(t), "C": int(c)}.get(a, slice(None)) for a in axes
         )
-        import zarr  # only to read pixels (0.2 s to import; the workflow's parse reads headers only)
-
-        store = series.aszarr(level=0)
-        try:
-            arr = zarr.open(store, mode="r")
-            if isinstance(arr, zarr.Group):  # multiscale store: level 0 is "0"
-                arr = arr["0"]
-            data = np.asarray(arr[key])
-        finally:
-            store.close()
+        data = _read_pixels(series, key, path)
     kept = [a for a in axes if a not in "TC"]
     data = np.transpose(data, [kept.index(a) for a in "ZYX"])
     if spacing is not None:
@@ -284,6 +427,26 @@ def read_stack(
     return data, info
 
 
+def _read_pixels(series: tifffile.TiffPageSeries, key: tuple, path: str | os.PathLike) -> np.ndarray:
+    """Read ``series[key]`` through tifffile's zarr store; a failed read becomes a NemoError."""
+    import zarr  # only to read pixels (0.2 s to import; the workflow's parse reads headers only)
+
+    with _catch_broken_file_log() as log:
+        store = series.aszarr(level=0)
+        try:
+            arr = zarr.open(store, mode="r")
+            if isinstance(arr, zarr.Group):  # multiscale store: level 0 is "0"
+                arr = arr["0"]
+            data = np.asarray(arr[key])
+        except (tifffile.TiffFileError, ValueError, OSError, EOFError, zlib.error, KeyError, RuntimeError) as exc:
+            raise _truncated(path, f"reading its pixels failed ({exc})") from None
+        finally:
+            store.close()
+    if log.messages:
+        raise _truncated(path, f"reading its pixels failed (tifffile: {log.messages[0]})")
+    return data
+
+
 def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...]) -> np.ndarray:
     """A binary object mask (nonzero = object) for time point ``t``, channel ``c`` of an image.
 
@@ -296,7 +459,7 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...]) -
     Raises
     ------
     NemoError
-        A mask of another (Z, Y, X) size than the image.
+        A mask of another (Z, Y, X) size than the image, or a truncated or corrupt mask file.
     """
     info = read_info(path)
     mt = t if info.shape["T"] > 1 else 0

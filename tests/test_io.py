@@ -9,7 +9,7 @@ import pytest
 import tifffile
 
 from nemo.errors import NemoError, NemoWarning
-from nemo.io import read_info, read_stack, write_hyperstack
+from nemo.io import read_info, read_mask, read_stack, write_hyperstack
 
 SPACING = (2.5, 0.4, 0.3)  # distinct dz, dy, dx so that any axis mix-up shows
 
@@ -146,3 +146,133 @@ def test_errors_name_the_problem(tmp_path, rng):
         read_stack(tmp_path / "h.tif", c=-1)
     with pytest.raises(NemoError, match="ImageJ hyperstacks need axes"):
         write_hyperstack(tmp_path / "bad.tif", _data((2, 3, 4, 4), rng), SPACING, axes="CZYX")
+
+
+# ----------------------------------------------------------------------------- truncated files
+def _plain(path, data):
+    """A plain multi-page TIFF (no ImageJ/OME/shape metadata), the way many tools write one."""
+    tifffile.imwrite(path, data, photometric="minisblack", metadata=None)
+
+
+def _page_offset(path, index):
+    with tifffile.TiffFile(path) as tif:
+        return tif.pages[index].offset
+
+
+def _mid_page(path, index):
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[index]
+        return page.dataoffsets[0] + page.databytecounts[0] // 2
+
+
+def _half(path, index=None):
+    return path.stat().st_size // 2
+
+
+STACK = (94, 16, 16)  # the issue's file: 94 z slices
+HYPER = (3, 5, 2, 16, 16)
+# name: (write the intact file, its data shape, its axes, where to cut)
+TRUNCATED = {
+    "plain-page-boundary": (_plain, STACK, "ZYX", lambda p: _page_offset(p, 61)),  # was read as Z = 61
+    "plain-mid-page": (_plain, STACK, "ZYX", lambda p: _mid_page(p, 40)),  # was a TiffFileError traceback
+    "tifffile-page-boundary": (lambda p, d: tifffile.imwrite(p, d, photometric="minisblack"), STACK, "ZYX",
+                               lambda p: _page_offset(p, 61)),
+    "tifffile-mid-page": (lambda p, d: tifffile.imwrite(p, d, photometric="minisblack"), STACK, "ZYX",
+                          lambda p: _mid_page(p, 40)),
+    "imagej-hyperstack": (lambda p, d: write_hyperstack(p, d, SPACING), HYPER, "TZCYX", _half),  # was "2-D"
+    "ome-tiff": (lambda p, d: write_hyperstack(p, d, SPACING, ome=True), HYPER, "TZCYX", _half),
+    "zlib-imagej": (lambda p, d: write_hyperstack(p, d, SPACING, compression="zlib"), HYPER, "TZCYX", _half),
+    "zlib-mid-page": (lambda p, d: write_hyperstack(p, d, SPACING, compression="zlib"), HYPER, "TZCYX",
+                      lambda p: _mid_page(p, 17)),
+    "zlib-ome": (lambda p, d: write_hyperstack(p, d, SPACING, ome=True, compression="zlib"), HYPER, "TZCYX",
+                 _half),
+}
+
+
+def _write_intact(tmp_path, rng, name):
+    write, shape, axes, cut = TRUNCATED[name]
+    data = _data(shape, rng)
+    path = tmp_path / f"{name}.tif"
+    write(path, data)
+    return path, data, axes, cut
+
+
+def _truncate(path, n):
+    out = path.with_name("cut-" + path.name)
+    out.write_bytes(path.read_bytes()[:n])
+    return out
+
+
+@pytest.mark.parametrize("name", list(TRUNCATED))
+def test_truncated_file_is_refused_not_read_short(tmp_path, rng, name):
+    path, data, _, cut = _write_intact(tmp_path, rng, name)
+    bad = _truncate(path, cut(path))
+    before = bad.read_bytes()
+    for read in (read_info, read_stack, lambda p: read_mask(p, 0, 0, data.shape[-3:])):
+        with pytest.raises(NemoError, match=r"is truncated or corrupt: .*copy it again") as exc:
+            read(bad)
+        assert str(bad) in str(exc.value) and "\n" not in str(exc.value)
+    assert bad.read_bytes() == before  # reading never touches the input
+
+
+@pytest.mark.parametrize("name", list(TRUNCATED))
+def test_intact_file_of_each_kind_still_reads_identically(tmp_path, rng, name):
+    path, data, axes, _ = _write_intact(tmp_path, rng, name)
+    before = path.read_bytes()
+    sizes = dict(zip(axes, data.shape))
+    info = read_info(path)
+    assert info.shape == {a: sizes.get(a, 1) for a in "TCZYX"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NemoWarning)  # the plain files are uncalibrated
+        for t in range(sizes.get("T", 1)):
+            for c in range(sizes.get("C", 1)):
+                np.testing.assert_array_equal(read_stack(path, t, c)[0], _slice(data, axes, t, c))
+    assert path.read_bytes() == before
+
+
+def test_truncation_messages_name_what_is_missing(tmp_path, rng):
+    path, *_ = _write_intact(tmp_path, rng, "imagej-hyperstack")
+    with pytest.raises(NemoError, match=r"ImageJ header announces 30 images but the file holds only \d+ "
+                                        r"\(file size \d+ bytes, the pixel data need \d+ bytes\)"):
+        read_info(_truncate(path, _half(path)))
+    path, *_ = _write_intact(tmp_path, rng, "tifffile-mid-page")
+    with pytest.raises(NemoError, match=r"pages announce 94 images but the file holds only 40 "):
+        read_info(_truncate(path, _mid_page(path, 40)))
+    path, *_ = _write_intact(tmp_path, rng, "plain-page-boundary")
+    with pytest.raises(NemoError, match=r"breaks off after 61 of them"):
+        read_info(_truncate(path, _page_offset(path, 61)))
+
+
+def test_corrupt_compressed_pixels_are_refused(tmp_path, rng):
+    path, data, *_ = _write_intact(tmp_path, rng, "zlib-imagej")
+    raw = bytearray(path.read_bytes())
+    start = _mid_page(path, 3)  # page 3 = t 0, z 1, c 1
+    raw[start:start + 64] = bytes(64)
+    path.write_bytes(bytes(raw))
+    assert read_info(path).shape["T"] == 3  # headers are intact
+    with pytest.raises(NemoError, match=r"truncated or corrupt: reading its pixels failed"):
+        read_stack(path, 0, 1)
+    np.testing.assert_array_equal(read_stack(path, 1, 1)[0], data[1, :, 1])  # other pages still read
+
+
+def test_empty_and_header_only_files(tmp_path, rng):
+    path, *_ = _write_intact(tmp_path, rng, "imagej-hyperstack")
+    (tmp_path / "empty.tif").write_bytes(b"")
+    with pytest.raises(NemoError, match="is empty"):
+        read_info(tmp_path / "empty.tif")
+    with pytest.raises(NemoError, match="truncated or corrupt"):
+        read_info(_truncate(path, 12))
+
+
+@pytest.mark.parametrize("name", ["plain-page-boundary", "plain-mid-page", "imagej-hyperstack", "zlib-ome"])
+def test_cli_info_on_truncated_file_is_one_error_line(tmp_path, rng, capsys, name):
+    from nemo.cli import main
+
+    path, _, _, cut = _write_intact(tmp_path, rng, name)
+    bad = _truncate(path, cut(path))
+    capsys.readouterr()
+    assert main(["info", str(bad)]) == 2
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("nemo info: error:") and "is truncated or corrupt: " in lines[0], err
