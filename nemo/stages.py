@@ -57,6 +57,11 @@ def mesh(
 ) -> tuple[dict[str, trimesh.Trimesh], dict]:
     """Surface reconstruction (method note §2), split into inner/outer walls if configured.
 
+    The image must hold one object (:func:`nemo.surface.find_objects`: separate surfaces not
+    nested in each other, each at least 10 % of the largest one's area; smaller specks are
+    noise). Several objects are an error when splitting (their walls would mix); without a
+    split, ``keep: largest`` analyses the largest and warns about the others.
+
     Parameters
     ----------
     volume : ndarray, shape (Z, Y, X)
@@ -74,8 +79,13 @@ def mesh(
         ``whole`` and, when split, ``inner`` and ``outer`` (trimesh.Trimesh, physical x, y, z).
     resolved : dict
         The section with ``step`` and ``sigma`` as numbers and the iso-level used.
+
+    Raises
+    ------
+    NemoError
+        Bad parameters or image (:func:`nemo.surface.reconstruct`); several objects with a split.
     """
-    from nemo.surface import default_sigma, face_components, reconstruct, split_mesh, submesh
+    from nemo.surface import default_sigma, face_components, one_object, reconstruct, split_mesh, submesh
 
     p = nconfig.section("mesh", params)
     shape = (volume if volume is not None else mask).shape
@@ -85,9 +95,10 @@ def mesh(
         p["sigma"] = default_sigma(spacing, p["step"])
     split = p["split"] != "none"
     whole = reconstruct(volume, spacing, sigma=float(p["sigma"]), threshold=p["threshold"], mask=mask,
-                        step=int(p["step"]), smooth_iter=int(p["smooth"]),
-                        keep="all" if split else p["keep"], edge=p["edge"], unit=unit)
+                        step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit)
+    whole.metadata["nemo_surface"]["keep"] = p["keep"]
     p["level"] = float(whole.metadata["nemo_surface"]["level"])
+    whole = one_object(whole, split, p["keep"])  # several objects: an error (split) or the largest
     meshes = {"whole": whole}
     if split:
         inner, outer = split_mesh(whole, by=p["split"], axis=p["axis"], centre=centre, keep=p["keep"])

@@ -5,7 +5,8 @@ physical ``x, y, z`` (x = column × dx, y = row × dy, z = plane × dz) and whos
 so that normals point **out of the bright object** (the solid). Steps:
 
 1. Gaussian blur with σ in µm (σ/spacing voxels per axis, so anisotropic voxels get the same
-   physical blur), computed in float32.
+   physical blur), computed in float32 (a float image whose largest |value| exceeds 1e30, or
+   stays below 1e-30, is first divided by it: float32 ends at 3.4e38; the iso-level is relative).
 2. Threshold: Yen (default), Otsu or a number -- or a user-supplied binary mask instead.
    With ``edge="half"`` (default for Yen/Otsu) the automatic threshold only tells background
    from object; the surface is placed half-way between the background intensity (the mode of
@@ -19,6 +20,10 @@ so that normals point **out of the bright object** (the solid). Steps:
    objects touching the image border give **closed** surfaces (flat caps on the border planes); marching
    cubes then runs with the physical spacing.
 4. Connected components: keep the largest by area (``keep="largest"``) or all.
+   :func:`find_objects` counts the separate objects: components not nested inside another one
+   (a shell's inner wall is part of the shell) with at least :data:`OBJECT_MIN_AREA` (10 %) of
+   the largest one's area (smaller ones are noise). :func:`one_object` refuses to split several
+   objects into walls and warns when ``keep="largest"`` ignores some (``nemo.stages.mesh``).
 5. Taubin (windowed-sinc) smoothing through PyVista removes the staircase without shrinking.
 
 :func:`split_mesh` separates two walls (inner/outer, basal/apical) by the sign of
@@ -33,6 +38,7 @@ normals (positive enclosed volume), so peeling "outward" from it samples the she
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import numpy as np
@@ -42,16 +48,22 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from nemo._log import logger, step as log_step
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.io import check_spacing
 from nemo.mesh import face_normals_areas, make_mesh, merge_coincident_vertices, signed_volume
 
 __all__ = [
     "reconstruct", "split_mesh", "fit_sphere", "keep_components", "submesh", "face_components",
-    "default_sigma", "parse_threshold",
+    "default_sigma", "parse_threshold", "find_objects", "one_object", "OBJECT_MIN_AREA",
 ]
 
 _MAX_THRESHOLD_SAMPLES = 4_000_000
+#: A separate surface counts as an object when its area is at least this fraction of the largest
+#: one's (smaller ones are noise specks or debris, dropped by ``keep="largest"``).
+OBJECT_MIN_AREA = 0.1
+#: Float images whose largest |value| lies outside this range are divided by it before the
+#: float32 blur (which would overflow above 3.4e38 or flush tiny values to zero).
+_FLOAT32_SAFE = (1e-30, 1e30)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -145,6 +157,137 @@ def keep_components(mesh: trimesh.Trimesh, keep: Literal["largest", "all"] = "la
     best = int(np.argmax(comp_area))
     logger.info("keeping the largest of %d components (%.4g of %.4g area units)", n, comp_area[best], comp_area.sum())
     return submesh(mesh, labels == best)
+
+
+def _winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 250_000) -> np.ndarray:
+    """Generalised winding number of each point w.r.t. a triangle surface (solid angles / 4π).
+
+    ±1 inside a closed surface (the sign follows its orientation), 0 outside.
+    """
+    w = np.zeros(len(points))
+    for s in range(0, len(faces), chunk):
+        tri = vertices[faces[s:s + chunk]]  # (F, 3, 3)
+        for i, p in enumerate(points):
+            a, b, c = tri[:, 0] - p, tri[:, 1] - p, tri[:, 2] - p
+            la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+            num = np.einsum("ij,ij->i", a, np.cross(b, c))
+            den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb
+                   + np.einsum("ij,ij->i", b, c) * la)
+            w[i] += 2.0 * np.arctan2(num, den).sum()
+    return w / (4.0 * np.pi)
+
+
+def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -> list[dict]:
+    """The separate objects of a (reconstructed, closed) surface.
+
+    An object is a connected component that is **not nested** inside another component and
+    whose area is at least ``min_fraction`` of the largest component's. A hollow shell's inner
+    wall lies inside its outer wall and belongs to the same object; so does anything else
+    inside it. Smaller components (noise specks) are not objects. Nesting is tested with the
+    winding number of one vertex of the candidate with respect to the larger components whose
+    bounding box holds its own.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    min_fraction : float
+        Relative area below which a component is noise.
+
+    Returns
+    -------
+    list of dict
+        Largest first: ``component`` (label of :func:`face_components`), ``area``, ``radius``
+        (of the sphere of the same area, ``sqrt(area / 4π)``) and ``centre`` (area-weighted
+        centroid, x, y, z) of each object's outermost surface.
+    """
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    if len(faces) == 0:
+        return []
+    labels = face_components(faces, len(vertices))
+    n = int(labels.max()) + 1
+    _, areas = face_normals_areas(vertices, faces)
+    comp_area = np.bincount(labels, weights=areas, minlength=n)
+    big = np.flatnonzero(comp_area >= min_fraction * comp_area.max())
+    big = big[np.argsort(-comp_area[big], kind="stable")]
+    # bounding box of every component (vertices sorted by component label)
+    vlab = np.full(len(vertices), -1, dtype=np.int64)
+    vlab[faces.ravel()] = np.repeat(labels, 3)
+    order = np.argsort(vlab, kind="stable")
+    order = order[vlab[order] >= 0]
+    starts = np.searchsorted(vlab[order], np.arange(n))
+    lo, hi = np.minimum.reduceat(vertices[order], starts), np.maximum.reduceat(vertices[order], starts)
+    probe = vertices[order[starts]]
+    tol = 1e-9 * max(1.0, float(np.abs(vertices).max()))
+    nested = np.zeros(len(big), dtype=bool)
+    for j, cj in enumerate(big[:-1]):  # containers: every larger component
+        cand = np.arange(j + 1, len(big))
+        cand = cand[~nested[cand] & (lo[big[cand]] >= lo[cj] - tol).all(1) & (hi[big[cand]] <= hi[cj] + tol).all(1)]
+        if len(cand):
+            nested[cand] |= np.abs(_winding_numbers(probe[big[cand]], vertices, faces[labels == cj])) > 0.5
+    centroids = vertices[faces].mean(axis=1) * areas[:, None]
+    centre = np.stack([np.bincount(labels, weights=centroids[:, k], minlength=n) for k in range(3)], 1)
+    return [{"component": int(c), "area": float(comp_area[c]), "radius": float(np.sqrt(comp_area[c] / (4 * np.pi))),
+             "centre": centre[c] / max(comp_area[c], 1e-300)} for c in big[~nested]]
+
+
+def _describe_objects(objects: list[dict], unit: str) -> str:
+    return "; ".join(
+        f"area {o['area']:.4g} {unit}² (radius of equal area {o['radius']:.4g} {unit}) centred at "
+        f"({o['centre'][0]:.4g}, {o['centre'][1]:.4g}, {o['centre'][2]:.4g})" for o in objects)
+
+
+def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all"] = "largest",
+               min_fraction: float = OBJECT_MIN_AREA) -> trimesh.Trimesh:
+    """Check that a reconstructed surface holds one object (:func:`find_objects`) before analysis.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The whole surface (every component).
+    split : bool
+        The surface is to be split into inner/outer walls: several objects are an error (their
+        walls would be mixed up).
+    keep : {"largest", "all"}
+        Without ``split``: ``"largest"`` keeps the largest component and warns about other
+        objects; ``"all"`` keeps everything.
+    min_fraction : float
+        Relative area below which a component is noise, not an object.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        ``mesh`` (split, or ``keep="all"``), else its largest component with ``mesh``'s metadata.
+
+    Raises
+    ------
+    NemoError
+        ``split`` with several objects.
+    """
+    objects = find_objects(mesh, min_fraction)
+    unit = getattr(mesh, "units", None) or "um"
+    if len(objects) > 1 and split:
+        raise NemoError(
+            f"the image holds {len(objects)} objects (separate surfaces, not nested in each other, of at least "
+            f"{min_fraction:.0%} of the largest one's area): {_describe_objects(objects, unit)}. Splitting into "
+            "inner and outer walls needs a single object: give a `mask` selecting one object (config: the "
+            "dataset's mask), crop the image to one object, or set `split` none with `keep` largest (config mesh.split: none, mesh.keep: largest) "
+            "to analyse the largest only"
+        )
+    if split or keep == "all":
+        if len(objects) > 1:
+            logger.info("keeping all %d objects: %s", len(objects), _describe_objects(objects, unit))
+        return mesh
+    if len(objects) > 1:
+        warnings.warn(
+            f"the image holds {len(objects)} objects: analysing the largest ({_describe_objects(objects[:1], unit)}) "
+            f"and ignoring {len(objects) - 1} other object(s): {_describe_objects(objects[1:], unit)}; give a "
+            "`mask` or crop the image to analyse another one", NemoWarning, stacklevel=3)
+    out = keep_components(mesh, keep)
+    if out is not mesh:
+        out.metadata.update({k: v for k, v in mesh.metadata.items() if k not in ("parent_faces", "parent_vertices")})
+        out.metadata.pop("parent_faces", None)
+        out.metadata.pop("parent_vertices", None)
+    return out
 
 
 def default_sigma(spacing, step: int = 1) -> float:
@@ -275,6 +418,36 @@ def _check_finite(volume: np.ndarray) -> None:
             f"the image has {bad} NaN or infinite voxels ({100 * bad / volume.size:.2g} % of it): "
             "replace them (e.g. by the background intensity) before meshing, or give a `mask`"
         )
+
+
+def _float32_safe(volume: np.ndarray) -> tuple[np.ndarray, float]:
+    """The volume (float images: finite, rescaled if needed) and the factor it was divided by.
+
+    The blur runs in float32: a float64 image whose largest |value| is above
+    :data:`_FLOAT32_SAFE` (up to 1.8e308, float32 ends at 3.4e38) would overflow to infinity, one
+    below it would lose its contrast to float32 underflow. Such an image is divided by its largest
+    |value| slab by slab into a float32 copy; the iso-level is relative, so the surface is the
+    same as that of the image scaled down (a numeric threshold is divided by the same factor).
+    A constant image (e.g. all zeros) raises :class:`NemoError`.
+    """
+    _check_finite(volume)
+    vmin, vmax = volume.min(), volume.max()
+    if vmin == vmax:
+        raise NemoError(
+            f"the image is constant (every voxel = {float(vmin):g}, e.g. an all-dark stack): no object to "
+            "threshold; check the time point/channel and the file, or give a `mask`"
+        )
+    if not np.issubdtype(volume.dtype, np.floating):
+        return volume, 1.0
+    scale = max(abs(float(vmin)), abs(float(vmax)))
+    if _FLOAT32_SAFE[0] <= scale <= _FLOAT32_SAFE[1]:
+        return volume, 1.0
+    logger.info("intensities up to %.4g: dividing by it before the float32 blur", scale)
+    out = np.empty(volume.shape, dtype=np.float32)
+    slab = max(1, 8_000_000 // max(1, volume[0].size))
+    for z in range(0, len(volume), slab):
+        np.divide(volume[z:z + slab], scale, out=out[z:z + slab], casting="unsafe")
+    return out, scale
 
 
 def _blur_sampled(src: np.ndarray, sig_vox: tuple[float, float, float], step: int, truncate: float = 3.0) -> np.ndarray:
@@ -408,12 +581,12 @@ def reconstruct(
             raise NemoError("the mask is empty (no nonzero voxel): nothing to reconstruct; check the mask file")
         if n_on == mask.size:
             raise NemoError("the mask selects every voxel: there is no object boundary; check the mask file")
-        source, shape = mask, mask.shape
+        source, shape, scale = mask, mask.shape, 1.0
     elif volume is None:
         raise NemoError("give an image volume or a mask")
     else:
-        source, shape = volume, volume.shape
-        _check_finite(volume)
+        source, scale = _float32_safe(volume)
+        shape = volume.shape
     if min(shape) < 2:
         raise NemoError(f"the stack {shape} is too thin for a surface: every axis needs at least 2 voxels")
 
@@ -438,25 +611,25 @@ def reconstruct(
         how = parse_threshold(threshold)
         if vmin == vmax:
             raise NemoError(
-                f"the image is constant (every voxel = {vmin:g}, e.g. an all-dark stack): no object to "
+                f"the image is constant (every voxel = {vmin * scale:g}, e.g. an all-dark stack): no object to "
                 "threshold; check the time point/channel and the file, or give a `mask`"
             )
         if isinstance(how, str):
             thr, level = _auto_level(inner, how, edge)
         else:
-            thr = level = how
-        rng = f"blurred intensities {vmin:.4g} to {vmax:.4g}"
+            thr = level = how / scale  # the volume was divided by scale (_float32_safe)
+        rng = f"blurred intensities {vmin * scale:.4g} to {vmax * scale:.4g}"
         if level >= vmax:
             raise NemoError(
-                f"threshold {threshold!r} (level {level:.4g}) selects no voxel ({rng}): the object is empty; "
-                "lower `threshold`, use 'yen'/'otsu', or check the time point/channel"
+                f"threshold {threshold!r} (level {level * scale:.4g}) selects no voxel ({rng}): the object is "
+                "empty; lower `threshold`, use 'yen'/'otsu', or check the time point/channel"
             )
         if level <= vmin:
             raise NemoError(
-                f"threshold {threshold!r} (level {level:.4g}) selects every voxel ({rng}): there is no "
+                f"threshold {threshold!r} (level {level * scale:.4g}) selects every voxel ({rng}): there is no "
                 "boundary; raise `threshold` or use 'yen'/'otsu'"
             )
-    logger.info("iso-level %.4g (%s threshold %.4g)", level, how, thr)
+    logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
     pad_value = vmin
     padded[:pad] = pad_value
     padded[-pad:] = pad_value
@@ -498,7 +671,7 @@ def reconstruct(
         with log_step(f"Taubin smoothing ({smooth_iter} iterations, {len(mesh.vertices)} vertices)"):
             mesh.vertices = np.clip(_taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band), 0.0, box)
     mesh.metadata["nemo_surface"] = {
-        "level": float(level), "threshold": thr if not isinstance(thr, str) else thr, "method": str(how),
+        "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
         "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
         "spacing": [dz, dy, dx],
     }

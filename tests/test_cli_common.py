@@ -101,3 +101,11 @@ def test_an_os_error_is_a_message(sphere_tables, run_cli, tmp_path, monkeypatch)
     code, _, err = run_cli("curvature", mesh_path, "--radius", "8", "-o", tmp_path / "c.parquet")
     assert code == 2 and "No space left on device" in err and "c.parquet" in err
     assert not list(tmp_path.glob(".c.parquet.tmp*")), "the temporary file was left behind"
+
+
+def test_library_argument_names_become_flags_or_config_keys():
+    from nemo.cli import as_flags
+
+    message = "use a larger `patch_radius` or `n_samples`"
+    assert as_flags(message, "directors") == "use a larger --patch-radius or --samples"
+    assert as_flags(message, "run") == "use a larger patch_radius or n_samples"  # nemo run: config keys

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -91,3 +93,73 @@ def test_defects_table_source_needs_a_curvature_table():
 
 def test_tracking_without_defects_needs_no_distance():
     assert stages.tracking_distance(None, [], n_defects=0)["max_distance"] > 0
+
+
+# ----------------------------------------------------------------------------- several objects
+def _balls(shape, spheres, sigma=1.0):
+    """Gaussian-blurred solid balls or hollow shells: ``spheres`` = [(x, y, z, r_in, r_out)]."""
+    from scipy.ndimage import gaussian_filter
+
+    z, y, x = np.indices(shape)
+    vol = np.zeros(shape, np.float32)
+    for cx, cy, cz, r_in, r_out in spheres:
+        r = np.sqrt((x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2)
+        vol[(r >= r_in) & (r <= r_out)] = 200
+    return gaussian_filter(vol, sigma)
+
+
+TWO_SHELLS = [(20, 20, 20, 9, 14), (56, 20, 20, 9, 14)]
+
+
+def test_mesh_split_of_two_objects_is_an_error():
+    vol = _balls((40, 40, 76), TWO_SHELLS)
+    with pytest.raises(NemoError, match="2 objects") as err:
+        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
+    msg = str(err.value)
+    radii = [float(r) for r in re.findall(r"radius of equal area ([\d.]+) um", msg)]
+    assert radii == pytest.approx([14, 14], abs=0.3)
+    assert "(20, 20, 20)" in msg and "(56, 20, 20)" in msg
+    assert "`mask`" in msg and "`split` none" in msg and "`keep` largest" in msg
+    with pytest.raises(NemoError, match="2 objects"):
+        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "axis", "axis": [0, 0, 1]})
+
+
+def test_mesh_keep_largest_of_two_balls_warns_and_keeps_one():
+    from nemo.errors import NemoWarning
+
+    vol = _balls((40, 40, 76), [(20, 20, 20, -1, 14), (56, 20, 20, -1, 9)])
+    with pytest.warns(NemoWarning, match=r"2 objects.*ignoring 1 other.*radius of equal area 8\.\d+ um\) centred at \(56, 20, 20\)"):
+        meshes, p = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "none", "keep": "largest"})
+    whole = meshes["whole"]
+    assert whole.euler_number == 2 and whole.is_watertight
+    assert stages.object_radius(whole) == pytest.approx(14.0, abs=0.3)
+    assert whole.metadata["nemo_surface"]["keep"] == "largest" and p["level"] > 0
+    # keep: all keeps both, silently
+    meshes, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "none", "keep": "all"})
+    assert meshes["whole"].euler_number == 4
+
+
+@pytest.mark.parametrize("speck", [False, True], ids=["shell", "shell+speck"])
+def test_mesh_of_one_shell_neither_warns_nor_fails(speck, recwarn):
+    spheres = [(22, 22, 22, 10, 16)] + ([(40, 40, 40, -1, 2)] if speck else [])
+    meshes, _ = stages.mesh(_balls((46, 46, 46), spheres), (1.0, 1.0, 1.0), {"split": "centre"})
+    assert meshes["inner"].euler_number == 2 and meshes["outer"].euler_number == 2
+    assert meshes["whole"].euler_number == 4  # the speck is not part of the analysed surface
+    assert stages.object_radius(meshes["inner"]) == pytest.approx(10, abs=0.5)
+    assert not [w for w in recwarn if "object" in str(w.message)]
+    # a droplet (one wall) without a split: no warning either
+    meshes, _ = stages.mesh(_balls((30, 30, 30), [(15, 15, 15, -1, 9)]), (1.0, 1.0, 1.0), {"split": "none"})
+    assert meshes["whole"].euler_number == 2 and not [w for w in recwarn if "object" in str(w.message)]
+
+
+def test_cli_run_on_two_objects_is_a_clean_error(tmp_path, capsys):
+    from nemo.cli import main
+    from nemo.io import write_hyperstack
+
+    tif = tmp_path / "two.tif"
+    write_hyperstack(tif, _balls((40, 40, 76), TWO_SHELLS).astype(np.uint8)[None, :, None], spacing=(1, 1, 1))
+    code = main(["run", str(tif), "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "nemo run: error:" in err and "2 objects" in err and "Traceback" not in err
+    assert "mesh.split: none" in err and "--split" not in err  # nemo run is configured by keys, not flags

@@ -417,3 +417,52 @@ def test_split_keeps_a_noisy_wall_whole():
     # the pure per-face rule (component_majority=1) shows the failure this guards against
     holey, _ = split_mesh(shell, component_majority=1.0)
     assert len(holey.faces) == len(inner.faces) - len(tipped)
+
+
+# ----------------------------------------------------------------------------- objects, scale
+def test_find_objects_counts_separate_surfaces_not_nested_walls():
+    """Two shells are 2 objects; a shell's inner wall is part of it; a small speck is noise."""
+    from nemo.surface import OBJECT_MIN_AREA, find_objects
+
+    sp = (1, 1, 1)
+    one = shell_volume((40, 40, 40), sp, (20, 20, 20), 9, 14)
+    objs = find_objects(reconstruct(one, sp, keep="all"))
+    assert len(objs) == 1 and objs[0]["radius"] == pytest.approx(14, abs=0.3)
+    np.testing.assert_allclose(objs[0]["centre"], (20, 20, 20), atol=0.05)
+    speck = one + ball_volume((40, 40, 40), sp, (35, 35, 35), 2.0)  # 2 % of the shell's area
+    mesh = reconstruct(speck, sp, keep="all")
+    assert len(mesh.split(only_watertight=False)) == 3 and len(find_objects(mesh)) == 1
+    assert len(find_objects(mesh, min_fraction=0.01)) == 2 and OBJECT_MIN_AREA == 0.1
+    two = np.concatenate([one, shell_volume((40, 40, 40), sp, (20, 20, 20), 7, 11)], axis=2)
+    objs = find_objects(reconstruct(two, sp, keep="all"))
+    assert [round(o["radius"]) for o in objs] == [14, 11]
+    np.testing.assert_allclose(objs[1]["centre"], (60, 20, 20), atol=0.05)
+
+
+def test_huge_float64_image_meshes_like_the_scaled_down_one():
+    """Values above float32's 3.4e38 are rescaled before the float32 blur, not overflowed."""
+    from scipy.spatial import cKDTree
+
+    sp = (1, 1, 1)
+    shell = shell_volume((40, 40, 40), sp, (20, 20, 20), 9, 14).astype(np.float64)
+    ref = reconstruct(shell, sp)
+    for factor in (1e300, 1e-300):
+        big = reconstruct(shell * factor, sp)
+        assert big.vertices.shape == ref.vertices.shape and np.isfinite(big.vertices).all()
+        # the same vertices (marching cubes may list them in another order)
+        np.testing.assert_allclose(cKDTree(ref.vertices).query(big.vertices)[0], 0, atol=1e-4)
+        np.testing.assert_allclose(cKDTree(big.vertices).query(ref.vertices)[0], 0, atol=1e-4)
+        assert big.metadata["nemo_surface"]["level"] == pytest.approx(
+            ref.metadata["nemo_surface"]["level"] * factor, rel=1e-5)
+    # a numeric threshold is in the image's own units
+    num = reconstruct(shell * 1e300, sp, threshold=100e300)
+    assert num.metadata["nemo_surface"]["level"] == pytest.approx(1e302)
+    assert num.area == pytest.approx(reconstruct(shell, sp, threshold=100).area, rel=1e-5)
+    with pytest.raises(NemoError, match="selects no voxel"):
+        reconstruct(shell * 1e300, sp, threshold=1e303)
+
+
+@pytest.mark.parametrize("value", [0.0, 7.0, 3e300], ids=["zeros", "seven", "huge"])
+def test_constant_image_is_an_error(value):
+    with pytest.raises(NemoError, match="constant"):
+        reconstruct(np.full((10, 10, 10), value), (1, 1, 1))

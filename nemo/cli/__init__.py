@@ -15,6 +15,7 @@ User errors are raised as :class:`nemo.errors.NemoError` and printed as one line
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import re
 import sys
@@ -41,14 +42,21 @@ Run 'nemo COMMAND --help' for a command's options."""
 _FLAGS = {"n_samples": "--samples", "smooth_iter": "--smooth", "d_min": "DMIN", "d_max": "DMAX"}
 
 
-def as_flags(message: str) -> str:
-    """The library names its arguments in backquotes (`pixel`); on the command line they are flags."""
+#: Commands whose parameters come from the config file, not from flags of their own.
+_CONFIG_COMMANDS = ("run",)
+
+
+def as_flags(message: str, command: str | None = None) -> str:
+    """The library names its arguments in backquotes (`pixel`); on the command line they are flags
+    (``--pixel``), except for commands configured by a file (``nemo run``), where they are keys."""
+    if command in _CONFIG_COMMANDS:
+        return re.sub(r"`([a-z_]+)`", r"\1", str(message))
     return re.sub(r"`([a-z_]+)`", lambda m: _FLAGS.get(m.group(1), "--" + m.group(1).replace("_", "-")),
                   str(message))
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
-    print(f"nemo: warning: {as_flags(message)}", file=sys.stderr)
+def _show_warning(message, category, filename, lineno, file=None, line=None, command=None):  # noqa: ARG001
+    print(f"nemo: warning: {as_flags(message, command)}", file=sys.stderr)
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -96,10 +104,10 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             warnings.simplefilter("always", NemoWarning)
-            warnings.showwarning = _show_warning  # one line on stderr, restored on exit
+            warnings.showwarning = functools.partial(_show_warning, command=args._command)  # restored on exit
             return int(args._run(args) or 0)
     except NemoError as exc:
-        print(f"nemo {args._command}: error: {as_flags(exc)}", file=sys.stderr)
+        print(f"nemo {args._command}: error: {as_flags(exc, args._command)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"nemo {args._command}: interrupted", file=sys.stderr)
