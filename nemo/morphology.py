@@ -757,7 +757,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         ``mean_K_fit``; ``notes`` (list of str). Coincident vertices are merged (and the faces
         they collapse ignored) for the topology and the angles.
     """
-    check_mesh(mesh)
+    check_mesh(mesh, manifold=False)  # a diagnostic: it reports a non-manifold surface in its notes
     notes: list[str] = []
     unit = _unit_name(mesh)
     vertices_in = np.asarray(mesh.vertices, dtype=np.float64)

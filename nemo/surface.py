@@ -50,7 +50,13 @@ from scipy.sparse import csgraph
 from nemo._log import logger, step as log_step
 from nemo.errors import NemoError, NemoWarning
 from nemo.io import check_spacing
-from nemo.mesh import face_normals_areas, make_mesh, merge_coincident_vertices, signed_volume
+from nemo.mesh import (
+    face_normals_areas,
+    make_mesh,
+    merge_coincident_vertices,
+    signed_volume,
+    split_nonmanifold_vertices,
+)
 
 __all__ = [
     "reconstruct", "split_mesh", "fit_sphere", "keep_components", "submesh", "face_components",
@@ -115,6 +121,10 @@ def submesh(mesh: trimesh.Trimesh, face_index: np.ndarray, flip: bool = False) -
     remap = np.full(len(mesh.vertices), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     new_faces = remap[faces]
+    # a part cut out of a surface may touch itself at single vertices: give each fan its own copy
+    _, new_faces, copy_of = split_nonmanifold_vertices(np.asarray(mesh.vertices)[used], new_faces,
+                                                       return_index=True)
+    used = used[copy_of]
     if flip:
         new_faces = new_faces[:, ::-1]
     fields = {}
@@ -649,6 +659,7 @@ def reconstruct(
     # the vertices no face uses any more.
     verts_zyx, faces, _ = merge_coincident_vertices(np.asarray(verts_zyx, dtype=np.float64), faces)
     faces = _cancel_duplicate_faces(faces)
+    verts_zyx, faces = split_nonmanifold_vertices(verts_zyx, faces)  # sheets touching at a vertex/edge
     used = np.zeros(len(verts_zyx), dtype=bool)
     used[faces.ravel()] = True
     if not used.all():

@@ -2,12 +2,23 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
 
 from nemo.errors import NemoError
-from nemo.mesh import check_mesh, load_mesh, make_mesh, mean_edge_length, save_mesh, signed_volume
+from nemo.mesh import (
+    check_mesh,
+    load_mesh,
+    make_mesh,
+    mean_edge_length,
+    nonmanifold_problem,
+    save_mesh,
+    signed_volume,
+    split_nonmanifold_vertices,
+)
 
 
 def _sphere(radius=50.0, centre=(120.0, 80.0, 60.0), subdivisions=3):
@@ -165,3 +176,146 @@ def test_split_inner_surface_survives_a_ply_round_trip(tmp_path):
     outward = np.einsum("ij,ij->i", back.vertex_normals, back.vertices - [20.0, 19.5, 20.5])
     assert (outward > 0).all()
     assert signed_volume(back.vertices, back.faces) > 0
+
+
+# --------------------------------------------------------------------------- non-manifold meshes
+def _bowtie():
+    """Two unit icospheres touching at one point that is a single shared vertex."""
+    v, f = _sphere(radius=1.0, centre=(0.0, 0.0, 0.0), subdivisions=2)
+    j = int(np.argmin(np.linalg.norm(v + v[0], axis=1)))  # the antipode of vertex 0
+    assert np.allclose(v[j], -v[0])
+    v2 = v + 2 * v[0]  # second sphere: its vertex j lands on vertex 0 of the first
+    keep = np.arange(len(v)) != j
+    remap = np.full(len(v), -1)
+    remap[keep] = len(v) + np.arange(keep.sum())
+    remap[j] = 0
+    return np.vstack([v, v2[keep]]), np.vstack([f, remap[f]])
+
+
+def _duplicated_face():
+    v, f = _sphere(subdivisions=2)
+    return v, np.vstack([f, f[7:8]])
+
+
+def _book():
+    """Three triangles on one edge (0, 1): the spine of a three-page book."""
+    v = np.array([[0, 0, 0], [10, 0, 0], [5, 8, 0], [5, -4, 7], [5, -4, -7]], dtype=float)
+    return v, np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+
+
+_NONMANIFOLD = {
+    "bowtie": (_bowtie, r"not a manifold surface: 1 vertex is shared by separate fans of faces .*vertex 0 joins 2 fans"),
+    "duplicate": (_duplicated_face, r"not a manifold surface: 1 face duplicates another face .*faces 7 and 320"),
+    "book": (_book, r"not a manifold surface: 1 edge is shared by more than two faces .*vertices 0 and 1 is in 3 faces"),
+}
+
+
+def _write_ply(path, v, f):
+    path.write_bytes(trimesh.Trimesh(v, f, process=False).export(file_type="ply", encoding="binary"))
+    return path
+
+
+@pytest.mark.parametrize("kind", sorted(_NONMANIFOLD))
+def test_load_mesh_rejects_nonmanifold_meshes(tmp_path, kind):
+    build, wording = _NONMANIFOLD[kind]
+    ply = _write_ply(tmp_path / f"{kind}.ply", *build())
+    with pytest.raises(NemoError, match=wording) as err:
+        load_mesh(ply)
+    message = str(err.value)
+    assert str(ply) in message and "\n" not in message  # names the file, one paragraph
+    assert "MeshLab" in message and "Repair non Manifold Edges" in message  # and the fix
+    assert "silently wrong" in message
+
+
+@pytest.mark.parametrize("kind", sorted(_NONMANIFOLD))
+def test_cli_curvature_rejects_nonmanifold_mesh(tmp_path, capsys, kind):
+    from nemo.cli import main
+
+    build, wording = _NONMANIFOLD[kind]
+    ply = _write_ply(tmp_path / f"{kind}.ply", *build())
+    before = ply.read_bytes()
+    code = main(["curvature", str(ply), "-o", str(tmp_path / "c.parquet")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "nemo curvature: error:" in err and re.search(wording, err)
+    assert "Traceback" not in err
+    assert ply.read_bytes() == before
+    assert not (tmp_path / "c.parquet").exists()
+
+
+def test_check_mesh_rejects_faces_with_a_repeated_vertex():
+    v, f = _sphere(subdivisions=1)
+    f = np.vstack([f, [[3, 5, 3]]])
+    with pytest.raises(NemoError, match=r"1 face repeats a vertex index \(e\.g\. face 80: vertices 3, 5, 3\)"):
+        check_mesh(trimesh.Trimesh(v, f, process=False), "m.ply")
+
+
+def test_manifold_meshes_still_load(tmp_path):
+    """Closed spheres, an open hemisphere (a boundary), an annulus and separate closed
+    components are all manifold."""
+    v, f = _sphere(subdivisions=3)
+    hemi = f[(v[f].mean(axis=1)[:, 2] > 60.0)]
+    used = np.unique(hemi)
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    ann = trimesh.creation.annulus(r_min=5.0, r_max=8.0, height=2.0)
+    cases = {
+        "sphere": (v, f),
+        "hemisphere": (v[used], remap[hemi]),
+        "two_spheres": (np.vstack([v, v + 200.0]), np.vstack([f, f + len(v)])),
+        "annulus": (np.asarray(ann.vertices), np.asarray(ann.faces)),
+    }
+    for name, (vv, ff) in cases.items():
+        assert nonmanifold_problem(ff, len(vv)) is None, name
+        back = load_mesh(_write_ply(tmp_path / f"{name}.ply", vv, ff))
+        assert len(back.faces) == len(ff), name
+    assert not load_mesh(tmp_path / "hemisphere.ply").is_watertight
+
+
+def test_nonmanifold_check_accepts_inconsistent_winding_and_flags_open_bowtie():
+    v, f = _sphere(subdivisions=2)
+    f = f.copy()
+    f[::5] = f[::5, ::-1]  # winding is a separate matter: still a manifold
+    assert nonmanifold_problem(f, len(v)) is None
+    # two open fans (triangles) meeting at vertex 0
+    assert "vertex 0 joins 2 fans" in nonmanifold_problem(np.array([[0, 1, 2], [0, 3, 4]]), 5)
+
+
+def test_split_nonmanifold_vertices_repairs_bowtie_and_touching_sheets():
+    v, f = _bowtie()
+    v2, f2, index = split_nonmanifold_vertices(v, f, return_index=True)
+    assert len(v2) == len(v) + 1 and f2.shape == f.shape
+    np.testing.assert_array_equal(v2[: len(v)], v)  # input vertices keep their indices
+    np.testing.assert_array_equal(v2, v[index])
+    np.testing.assert_array_equal(index[f2], f)  # every face keeps its positions
+    assert nonmanifold_problem(f2, len(v2)) is None
+    mesh = trimesh.Trimesh(v2, f2, process=False)
+    assert mesh.is_watertight and len(mesh.split(only_watertight=False)) == 2
+    # two closed tetrahedra sharing an edge (four faces on it), as marching cubes gives where
+    # two sheets touch: split into two closed tetrahedra
+    tet = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 1], [0, -1, 1], [0, 1, -1], [0, -1, -1]], dtype=float)
+    f = np.vstack([tet, np.where(tet == 2, 4, np.where(tet == 3, 5, tet))[:, ::-1]])
+    assert "edge between vertices 0 and 1 is in 4 faces" in nonmanifold_problem(f, len(v))
+    v2, f2 = split_nonmanifold_vertices(v, f)
+    assert len(v2) == 8 and nonmanifold_problem(f2, len(v2)) is None
+    assert trimesh.Trimesh(v2, f2, process=False).is_watertight
+    # a manifold mesh comes back unchanged
+    v, f = _sphere(subdivisions=2)
+    v2, f2 = split_nonmanifold_vertices(v, f)
+    np.testing.assert_array_equal(v2, v)
+    np.testing.assert_array_equal(f2, f)
+
+
+def test_split_nonmanifold_vertices_repairs_a_split_half_of_a_noisy_surface():
+    """Selecting the faces on one side of a rough surface leaves pinched vertices along the
+    cut; the repaired half passes check_mesh with the same faces and positions."""
+    rng = np.random.default_rng(3)
+    v, f = _sphere(radius=20.0, centre=(0.0, 0.0, 0.0), subdivisions=4)
+    v = v + rng.normal(scale=0.6, size=v.shape)
+    keep = (v[f].mean(axis=1)[:, 2] + rng.normal(scale=0.8, size=len(f))) > 0  # ragged cut
+    half = f[keep]
+    assert "fans" in nonmanifold_problem(half, len(v))
+    v2, f2, index = split_nonmanifold_vertices(v, half, return_index=True)
+    np.testing.assert_array_equal(index[f2], half)
+    check_mesh(trimesh.Trimesh(v2, f2, process=False))
