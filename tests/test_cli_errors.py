@@ -91,16 +91,25 @@ def test_empty_mask(hyperstack, tmp_path, run_cli):
 
 
 def test_good_mask_is_used(hyperstack, tmp_path, run_cli):
-    mask = _ball(radius=8.0) > 0
-    write_hyperstack(tmp_path / "mask.tif", mask.astype(np.uint8), (1, 1, 1), axes="ZYX")
-    code, out, err = run_cli("mesh", hyperstack, "-o", tmp_path / "m.ply", "--mask", tmp_path / "mask.tif",
-                             "--fit-sphere", "--step", "1", "--split", "none")
-    assert code == 0, err
+    """The mask's object is meshed, not the image's: the mask's ball (radius 8 voxels) is the
+    image's ball (radius 6 voxels) scaled by 4/3 about the same centre, so the fitted sphere's
+    radius must scale by 4/3 (measured: 5.619 µm with the mask / 4.225 µm without = 1.330)."""
     import json
 
-    sphere = json.loads((tmp_path / "m.sphere.json").read_text())["whole"]
-    # the mask's ball (radius 8 voxels = 4 µm in x, y at 0.5 µm), not the image's (radius 6)
-    assert 3.0 < sphere["radius"] < 6.0
+    mask = _ball(radius=8.0) > 0
+    write_hyperstack(tmp_path / "mask.tif", mask.astype(np.uint8), (1, 1, 1), axes="ZYX")
+    radii = {}
+    for name, extra in (("image", []), ("mask", ["--mask", tmp_path / "mask.tif"])):
+        code, _, err = run_cli("mesh", hyperstack, "-o", tmp_path / f"{name}.ply", *extra,
+                                 "--fit-sphere", "--step", "1", "--split", "none")
+        assert code == 0, err
+        sphere = json.loads((tmp_path / f"{name}.sphere.json").read_text())["whole"]
+        np.testing.assert_allclose(sphere["centre"], (6.0, 6.0, 10.0), atol=0.01)  # both balls' centre
+        radii[name] = sphere["radius"]
+    # the ratio (1.330 measured) within 0.02 of 4/3: the same mesh twice (ratio 1) fails
+    assert radii["mask"] / radii["image"] == pytest.approx(4 / 3, abs=0.02), radii
+    # and the values themselves, ±0.1 µm (5.62 and 4.22 measured: 1.4 µm apart)
+    assert radii["mask"] == pytest.approx(5.62, abs=0.1) and radii["image"] == pytest.approx(4.22, abs=0.1)
 
 
 def test_bad_output_suffix_and_options(hyperstack, tmp_path, run_cli):

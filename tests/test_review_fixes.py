@@ -83,7 +83,7 @@ def test_layer_from_another_mesh_is_refused(shell, run_cli):
     assert read_provenance(shell / "d_inner.parquet")["n_vertices"] == len(layer)
 
 
-def test_shift_order_and_curvature_tables_from_another_mesh(shell, run_cli):
+def test_shift_order_and_curvature_tables_from_another_mesh(shell, tmp_path, run_cli):
     code, _, err = run_cli("thickness", shell / "m.inner.ply", shell / "m.outer.ply", "-o", shell / "th.parquet")
     assert code == 0, err
     n_inner = len(load_mesh(shell / "m.inner.ply").vertices)
@@ -97,12 +97,23 @@ def test_shift_order_and_curvature_tables_from_another_mesh(shell, run_cli):
     assert read_provenance(shell / "k.parquet")["n_vertices"] == n_inner  # item 12
     code, _, err = run_cli("measure", shell / "m.outer.ply", "--curvature", shell / "k.parquet")
     _error_line(code, err, "k.parquet", "vertices")
-    # directors of the inner half averaged on the whole mesh
-    if not (shell / "d_inner.parquet").exists():
-        pytest.skip("needs test_layer_from_another_mesh_is_refused")
-    code, _, err = run_cli("order", shell / "m.ply", shell / "d_inner.parquet", "-o", shell / "o.parquet",
+    # directors of the inner half averaged on the whole mesh: made here, in this test's own folder
+    # (no dependence on which test ran before on this worker)
+    code, _, err = run_cli("peel", shell / "shell.tif", shell / "m.inner.ply", "-o", tmp_path / "layer.parquet",
+                           "--range", "0", "2")
+    assert code == 0, err
+    code, _, err = run_cli("directors", shell / "m.inner.ply", tmp_path / "layer.parquet", "-o",
+                           tmp_path / "d_inner.parquet", "--patch-radius", "3", "--n-patches", "100")
+    assert code == 0, err
+    assert read_provenance(tmp_path / "d_inner.parquet")["n_vertices"] == n_inner
+    code, _, err = run_cli("order", shell / "m.ply", tmp_path / "d_inner.parquet", "-o", tmp_path / "o.parquet",
                            "--radius", "5")
     _error_line(code, err, "vertices")
+    assert not (tmp_path / "o.parquet").exists()
+    # and on its own mesh the same table is accepted
+    code, _, err = run_cli("order", shell / "m.inner.ply", tmp_path / "d_inner.parquet", "-o",
+                           tmp_path / "o.parquet", "--radius", "5")
+    assert code == 0, err
 
 
 # ---------------------------------------------------------------------------------- item 2
@@ -253,7 +264,10 @@ def test_option_sizes_are_bounded(shell):
     intensity = np.ones(len(mesh.vertices))
     with pytest.raises(NemoError, match="`pixel`"):
         directors(mesh, intensity, patch_radius=6.0, pixel=0.01)
+    # inner wall: object radius 9.94, mean edge 0.92 (pixel ≥ 0.092): 9.5 / 0.095 = 100 px + margin
     with pytest.raises(NemoError, match="micro-images of"):
+        directors(mesh, intensity, patch_radius=9.5, pixel=0.095)
+    with pytest.raises(NemoError, match="larger than the object"):
         directors(mesh, intensity, patch_radius=20.0, pixel=0.1)
     with pytest.raises(NemoError, match="at most"):
         peel(shell_image(), (1.0, 1.0, 1.0), mesh.vertices, vertex_normals(mesh), 0, 2, n_samples=10_000)
@@ -275,8 +289,10 @@ def test_alignment_checks_normals_and_max_distance():
         return pd.DataFrame({"vertex": np.arange(len(x)), "x": x, "y": 0.0, "z": 0.0,
                              "nx": 1.0, "ny": 0.0, "nz": 0.0, "coherency": 1.0})
 
-    a, b = table(np.array([0.0, 10.0])), table(np.array([0.5]))
+    # two of A's three directors have B's one within max_distance; the median match (0.5) is well
+    # inside A's extent, so the tables overlap
+    a, b = table(np.array([0.0, 0.4, 10.0])), table(np.array([0.5]))
     with pytest.raises(NemoError, match="normals_a"):
-        alignment(a, b, normals_a=np.zeros((3, 3)))
+        alignment(a, b, normals_a=np.zeros((5, 3)))  # not one normal per director of A
     c = alignment(a, b, max_distance=2.0)["c"].to_numpy()
-    assert c[0] == pytest.approx(1.0) and np.isnan(c[1])
+    assert c[:2] == pytest.approx([1.0, 1.0]) and np.isnan(c[2])

@@ -208,6 +208,16 @@ def _summary(work: Path, name: str, dataset: str = "demo") -> pd.DataFrame:
     return read_table(work / "results" / dataset / "summary" / f"{name}.parquet")
 
 
+# Systematic bias of the wall placement in the demo (2 µm voxels, Yen threshold on the blurred
+# shell): the segmented wall is too thick, both walls are displaced away from the shell's
+# mid-surface (inner wall at r = 99.79 µm instead of 100, outer at 110.63 instead of 110,
+# from the volumes), so the thickness is 10.84 µm, not the generator's 10. An open issue
+# (walls biased outward): test_default_run_thickness_is_unbiased below is its strict xfail.
+# The bias shrinks with the voxel size (docs/benchmarks.md: 10.26 at the paper's 2 µm step on
+# R 200, 10.03 at 1 µm voxels).
+DEMO_THICKNESS_BIAS = 0.84  # µm, measured: 0.832 - 0.842 over the 3 frames
+
+
 def test_default_run_summaries(demo_run):
     cfg = default_config()
     frames = cfg["datasets"]["demo"]["synthetic"]["frames"]
@@ -215,16 +225,44 @@ def test_default_run_summaries(demo_run):
     assert FRAMES_COLUMNS <= set(f.columns)
     assert len(f) == frames * len(cfg["layers"])
     R = cfg["datasets"]["demo"]["synthetic"]["radius"]
-    # inner wall of the synthetic shell: a sphere of radius R
-    assert np.allclose(f["area"], 4 * np.pi * R**2, rtol=0.03)
-    assert np.allclose(f["volume"], 4 / 3 * np.pi * R**3, rtol=0.03)
-    assert np.allclose(f["H_mean"], 1 / R, rtol=0.05)
+    print("\ndemo frames:\n", f[["t", "layer", "area", "volume", "H_mean", "thickness_mean", "S_mean",
+                                  "charge_sum"]].to_string())
+    # inner wall of the synthetic shell: a sphere of radius R (measured relative errors: area
+    # -0.10 %, volume -0.64 % = the inner wall 0.21 µm inside R, H +0.19 %)
+    assert np.allclose(f["area"], 4 * np.pi * R**2, rtol=0.003)
+    assert np.allclose(f["volume"], 4 / 3 * np.pi * R**3, rtol=0.01)
+    assert np.allclose(f["H_mean"], 1 / R, rtol=0.005)
     shell = read_truth(demo_run / "resources/demo/vesicle.truth.json")["shell_thickness"]
-    assert np.allclose(f["thickness_mean"], shell, atol=2.0)
-    # Σ charge = χ = 2 on the closed vesicle, 4 × +½ in every frame and layer
+    assert shell == 10.0
+    # the known outward bias of the walls (see DEMO_THICKNESS_BIAS), pinned within 0.05 µm so
+    # that any change of it, better or worse, is seen
+    np.testing.assert_allclose(f["thickness_mean"] - shell, DEMO_THICKNESS_BIAS, atol=0.05)
+    # Σ charge = χ = 2 on the closed vesicle, 4 × +½ in every frame and layer (measured: 2.002 - 2.006)
     assert (f["n_defects"] == 4).all(), f[["t", "layer", "n_defects"]]
-    assert np.allclose(f["charge_sum"], 2.0, atol=0.1)
-    assert (f["S_mean"] > 0.5).all()
+    assert np.allclose(f["charge_sum"], 2.0, atol=0.01)
+    # ordered field away from the 4 defect cores (measured S_mean 0.917 - 0.919)
+    assert (f["S_mean"] > 0.9).all(), f["S_mean"]
+
+
+@pytest.mark.xfail(strict=True, reason="open issue: the walls of the segmented shell are biased outward "
+                                       "(thickness 10.84 µm for a 10 µm shell at 2 µm voxels)")
+def test_default_run_thickness_is_unbiased(demo_run):
+    f = _summary(demo_run, "frames")
+    shell = read_truth(demo_run / "resources/demo/vesicle.truth.json")["shell_thickness"]
+    assert np.abs(f["thickness_mean"] - shell).max() <= 0.25
+
+
+def _truth_speed(truth: dict, defect: pd.Series) -> float:
+    """Speed (µm per frame) of a true defect from the generator's motion: the texture turns
+    rigidly by ``frame_rotation`` degrees per frame about ``frame_axis`` through the centre, so a
+    defect at unit direction u on the sphere of radius r moves by the chord
+    2 r sin(θ/2) |u × axis| every frame."""
+    p = truth["parameters"]
+    axis = np.asarray(p["frame_axis"], float)
+    axis /= np.linalg.norm(axis)
+    r = np.linalg.norm(defect[["x", "y", "z"]].to_numpy(float) - np.asarray(truth["centre"]))
+    u = defect[["ux", "uy", "uz"]].to_numpy(float)
+    return float(2 * r * np.sin(np.radians(p["frame_rotation"]) / 2) * np.linalg.norm(np.cross(u, axis)))
 
 
 def test_default_run_defects_match_truth_and_track(demo_run):
@@ -234,12 +272,16 @@ def test_default_run_defects_match_truth_and_track(demo_run):
     d = _summary(demo_run, "defects")
     assert DEFECTS_COLUMNS <= set(d.columns)
     assert (d["charge_rounded"] == 0.5).all()
+    errors = []
     # every detected defect lies close to a true defect of its frame and layer (2 µm voxels)
     for (t, layer), group in d.groupby(["t", "layer"]):
         true = td[(td["t"] == t) & (td["layer"] == layer_index[layer])][["x", "y", "z"]].to_numpy()
         dist = np.linalg.norm(group[["x", "y", "z"]].to_numpy()[:, None] - true[None], axis=2)
-        assert dist.min(axis=1).max() < 8.0, (t, layer, dist.min(axis=1))
+        # measured: 0.65 - 2.17 µm, mean 1.35 µm (2 µm voxels)
+        assert dist.min(axis=1).max() < 2.5, (t, layer, dist.min(axis=1))
         assert len(set(dist.argmin(axis=1))) == 4  # each true defect found once
+        errors.extend(dist.min(axis=1))
+    assert np.mean(errors) < 1.6, np.mean(errors)
     tr = _summary(demo_run, "tracks")
     assert TRACKS_COLUMNS <= set(tr.columns)
     frames = truth["shape"]["T"]
@@ -247,7 +289,11 @@ def test_default_run_defects_match_truth_and_track(demo_run):
     assert len(tr) == 4 * 2
     assert (tr["first_t"] == 0).all() and (tr["last_t"] == frames - 1).all()
     assert (tr["charge_rounded"] == 0.5).all() and (tr["length"] == frames).all()
+    # the truth speed from the generator's motion (demo: 6° per frame about y, on R = 100 µm)
+    p = truth["parameters"]
+    assert p["frame_rotation"] == 6.0 and p["frame_axis"] == [0.0, 1.0, 0.0]
     linked = d.sort_values("t")
+    offsets, speeds = [], []
     for _, track in tr.iterrows():
         rows = linked[linked["track_id"] == track["track_id"]]
         assert rows["layer"].nunique() == 1 and rows["t"].tolist() == list(range(frames))
@@ -260,14 +306,26 @@ def test_default_run_defects_match_truth_and_track(demo_run):
             ids.append(k)
             steps.append(cand[["x", "y", "z"]].to_numpy()[k])
         assert len(set(ids)) == 1, ids
-        true_speed = np.linalg.norm(np.diff(np.array(steps), axis=0), axis=1).mean()
-        assert abs(track["mean_speed"] - true_speed) < 5.0, (track["mean_speed"], true_speed)
+        true_speed = _truth_speed(truth, true[true["t"] == 0].iloc[ids[0]])
+        speeds.append(true_speed)
+        # the generator's truth table moves its defects by exactly that chord per frame
+        np.testing.assert_allclose(np.linalg.norm(np.diff(np.array(steps), axis=0), axis=1), true_speed,
+                                   rtol=1e-9)
+        # measured: |mean_speed − truth| 0.005 - 0.90 µm/frame (truth 8.546) from the 1–2 µm
+        # localisation scatter over 2 steps
+        assert abs(track["mean_speed"] - true_speed) < 1.0, (track["mean_speed"], true_speed)
+        offsets.append(track["mean_speed"] - true_speed)
+    # no systematic speed bias over the 8 tracks (measured mean offset +0.08 µm/frame)
+    print(f"\ntrack speed − truth: {np.round(offsets, 3)}, truth {np.round(speeds, 3)}; "
+          f"localisation error mean {np.mean(errors):.2f}, max {np.max(errors):.2f} µm")
+    assert abs(np.mean(offsets)) < 0.15, offsets
 
 
 def test_default_run_alignment_orthogonal_layers(demo_run):
     a = _summary(demo_run, "alignment")
     assert set(a["layer_a"]) == {"basal"} and set(a["layer_b"]) == {"apical"}
-    assert (a["c_mean"] <= -0.85).all(), a  # second layer rotated by 90°: c = cos 2·90° = −1
+    # second layer rotated by 90°: c = cos 2·90° = −1 (measured c_mean −0.945 to −0.947)
+    assert (a["c_mean"] <= -0.93).all(), a
 
 
 def test_nothing_reruns_after_a_complete_run(demo_run, tmp_path):

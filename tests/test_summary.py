@@ -1,0 +1,179 @@
+"""nemo.summary on small hand-built per-frame tables with answers worked out by hand."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from nemo.errors import NemoError
+from nemo.summary import (
+    ALIGN_COLUMNS,
+    DEFECT_COLUMNS,
+    FRAME_COLUMNS,
+    alignment_summary,
+    collect_defects,
+    frame_summary,
+)
+from nemo.tables import write_table
+
+NAN = math.nan
+
+
+def _defects(charges, rounded, **extra) -> pd.DataFrame:
+    n = len(charges)
+    return pd.DataFrame({"x": np.arange(n, dtype=float), "y": 0.0, "z": 0.0, "vertex": np.arange(n),
+                         "S": 0.1, "charge": charges, "charge_winding": charges,
+                         "charge_curvature": 0.0, "charge_rounded": rounded, **extra})
+
+
+@pytest.fixture
+def frame_files(tmp_path):
+    """Files of one full frame-layer (t = 1, c = 0, basal) with known means."""
+    d = tmp_path / "t1"
+    d.mkdir()
+    (d / "measure.json").write_text(json.dumps({"area": 12.5, "volume": 7.0, "euler_characteristic": 2,
+                                                "mean_H": 0.1, "mean_K": 0.01}))
+    write_table(pd.DataFrame({"vertex": [0, 1, 2], "H": [1.0, 2.0, NAN], "K": [0.5, NAN, 1.5]}),
+                d / "curvature.parquet")
+    write_table(pd.DataFrame({"vertex": [0, 1, 2, 3], "thickness": [1.0, 2.0, 6.0, NAN]}),
+                d / "thickness.parquet")
+    write_table(pd.DataFrame({"vertex": [0, 1, 2], "intensity": [1.0, 3.0, NAN]}), d / "layer.parquet")
+    write_table(pd.DataFrame({"vertex": [0, 1], "x": 0.0, "y": 0.0, "z": 0.0, "nx": 1.0, "ny": 0.0,
+                              "nz": 0.0, "coherency": [0.2, 0.4]}), d / "directors.parquet")
+    write_table(pd.DataFrame({"vertex": [0, 1, 2, 3], "S": [0.1, 0.2, 0.9, NAN], "nx": 1.0, "ny": 0.0,
+                              "nz": 0.0}), d / "order.parquet")
+    write_table(_defects([0.48, 0.52, -0.45], [0.5, 0.5, -0.5]), d / "defects.parquet",
+                parameters={"min_distance": 30.0})
+    return {"t": 1, "c": 0, "layer": "basal", "surface": "inner", "measure": d / "measure.json",
+            "curvature": d / "curvature.parquet", "thickness": d / "thickness.parquet",
+            "layer_table": d / "layer.parquet", "directors": d / "directors.parquet",
+            "order": d / "order.parquet", "defects": d / "defects.parquet"}
+
+
+# ----------------------------------------------------------------------------- frame_summary
+def test_frame_summary_means_ignore_nan(frame_files):
+    out = frame_summary([frame_files])
+    assert list(out.columns) == list(FRAME_COLUMNS) and len(out) == 1
+    row = out.iloc[0]
+    expected = {
+        "t": 1, "c": 0, "layer": "basal", "surface": "inner", "area": 12.5, "volume": 7.0,
+        "euler_characteristic": 2.0, "H_mean": 0.1, "K_mean": 0.01,
+        "H_fit_mean": 1.5, "K_fit_mean": 1.0,                        # NaN dropped
+        "thickness_mean": 3.0, "thickness_median": 2.0, "thickness_valid": 0.75,  # 3 of 4 finite
+        "intensity_mean": 2.0, "n_directors": 2, "coherency_mean": 0.3,
+        "S_mean": 0.4, "S_median": 0.2, "n_defects": 3,
+        "charge_sum": 0.55, "charge_rounded_sum": 0.5,
+    }
+    for key, value in expected.items():
+        if isinstance(value, str):
+            assert row[key] == value, key
+        else:
+            assert row[key] == pytest.approx(value, abs=1e-12), key
+    assert out["t"].dtype == np.int64 and out["c"].dtype == np.int64
+    assert str(out["n_directors"].dtype) == "Int64" and str(out["n_defects"].dtype) == "Int64"
+
+
+def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
+    """Records without curvature, thickness or layer tables give NaN / <NA> there; missing
+    measure values (null) are NaN; rows are sorted by t, c, layer whatever the input order."""
+    (tmp_path / "m0.json").write_text(json.dumps({"area": 3.0, "volume": 1.0, "euler_characteristic": 2,
+                                                  "mean_H": None}))
+    bare = {"t": 0, "c": 1, "layer": "whole", "surface": "whole", "measure": tmp_path / "m0.json",
+            "curvature": None, "thickness": None}
+    apical = dict(frame_files, layer="apical")
+    out = frame_summary([frame_files, bare, apical])
+    assert list(zip(out["t"], out["c"], out["layer"])) == [(0, 1, "whole"), (1, 0, "apical"), (1, 0, "basal")]
+    row = out.iloc[0]
+    assert row["area"] == 3.0 and row["volume"] == 1.0
+    for key in ("H_mean", "K_mean", "H_fit_mean", "thickness_mean", "thickness_valid", "S_mean",
+                "intensity_mean", "charge_sum"):
+        assert np.isnan(row[key]), key
+    assert pd.isna(row["n_defects"]) and pd.isna(row["n_directors"])
+    assert out.iloc[1]["n_defects"] == out.iloc[2]["n_defects"] == 3
+
+
+def test_frame_summary_of_nothing_is_an_empty_table():
+    out = frame_summary([])
+    assert len(out) == 0 and list(out.columns) == list(FRAME_COLUMNS)
+
+
+def test_frame_summary_bad_measure_file(frame_files, tmp_path):
+    with pytest.raises(NemoError, match="measure file not found"):
+        frame_summary([dict(frame_files, measure=tmp_path / "nope.json")])
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(NemoError, match="nemo measure --json"):
+        frame_summary([dict(frame_files, measure=tmp_path / "bad.json")])
+    with pytest.raises(NemoError, match="table not found"):
+        frame_summary([dict(frame_files, order=tmp_path / "nope.parquet")])
+
+
+# ----------------------------------------------------------------------------- collect_defects
+def test_collect_defects_keys_order_and_tracking_distance(tmp_path):
+    write_table(_defects([0.5, -0.5], [0.5, -0.5], extra_col=[7, 8]), tmp_path / "a.parquet",
+                parameters={"min_distance": 30.0})
+    write_table(_defects([1.0], [1.0]), tmp_path / "b.parquet", parameters={"min_distance": 12.0})
+    write_table(_defects([], []), tmp_path / "empty.parquet", parameters={"min_distance": 5.0})
+    write_table(_defects([0.5], [0.5]), tmp_path / "noprov.parquet")  # no parameters recorded
+    records = [
+        {"t": 2, "c": 0, "layer": "basal", "defects": tmp_path / "a.parquet"},
+        {"t": 0, "c": 1, "layer": "apical", "defects": tmp_path / "b.parquet"},
+        {"t": 0, "c": 0, "layer": "basal", "defects": tmp_path / "empty.parquet"},
+        {"t": 0, "c": 0, "layer": "apical", "defects": tmp_path / "noprov.parquet"},
+    ]
+    out = collect_defects(records)
+    assert list(out.columns[: len(DEFECT_COLUMNS)]) == list(DEFECT_COLUMNS)
+    assert {"min_distance", "extra_col"} <= set(out.columns)
+    assert list(zip(out["t"], out["c"], out["layer"])) == [(0, 0, "apical"), (0, 1, "apical"),
+                                                          (2, 0, "basal"), (2, 0, "basal")]
+    # input order kept within a frame-layer
+    np.testing.assert_array_equal(out["charge"], [0.5, 1.0, 0.5, -0.5])
+    np.testing.assert_array_equal(out["x"], [0.0, 0.0, 0.0, 1.0])
+    assert np.isnan(out["min_distance"].iloc[0])
+    np.testing.assert_array_equal(out["min_distance"].iloc[1:], [12.0, 30.0, 30.0])
+    np.testing.assert_array_equal(out["extra_col"].iloc[2:], [7, 8])
+    assert out["t"].dtype == np.int64 and out["c"].dtype == np.int64
+
+
+def test_collect_defects_without_any_defect():
+    assert len(collect_defects([])) == 0
+
+
+def test_collect_defects_of_empty_tables_has_the_columns(tmp_path):
+    write_table(_defects([], []), tmp_path / "empty.parquet")
+    out = collect_defects([{"t": 0, "c": 0, "layer": "basal", "defects": tmp_path / "empty.parquet"}])
+    assert len(out) == 0 and list(out.columns) == list(DEFECT_COLUMNS)
+    assert out["t"].dtype == np.int64 and out["layer"].dtype == object
+
+
+# ----------------------------------------------------------------------------- alignment_summary
+def test_alignment_summary_statistics(tmp_path):
+    write_table(pd.DataFrame({"vertex": range(5), "c": [1.0, -1.0, 0.0, 0.8, NAN]}), tmp_path / "a.parquet")
+    write_table(pd.DataFrame({"vertex": [0, 1], "c": [NAN, NAN]}), tmp_path / "none.parquet")
+    out = alignment_summary([
+        {"t": 1, "c": 0, "layer_a": "basal", "layer_b": "apical", "align": tmp_path / "a.parquet"},
+        {"t": 0, "c": 0, "layer_a": "basal", "layer_b": "apical", "align": tmp_path / "none.parquet"},
+    ])
+    assert list(out.columns) == list(ALIGN_COLUMNS)
+    assert out["t"].tolist() == [0, 1]
+    empty, row = out.iloc[0], out.iloc[1]
+    assert empty["n"] == 0
+    for key in ALIGN_COLUMNS[5:]:
+        assert np.isnan(empty[key]), key
+    # finite c = [1, -1, 0, 0.8]
+    assert row["n"] == 4
+    assert row["c_mean"] == pytest.approx(0.2)
+    assert row["c_median"] == pytest.approx(0.4)
+    assert row["c_std"] == pytest.approx(math.sqrt((0.8**2 + 1.2**2 + 0.2**2 + 0.6**2) / 4))
+    assert row["fraction_parallel"] == pytest.approx(0.5)      # 1.0 and 0.8 (> 0.5)
+    assert row["fraction_orthogonal"] == pytest.approx(0.25)   # -1.0 (< -0.5)
+    assert out["n"].dtype == np.int64
+
+
+def test_alignment_summary_needs_a_c_column(tmp_path):
+    write_table(pd.DataFrame({"vertex": [0]}), tmp_path / "a.parquet")
+    with pytest.raises(NemoError, match="lacks column"):
+        alignment_summary([{"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}])
