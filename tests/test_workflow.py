@@ -11,6 +11,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -439,6 +440,46 @@ def test_one_config_holds_a_vesicle_and_a_droplet(tmp_path):
     assert counts["peel"] == frames * 2 and counts["measure"] == frames * 2 + 2
     assert counts["curvature"] == frames * 2  # the droplet's curvature: null
     assert counts["thickness"] == frames
+
+
+def test_odd_dataset_paths_are_quoted(tmp_path):
+    """A dataset folder with spaces, a quote and shell syntax: every job runs, nothing is executed."""
+    folder = tmp_path / "my data's $(touch PWNED); echo"
+    folder.mkdir()
+    _droplets(folder / "drop s.tif", [8.0])
+    cfg = {"datasets": {"drops": {"path": str(folder / "drop s.tif"), "spacing": [1.0, 0.42, 0.42]}},
+           "mesh": {"split": "none"}, "layers": {}, "thickness": None, "curvature": None, "alignment": [],
+           "report": {"summary": False}}
+    smk(tmp_path, "--cores", "2", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    f = _summary(tmp_path, "frames", "drops")
+    np.testing.assert_allclose(f["area"], 4 * np.pi * 8.0**2, rtol=0.03)
+    assert not list(tmp_path.rglob("PWNED")) and not Path("PWNED").exists()
+
+
+def test_a_killed_run_recovers_with_unlock_and_rerun_incomplete(tmp_path):
+    """kill -9 mid-run leaves a lock and incomplete files; the documented commands recover."""
+    radii = [7.0, 7.5, 8.0, 8.5, 9.0, 9.5]
+    _droplets(tmp_path / "drops.tif", radii)
+    cfg = {"datasets": {"drops": {"path": "drops.tif", "spacing": [1.0, 0.42, 0.42]}},
+           "mesh": {"split": "none"}, "layers": {}, "thickness": None, "alignment": [],
+           "report": {"summary": False}}
+    config = write_config(tmp_path / "c.yaml", cfg)
+    cmd = [*SNAKEMAKE, "-s", str(SNAKEFILE), "-d", str(tmp_path), "--cores", "1", "--configfile", str(config)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while not list(tmp_path.glob("results/drops/t*/c*/mesh.ply")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)  # the next job is running
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    again = smk(tmp_path, "--cores", "2", "--configfile", config, check=False)
+    text = again.stdout + again.stderr
+    assert again.returncode != 0 and "lock" in text.lower()
+    smk(tmp_path, "--unlock", "--configfile", config)
+    smk(tmp_path, "--cores", "2", "--configfile", config, "--rerun-incomplete")
+    f = _summary(tmp_path, "frames", "drops")
+    assert f["t"].tolist() == list(range(len(radii)))
+    np.testing.assert_allclose(f["area"], 4 * np.pi * np.array(radii) ** 2, rtol=0.03)
 
 
 # ----------------------------------------------------------------------------- slow: real-looking data, failures, SLURM
