@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import math
 import os
 from collections.abc import Mapping
 from importlib import resources
@@ -110,10 +111,27 @@ def _renamed_hint(instance: Any) -> list[str]:
 @functools.cache
 def _validator(ref: str | None):
     """A validator of the whole schema (None) or of one ``$defs`` entry, built once."""
-    import jsonschema
 
     node = schema() if ref is None else {"$ref": f"#/$defs/{ref}", "$defs": schema()["$defs"]}
-    return jsonschema.Draft202012Validator(node)
+    return _strict_validator_class()(node)
+
+
+@functools.cache
+def _strict_validator_class():
+    """Draft 2020-12 with strict types: a number is finite (no NaN, no infinity) and not a
+    boolean; an integer is a whole-number int, not ``1.0`` (the steps use it as a count or seed)."""
+    import jsonschema
+
+    def number(checker, value) -> bool:  # noqa: ARG001
+        return isinstance(value, int | float) and not isinstance(value, bool) and (
+            isinstance(value, int) or math.isfinite(value))
+
+    def integer(checker, value) -> bool:  # noqa: ARG001
+        return isinstance(value, int) and not isinstance(value, bool)
+
+    base = jsonschema.Draft202012Validator
+    types = base.TYPE_CHECKER.redefine_many({"number": number, "integer": integer})
+    return jsonschema.validators.extend(base, type_checker=types)
 
 
 def _check(instance: Any, ref: str | None, where: str = "") -> None:
@@ -163,7 +181,9 @@ def load(path: str | os.PathLike | None) -> dict:
     if not path.is_file():
         raise NemoError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise NemoError(f"{path} is not a text file in UTF-8: give the YAML config file") from None
     except yaml.YAMLError as exc:
         raise NemoError(f"{path} is not valid YAML ({str(exc).splitlines()[0]})") from None
     if data is not None and not isinstance(data, dict):

@@ -505,6 +505,13 @@ def _pick_mesh(path: Path, df: pd.DataFrame, meshes: dict[str, object], hint: st
     named = {by_file[Path(s).name] for s in _strings(prov) if Path(s).name in by_file}
     if len(named) == 1:
         return named.pop()
+    made_on = prov.get("n_vertices")  # a table records the size of the mesh it was made on
+    if made_on is not None:
+        meshes = {k: m for k, m in meshes.items() if len(m.vertices) == int(made_on)}
+        if not meshes:
+            warnings.warn(f"not shown: {path} was computed on a mesh of {made_on} vertices, none of the "
+                          "meshes given has that many (a table of another mesh)", NemoWarning, stacklevel=3)
+            return None
     hint = {"whole": "mesh"}.get(hint, hint)  # workflow: curvature_whole -> mesh.ply
     if hint and hint in meshes:
         return hint

@@ -126,3 +126,216 @@ def test_keys_of_the_former_run_config_say_what_replaced_them():
     with pytest.raises(NemoError) as exc:
         config.validate({"peel": {"range": [0, 5]}, "mesh": {"step_um": 2.0}})
     assert "'peel' is now layers.NAME" in str(exc.value) and "'mesh.step_um' is now mesh.step" in str(exc.value)
+
+
+# ============================================================================ property-based (Hypothesis)
+#
+# Random mappings and values for every section: nemo.config.validate either accepts them or
+# raises NemoError (never another exception), and whatever it accepts has the documented types:
+# it passes the schema with strict JSON types (an integer is an int, not 1.0 or True; a number
+# is finite -- JSON has no NaN or infinity). nemo.config.analysis and nemo.config.section on
+# accepted values likewise return (strictly typed) or raise NemoError.
+
+import copy
+import math
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+SCHEMA = config.schema()
+#: Hypothesis warns when it prints the (large) repr of the schema strategies in a failure report.
+quiet = pytest.mark.filterwarnings("ignore::hypothesis.errors.HypothesisWarning")
+PROPERTY_SETTINGS = settings(max_examples=200, deadline=None, derandomize=True, database=None,
+                             suppress_health_check=list(HealthCheck))
+
+
+def _strict_validator(ref: str | None = None):
+    import jsonschema
+    from jsonschema import validators
+
+    def is_integer(_, x):
+        return isinstance(x, int) and not isinstance(x, bool)
+
+    def is_number(_, x):
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+    checker = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine_many({"integer": is_integer,
+                                                                          "number": is_number})
+    strict = validators.extend(jsonschema.Draft202012Validator, type_checker=checker)
+    node = SCHEMA if ref is None else {"$ref": f"#/$defs/{ref}", "$defs": SCHEMA["$defs"]}
+    return strict(node)
+
+
+STRICT = _strict_validator()
+
+
+def assert_documented_types(instance, ref: str | None = None, what: str = "config") -> None:
+    validator = STRICT if ref is None else _strict_validator(ref)
+    problems = [f"{'.'.join(map(str, e.absolute_path)) or '(top)'}: {e.message}"
+                for e in validator.iter_errors(instance)]
+    assert not problems, f"{what} was accepted but does not have the documented types:\n  " + "\n  ".join(problems)
+
+
+def _deref(node):
+    while isinstance(node, dict) and "$ref" in node:
+        node = {**SCHEMA["$defs"][node["$ref"].rsplit("/", 1)[-1]], **{k: v for k, v in node.items() if k != "$ref"}}
+    return node
+
+
+#: Values that are wrong almost everywhere, and the YAML spellings of odd numbers.
+HOSTILE = st.one_of(
+    st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0, -1, -0.0, 1e308, -1e308, 1e-308, 4294967296, 1.0, 2.0, True, "", "15", "1e3", "nan",
+                     "yen", "all", "inner", "none", "centre", [], {}, [0, 5], [1, 2, 3], {"range": [0, 5]}]),
+    st.text(max_size=6),
+)
+KEYS = st.one_of(st.text(max_size=8), st.integers(-3, 3), st.none(), st.booleans(), st.floats(allow_nan=False))
+
+
+def from_schema(node, depth: int = 0):
+    """Values of a schema node: mostly of the right shape, often of the wrong type or out of
+    range (1.0 for an integer, NaN or 1e308 for a length, an unknown key), sometimes hostile."""
+    node = _deref(node)
+    options = [HOSTILE]
+    if "enum" in node:
+        options.append(st.sampled_from(node["enum"]))
+    if "const" in node:
+        options.append(st.just(node["const"]))
+    for branch in node.get("oneOf", []) + node.get("anyOf", []):
+        options.append(from_schema(branch, depth + 1))
+    types = node.get("type", [])
+    types = [types] if isinstance(types, str) else types
+    for t in types:
+        if t == "number":
+            options += [st.floats(allow_nan=True, allow_infinity=True), st.integers(-5, 10**6),
+                        st.sampled_from([0, 0.5, 3, 1e308, float("nan"), float("inf"), -float("inf")])]
+        elif t == "integer":
+            options += [st.integers(-5, 2**33), st.sampled_from([1.0, 2.0, 0.0, True, 10**30])]
+        elif t == "string":
+            options.append(st.text(max_size=8))
+        elif t == "boolean":
+            options.append(st.booleans())
+        elif t == "null":
+            options.append(st.none())
+        elif t == "array" and depth < 4:
+            items = node.get("items")
+            options.append(st.lists(from_schema(items, depth + 1) if items else HOSTILE, max_size=4))
+        elif t == "object" and depth < 4:
+            options.append(objects(node, depth))
+    if not types and "properties" in node and depth < 4:
+        options.append(objects(node, depth))
+    typed = options[1:]
+    return st.one_of(*typed, *typed, HOSTILE) if typed else HOSTILE  # mostly well-shaped: deeper checks
+
+
+def objects(node, depth: int = 0):
+    node = _deref(node)
+    props = node.get("properties", {})
+    known = st.fixed_dictionaries({}, optional={k: from_schema(v, depth + 1) for k, v in props.items()})
+    extra = node.get("additionalProperties")
+    if isinstance(extra, dict):
+        pattern = _deref(node.get("propertyNames", {})).get("pattern")
+        names = st.from_regex(pattern, fullmatch=True).filter(lambda s: len(s) < 12) if pattern else st.text(max_size=8)
+        enum = _deref(node.get("propertyNames", {})).get("enum")
+        if enum:
+            names = st.sampled_from(enum)
+        more = st.dictionaries(st.one_of(names, KEYS), from_schema(extra, depth + 1), max_size=2)
+    else:
+        more = st.dictionaries(KEYS, HOSTILE, max_size=1)  # unknown keys
+    return st.builds(lambda a, b: {**b, **a}, known, st.one_of(st.just({}), more))
+
+
+TOP_LEVEL = sorted(SCHEMA["properties"])
+
+
+def _validate_or_refuse(cfg):
+    """validate(cfg): the checked config, or None when refused with NemoError."""
+    before = repr(cfg)
+    try:
+        out = config.validate(cfg)
+    except NemoError:
+        return None
+    finally:
+        assert repr(cfg) == before, "validate changed its input"
+    return out
+
+
+def _analysis_or_refuse(cfg, dataset=None):
+    try:
+        return config.analysis(cfg, dataset)
+    except NemoError:
+        return None
+
+
+def _check_analysis(a: dict, where: str) -> None:
+    for name in config.ANALYSIS_SECTIONS:
+        if a.get(name) is not None:
+            assert_documented_types(a[name], name, f"analysis({where})['{name}']")
+
+
+@quiet
+@pytest.mark.parametrize("key", TOP_LEVEL)
+def test_random_values_of_a_section_validate_or_raise_nemo_error(key):
+    def check(value):
+        cfg = _validate_or_refuse({key: value})
+        if cfg is None:
+            return
+        assert_documented_types(cfg, what=f"{{{key!r}: {value!r}}}")
+        a = _analysis_or_refuse(cfg)
+        if a is not None:
+            _check_analysis(a, "top level")
+        for name in cfg.get("datasets") or {}:
+            a = _analysis_or_refuse(cfg, name)
+            if a is not None:
+                _check_analysis(a, name)
+
+    check._hypothesis_internal_add_digest = key.encode()  # derandomized, but other draws per key
+    PROPERTY_SETTINGS(given(value=from_schema(SCHEMA["properties"][key]))(check))()
+
+
+@quiet
+@PROPERTY_SETTINGS
+@given(cfg=st.one_of(objects(SCHEMA), st.dictionaries(KEYS, HOSTILE, max_size=3)))
+def test_random_whole_configs_validate_or_raise_nemo_error(cfg):
+    out = _validate_or_refuse(cfg)
+    if out is not None:
+        assert_documented_types(out, what=repr(cfg)[:300])
+        a = _analysis_or_refuse(out)
+        if a is not None:
+            _check_analysis(a, "top level")
+
+
+@quiet
+@pytest.mark.parametrize("name", ["mesh", "measure", "curvature", "thickness", "directors", "order", "defects",
+                                  "tracking", "layer"])
+def test_section_merges_random_params_or_raises_nemo_error(name):
+    node = _deref({"$ref": f"#/$defs/{name}"})
+    keys = st.one_of(st.sampled_from(sorted(node.get("properties", {"x": None}))), st.text(max_size=5))
+
+    def check(params):
+        try:
+            merged = config.section(name, copy.deepcopy(params))
+        except NemoError:
+            return
+        assert_documented_types(merged, name, f"section({name!r}, {params!r})")
+
+    check._hypothesis_internal_add_digest = name.encode()
+    PROPERTY_SETTINGS(given(params=st.one_of(objects(node), st.dictionaries(keys, HOSTILE, max_size=3)))(check))()
+
+
+@quiet
+@PROPERTY_SETTINGS
+@given(data=st.one_of(
+    st.text(alphabet=st.sampled_from(list("abcmeshorderadius:[]{}-,.#!&*|>'\"0123456789 \n\t\\%@`")),
+            max_size=60).map(str.encode),
+    st.builds(lambda d: yaml.safe_dump(d).encode(), objects(SCHEMA)),
+    st.binary(max_size=40),
+))
+def test_random_config_files_load_or_raise_nemo_error(tmp_path_factory, data):
+    path = tmp_path_factory.mktemp("cfg") / "config.yaml"
+    path.write_bytes(data)
+    try:
+        cfg = config.load(path)
+    except NemoError:
+        return
+    assert_documented_types(cfg, what=f"the file {data!r}")

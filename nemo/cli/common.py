@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -26,7 +27,7 @@ def add_common(
         parser.add_argument("--t", type=int, default=0, metavar="T", help="time point (0-based, default 0)")
         parser.add_argument("--c", type=int, default=0, metavar="C", help="channel (0-based, default 0)")
         parser.add_argument(
-            "--spacing", type=float, nargs=3, metavar=("DZ", "DY", "DX"),
+            "--spacing", type=positive(), nargs=3, metavar=("DZ", "DY", "DX"),
             help="voxel size in µm, overriding the file's calibration",
         )
     if output:
@@ -34,19 +35,48 @@ def add_common(
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
 
 
-def positive(kind=float):
-    """argparse type: a strictly positive number."""
+#: Largest magnitude of a number on the command line (lengths in the image's unit, counts):
+#: beyond it a value is a mistake (a unit mix-up) and would overflow what it sizes. The config
+#: schema bounds lengths the same way.
+MAX_VALUE = 1e9
+
+
+def number(text: str) -> float:
+    """argparse type: a finite number of magnitude at most :data:`MAX_VALUE`."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or abs(value) > MAX_VALUE:
+        raise argparse.ArgumentTypeError(f"must be a finite number between -{MAX_VALUE:g} and {MAX_VALUE:g}, "
+                                         f"got {text}")
+    return value
+
+
+def positive(kind=float, minimum: float = 1e-9):
+    """argparse type: a number in [``minimum``, :data:`MAX_VALUE`], > 0 (``kind`` float or int)."""
 
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+            what = "a whole number" if kind is int else "a number"
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
         if not value > 0:
             raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        if not minimum <= value <= MAX_VALUE:
+            raise argparse.ArgumentTypeError(f"must be between {minimum:g} and {MAX_VALUE:g}, got {text}")
         return value
 
     return parse
+
+
+def non_negative(text: str) -> float:
+    """argparse type: a number in [0, :data:`MAX_VALUE`] (0 switches a blur or a shift off)."""
+    value = number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {text}")
+    return value
 
 
 def seed(text: str) -> int:
@@ -109,8 +139,10 @@ def check_outputs_are_not_inputs(args: argparse.Namespace) -> None:
         if name in OUTPUT_OPTIONS or name.startswith("_"):
             continue
         for item in value if isinstance(value, list) else [value]:
-            if isinstance(item, str) and os.path.isfile(item):
-                inputs.append(item)
+            if not isinstance(item, str):
+                continue
+            # FILE or FILE:COLUMN (e.g. nemo peel --shift thickness.parquet:thickness)
+            inputs += [path for path in (item, item.rpartition(":")[0]) if path and os.path.isfile(path)]
     for name, out in outputs.items():
         if not os.path.exists(out):
             continue

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nemo.cli.common import add_common, output_path, positive
+from nemo.cli.common import add_common, number, output_path, positive
 
 HELP = "find topological defects (low S) and their charge, corrected for Gaussian curvature"
 DESCRIPTION = """\
@@ -53,7 +53,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--layer", metavar="LAYER.parquet",
                         help="the peeled layer DIRECTORS was measured on: enables the refinement pass "
                              "(extra directors around each first-pass defect, same parameters)")
-    parser.add_argument("--refine-directors", type=float, metavar="F",
+    parser.add_argument("--refine-directors", type=number, metavar="F",
                         help="with --layer: fraction of the vertices near each defect that get an "
                              "extra director (default 0.5; 0 = no refinement pass)")
     parser.add_argument("--refined", metavar="FILE.parquet",

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from nemo import atomic
-from nemo.cli.common import add_common, output_path, positive
+from nemo.cli.common import add_common, non_negative, number, output_path, positive
 from nemo.errors import NemoError
 
 HELP = "reconstruct a surface mesh (PLY) from an image: blur, threshold, marching cubes"
@@ -54,7 +54,7 @@ def _nonneg_int(text: str) -> int:
 def add_arguments(parser) -> None:
     parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
     add_common(parser, frame=True, output_help="output mesh (.ply or .obj)")
-    parser.add_argument("--sigma", type=float, default=None, metavar="UM",
+    parser.add_argument("--sigma", type=non_negative, default=None, metavar="UM",
                         help="Gaussian blur sigma in the image unit (default: half the sampling distance, "
                              "--step × (dx + dy)/4, i.e. one voxel at --step 2; 0 = none)")
     parser.add_argument("--threshold", type=_threshold, default=None, metavar="yen|otsu|VALUE",
@@ -74,9 +74,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--split", choices=("centre", "center", "axis", "none"), default=None,
                         help="also write MESH.inner.ply and MESH.outer.ply, split by the sign of "
                              "n·(x - centre) or n·axis (default centre; none = one surface)")
-    parser.add_argument("--axis", type=float, nargs=3, metavar=("X", "Y", "Z"),
+    parser.add_argument("--axis", type=number, nargs=3, metavar=("X", "Y", "Z"),
                         help="reference axis for --split axis")
-    parser.add_argument("--centre", type=float, nargs=3, metavar=("X", "Y", "Z"),
+    parser.add_argument("--centre", type=number, nargs=3, metavar=("X", "Y", "Z"),
                         help="reference point (µm) for --split centre (default: the surface centroid)")
     parser.add_argument("--fit-sphere", action="store_true", default=None,
                         help="fit a sphere to each mesh; print it and write MESH.sphere.json")

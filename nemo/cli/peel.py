@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from nemo.cli.common import add_common, output_path, positive
+from nemo.cli.common import add_common, number, output_path, positive
 from nemo.errors import NemoError
 
 HELP = "project an intensity layer (a depth range along the normals) onto a mesh"
@@ -33,7 +33,7 @@ examples:
 def add_arguments(parser) -> None:
     parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) in the image's physical coordinates")
-    parser.add_argument("--range", type=float, nargs=2, default=[0.0, 5.0], metavar=("DMIN", "DMAX"),
+    parser.add_argument("--range", type=number, nargs=2, default=[0.0, 5.0], metavar=("DMIN", "DMAX"),
                         help="depth range along the normal, in the mesh's unit (µm; negative = against it; "
                              "default 0 5)")
     parser.add_argument("--samples", type=positive(int), metavar="N",
@@ -47,7 +47,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--shift", metavar="FIELDS.parquet:COLUMN",
                         help="per-vertex field of this mesh added (× --shift-fraction) to the range, "
                              "in the mesh's unit")
-    parser.add_argument("--shift-fraction", type=float, metavar="F",
+    parser.add_argument("--shift-fraction", type=number, metavar="F",
                         help="fraction of the --shift field to add (default 1)")
     parser.add_argument("--profile", action="store_true",
                         help="also write the depth profile to LAYER.profile.parquet")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from nemo.cli.common import add_common, positive, seed
+from nemo.cli.common import add_common, number, positive, seed
 from nemo.errors import NemoError
 
 HELP = "generate a synthetic nematic vesicle (TZCYX hyperstack + ground-truth JSON)"
@@ -44,7 +44,7 @@ def add_arguments(parser) -> None:
     g = parser.add_argument_group("geometry")
     g.add_argument("--radius", type=positive(), default=200.0, metavar="UM",
                    help="inner radius R of the vesicle in µm (default 200)")
-    g.add_argument("--spacing", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("DZ", "DY", "DX"),
+    g.add_argument("--spacing", type=positive(), nargs=3, default=(1.0, 1.0, 1.0), metavar=("DZ", "DY", "DX"),
                    help="voxel size in µm (default 1 1 1; anisotropic allowed)")
     g.add_argument("--size", type=int, nargs="+", metavar="N",
                    help="volume size in voxels: N, or NZ NY NX (default: fits R + shell + margin)")
@@ -75,15 +75,15 @@ def add_arguments(parser) -> None:
                    help="depth of the fibre layer outside R in µm (default 3, inside a [0, 5] peel)")
     f.add_argument("--second-layer-depth", type=_nonneg, metavar="UM",
                    help="add a second fibre layer at this depth (µm)")
-    f.add_argument("--second-layer-rotation", type=float, default=90.0, metavar="DEG",
+    f.add_argument("--second-layer-rotation", type=number, default=90.0, metavar="DEG",
                    help="director rotation of the second layer in degrees (default 90 = orthogonal)")
     f.add_argument("--second-layer-channel", type=int, default=0, metavar="C",
                    help="channel of the second layer (default 0 = same as the first)")
     t = parser.add_argument_group("time and channels")
     t.add_argument("--frames", type=positive(int), default=1, metavar="T", help="number of frames (default 1)")
-    t.add_argument("--frame-rotation", type=float, default=0.0, metavar="DEG",
+    t.add_argument("--frame-rotation", type=number, default=0.0, metavar="DEG",
                    help="rotation of the defects/texture per frame in degrees (default 0)")
-    t.add_argument("--frame-axis", type=float, nargs=3, default=(0.0, 1.0, 0.0), metavar=("X", "Y", "Z"),
+    t.add_argument("--frame-axis", type=number, nargs=3, default=(0.0, 1.0, 0.0), metavar=("X", "Y", "Z"),
                    help="axis of the per-frame rotation (default 0 1 0)")
     t.add_argument("--channels", type=positive(int), metavar="C",
                    help="number of channels (default: as many as the layers use)")
