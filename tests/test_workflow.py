@@ -474,7 +474,8 @@ def test_a_killed_run_recovers_with_unlock_and_rerun_incomplete(tmp_path):
     proc.wait()
     again = smk(tmp_path, "--cores", "2", "--configfile", config, check=False)
     text = again.stdout + again.stderr
-    assert again.returncode != 0 and "lock" in text.lower()
+    # a stale lock ("Directory cannot be locked") and/or incomplete files, depending on the moment
+    assert again.returncode != 0 and ("lock" in text.lower() or "incomplete" in text.lower()), text[-2000:]
     smk(tmp_path, "--unlock", "--configfile", config)
     smk(tmp_path, "--cores", "2", "--configfile", config, "--rerun-incomplete")
     f = _summary(tmp_path, "frames", "drops")

@@ -27,7 +27,7 @@ def add_common(
         parser.add_argument("--t", type=int, default=0, metavar="T", help="time point (0-based, default 0)")
         parser.add_argument("--c", type=int, default=0, metavar="C", help="channel (0-based, default 0)")
         parser.add_argument(
-            "--spacing", type=positive(), nargs=3, metavar=("DZ", "DY", "DX"),
+            "--spacing", type=number, nargs=3, metavar=("DZ", "DY", "DX"),
             help="voxel size in µm, overriding the file's calibration",
         )
     if output:

@@ -44,7 +44,7 @@ def add_arguments(parser) -> None:
     g = parser.add_argument_group("geometry")
     g.add_argument("--radius", type=positive(), default=200.0, metavar="UM",
                    help="inner radius R of the vesicle in µm (default 200)")
-    g.add_argument("--spacing", type=positive(), nargs=3, default=(1.0, 1.0, 1.0), metavar=("DZ", "DY", "DX"),
+    g.add_argument("--spacing", type=number, nargs=3, default=(1.0, 1.0, 1.0), metavar=("DZ", "DY", "DX"),
                    help="voxel size in µm (default 1 1 1; anisotropic allowed)")
     g.add_argument("--size", type=int, nargs="+", metavar="N",
                    help="volume size in voxels: N, or NZ NY NX (default: fits R + shell + margin)")

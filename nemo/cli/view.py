@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nemo.cli.common import positive
+from nemo.cli.common import number, positive
 
 HELP = "open results in napari: image, surfaces coloured by a field, directors, defects"
 DESCRIPTION = """\
@@ -27,7 +27,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--c", type=int, metavar="C", help="channel (default the first with results)")
     parser.add_argument("--layer", metavar="L", help="nematic layer to show (default all)")
     parser.add_argument("--image", metavar="TIFF", help="the hyperstack, if not found automatically")
-    parser.add_argument("--spacing", type=positive(), nargs=3, metavar=("DZ", "DY", "DX"),
+    parser.add_argument("--spacing", type=number, nargs=3, metavar=("DZ", "DY", "DX"),
                         help="voxel size in µm, overriding the image calibration")
     parser.add_argument("--max-vectors", type=positive(int), default=2000, metavar="N",
                         help="about N director glyphs per layer and frame (default 2000)")
