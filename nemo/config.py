@@ -210,6 +210,9 @@ def section(name: str, params: Mapping | None = None) -> dict:
         if value is not None:
             merged[key] = value
     _check(merged, name, where=name)
+    if name == "layer" and merged.get("directors_from"):  # the layer section is what peeling takes
+        raise NemoError(f"a layer with directors_from ({merged['directors_from']!r}) is not peeled: its "
+                        "directors are imported ('nemo directors import'); remove directors_from to peel it")
     return merged
 
 
@@ -259,6 +262,9 @@ def resolve_surfaces(sections: dict) -> dict:
     for name, layer in layers.items():
         if layer.get("surface") is None:
             layer["surface"] = "inner" if split else "whole"
+        if layer.get("directors_from"):
+            _check_imported(name, layer)
+            continue
         dmin, dmax = layer["range"]
         if not dmax > dmin:
             raise NemoError(f"config key 'layers.{name}.range': [{dmin}, {dmax}] needs d_max > d_min")
@@ -287,9 +293,70 @@ def _resolve_thickness(th: dict | None, split: bool) -> dict | None:
     return th
 
 
+#: Placeholders of a layer's ``directors_from`` pattern.
+DIRECTORS_FROM_FIELDS = ("dataset", "t", "c", "layer")
+
+
+def _check_imported(name: str, layer: dict) -> None:
+    """A layer whose directors come from files (``directors_from``) is not peeled."""
+    key = f"config key 'layers.{name}"
+    if layer.get("range") is not None:
+        raise NemoError(f"{key}.range': the layer takes its directors from files (directors_from), so it is "
+                        "not peeled: remove range (or directors_from to peel and measure it)")
+    if layer.get("shift"):
+        raise NemoError(f"{key}.shift': the layer takes its directors from files (directors_from), so it is "
+                        "not peeled: remove shift")
+    directors_from_path(layer["directors_from"], f"layers.{name}.directors_from", dataset="d", t=0, c=0, layer=name)
+    imp = section("directors_import", layer.get("import"))
+    problem = None
+    if imp["basis"] == "axis" and (imp["axis"] is None or not any(imp["axis"])):
+        problem = "axis': basis: axis measures the angles from the projection of a fixed axis: give axis: [x, y, z]"
+    elif imp["axis"] is not None and imp["basis"] != "axis":
+        problem = "axis': is only used with basis: axis; remove it"
+    elif imp["basis"] is not None and imp["angle_unit"] is None:
+        problem = "angle_unit': angles (basis given) need their unit: degrees or radians"
+    elif imp["angle_unit"] is not None and imp["basis"] is None:
+        problem = "basis': angles (angle_unit given) need their tangent basis: axis, local or frames"
+    if problem:
+        raise NemoError(f"{key}.import.{problem}")
+
+
+def directors_from_path(pattern: str, key: str = "directors_from", **fields) -> str:
+    """A layer's ``directors_from`` pattern with ``{dataset}``, ``{t}``, ``{c}``, ``{layer}`` filled.
+
+    ``t`` and ``c`` are integers, so a format spec pads them (``{t:03d}`` gives ``007``).
+
+    Raises
+    ------
+    NemoError
+        Another placeholder, or a malformed pattern (naming ``key``).
+    """
+    import string
+
+    try:
+        used = {f for _, f, _, _ in string.Formatter().parse(pattern) if f is not None}
+    except ValueError as exc:
+        raise NemoError(f"config key '{key}': {pattern!r} is not a valid pattern ({exc}); write braces "
+                        "only around the placeholders {t}, {c}, {dataset}, {layer}") from None
+    unknown = sorted(used - set(DIRECTORS_FROM_FIELDS))
+    if unknown:
+        raise NemoError(f"config key '{key}': unknown placeholder(s) {', '.join('{' + u + '}' for u in unknown)} "
+                        f"in {pattern!r}; use {{t}}, {{c}}, {{dataset}}, {{layer}}")
+    try:
+        return pattern.format(**{f: fields[f] for f in used})
+    except (ValueError, TypeError) as exc:  # a format spec that does not fit, e.g. {layer:03d}
+        raise NemoError(f"config key '{key}': cannot fill {pattern!r} ({exc}); {{t}} and {{c}} are whole "
+                        "numbers (e.g. {t:03d} for 000, 001, ...), {dataset} and {layer} names") from None
+
+
+def imported_layers(sections: dict) -> dict[str, dict]:
+    """The layers of resolved analysis sections that take their directors from files."""
+    return {name: layer for name, layer in (sections.get("layers") or {}).items() if layer.get("directors_from")}
+
+
 def _check_shifts(layers: dict, th: dict | None) -> None:
     for name, layer in layers.items():
-        if not layer["shift"]:
+        if not layer["shift"] or layer.get("directors_from"):
             continue
         if th is None:
             raise NemoError(f"config key 'layers.{name}.shift': shifting by a fraction of the "

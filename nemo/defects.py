@@ -44,17 +44,37 @@ the total is unchanged, the vertex-to-vertex noise that the contour's half-weigh
 pick up is averaged out -- on the paper's vesicle it moved one charge from 0.483 to 0.504). Charge = winding + curvature term (``curvature_correction=False`` drops
 the second), ``charge_rounded`` = nearest multiple of ½.
 
-Rejection of spurious defects (documented S logic)
---------------------------------------------------
+Rejection of spurious defects (documented S logic, scaled with the sampling)
+-----------------------------------------------------------------------------
 Averaging an *isotropic* director field still gives a smooth ``n_avg`` with genuine ±½ zeros
 of ``S``; they are noise, not defects. A candidate is reported only when the field around it is
-ordered: the median ``S`` on its contour must reach ``s_ordered`` (default: the larger of
-``s_threshold`` and three times the ``S`` of ``N`` randomly oriented directors,
-3·sqrt(π / 4N), with ``N`` the number of raw directors within the averaging radius). It must
-also have a resolved, non-zero charge: every step of the winding below 60° and
+ordered: the median ``S`` on its contour must reach ``s_floor`` = the larger of ``s_ordered``
+(default ``s_threshold``) and the noise floor of :func:`noise_floor`: the isotropic mean
+sqrt(π/4N) plus ``NOISE_Z`` = 3 standard errors of the contour's median, sqrt((1 − π/4)/N) /
+sqrt(M), with ``N`` the raw directors per averaging disc (median over the contour; the order
+table's ``count``, else counted in the directors table) and ``M`` = contour length / averaging
+diameter the independent discs the median pools; capped midway between the isotropic mean
+and perfect order, so that few directors can still pass when they are ordered. (The old floor
+3·sqrt(π/4N) reached 1 at N ≈ 7: a field of one director per 6-10 µm grid point could not
+pass.) It must also have a resolved, non-zero charge: every step of the winding below
+:func:`step_limit_deg` (2.5 × the mean step π/k of a ½ defect on k steps, within 60-80°) and
 ``|charge − charge_rounded| ≤ charge_tolerance``, ``charge_rounded ≠ 0`` (with
 ``curvature_correction=False`` the raw winding is biased by design, so the tolerance test is
-skipped). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged.
+skipped). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged; every
+examined candidate (accepted or not, with its contour S, floor, largest step, limit and reason)
+is kept in ``df.attrs["candidates"]`` (:func:`candidate_table`, ``nemo defects --candidates``).
+
+Coarse meshes
+-------------
+When the mesh-edge contour has fewer vertices than :func:`steps_needed` (one per half averaging
+radius: edges comparable to the averaging radius, e.g. one director per vertex of a 6-10 µm
+grid), the winding is measured on a circle of the contour radius sampled in the candidate's
+tangent plane at that density (×2) and projected onto the surface (``contour = "circle"``):
+the averaged field there is recomputed from the raw directors within the averaging radius, or
+interpolated from the order table's Q-tensor without them; the enclosed ∫K dA weights each
+vertex by the fraction of its cell inside the circle. ``df.attrs["parameters"]["contours"]``
+counts the contour kinds (``loop``, ``ring`` fallback, ``circle``) and the contours ``shrunk``
+to stay off an open rim.
 
 Integer defects
 ---------------
@@ -102,6 +122,7 @@ from nemo._log import logger
 from nemo.errors import NemoError
 from nemo.frames import axis_frames
 from nemo.mesh import vertex_areas, vertex_normals
+from nemo.order import lift_q, tangential_eig
 
 #: Columns of the defect table (the documented schema first, then diagnostics).
 COLUMNS = (
@@ -110,10 +131,19 @@ COLUMNS = (
     "refine", "shift",
 )
 
+#: Columns of the candidate table (:func:`candidate_table`, ``nemo defects --candidates``).
+CANDIDATE_COLUMNS = (
+    "x", "y", "z", "vertex", "S", "charge", "charge_rounded", "contour_S", "s_floor", "max_step_deg",
+    "step_limit_deg", "n_contour", "contour", "contour_radius", "accepted", "reason",
+)
+
 
 # ----------------------------------------------------------------------------------------------
 # geometry helpers
 
+
+#: Largest contour, averaging or fit radius, in units of the surface's size sqrt(area / 4π).
+MAX_RADIUS_PER_SIZE = 2.0
 
 #: Default contour radius in averaging radii (the suppression radius default is one averaging radius).
 CONTOUR_PER_AVERAGING = 1.5
@@ -353,6 +383,62 @@ def _linear_q_zero(xi: np.ndarray, eta: np.ndarray, q: np.ndarray) -> np.ndarray
 
 
 # ----------------------------------------------------------------------------------------------
+# acceptance rule (scales with the sampling, module doc "Rejection of spurious defects")
+
+
+#: Significance of the contour's order above the isotropic noise floor (standard errors).
+NOISE_Z = 3.0
+
+
+def noise_floor(n_dir: float, n_indep: float, z: float = NOISE_Z) -> float:
+    """Median contour ``S`` that an isotropic field of ``n_dir`` directors per disc exceeds rarely.
+
+    The ``S`` of ``N`` randomly oriented directors is the length of the mean of ``N`` random
+    unit phasors ``exp(2iθ)``: Rayleigh distributed, mean ``sqrt(π/4N)``, standard deviation
+    ``sqrt((1 − π/4)/N)``. The contour's median ``S`` pools ``n_indep`` independent averaging
+    discs, so the floor is ``mean + z · sd / sqrt(n_indep)``, capped at the midpoint between the
+    isotropic mean and perfect order (``N`` aligned directors give ``S = 1``), which keeps the
+    floor below the order that ``N`` directors can reach.
+
+    Parameters
+    ----------
+    n_dir : float
+        Raw directors per averaging disc (median over the contour).
+    n_indep : float
+        Independent averaging discs along the contour (contour length / averaging diameter).
+    z : float
+        Standard errors above the isotropic mean.
+
+    Returns
+    -------
+    float
+    """
+    n = max(float(n_dir), 1.0)
+    mean = math.sqrt(math.pi / (4 * n))
+    sd = math.sqrt((1 - math.pi / 4) / n)
+    return float(min(mean + z * sd / math.sqrt(max(float(n_indep), 1.0)), 0.5 * (1 + mean)))
+
+
+def step_limit_deg(n_steps: int) -> float:
+    """Largest resolvable winding step (degrees) on a contour of ``n_steps`` steps.
+
+    A ±½ defect turns the director by π/k per step on average over k steps; the limit allows
+    2.5 times that, at least 60° and at most 80° (a true turn above 90° reads as its
+    head-tail complement, so a step must stay clear of 90°).
+    """
+    return float(np.clip(2.5 * 180.0 / max(int(n_steps), 1), 60.0, 80.0))
+
+
+def steps_needed(radius: float, avg_radius: float) -> int:
+    """Contour points needed on a circle of ``radius``: one per half averaging radius, at least 8.
+
+    The averaged field varies on the scale of the averaging radius, so points half of it apart
+    resolve its turning; a mesh-edge contour with fewer vertices is replaced by a sampled circle.
+    """
+    return int(max(8, math.ceil(4 * math.pi * radius / avg_radius)))
+
+
+# ----------------------------------------------------------------------------------------------
 # main entry
 
 
@@ -360,13 +446,39 @@ def _linear_q_zero(xi: np.ndarray, eta: np.ndarray, q: np.ndarray) -> np.ndarray
 class _Fields:
     S: np.ndarray  # (N,)
     navg: np.ndarray  # (N, 3)
+    count: np.ndarray | None  # (N,) directors averaged per vertex (the order table's ``count``)
     dpos: np.ndarray | None  # (D, 3)
     ddir: np.ndarray | None  # (D, 3)
     dcoh: np.ndarray | None  # (D,)
+    dnrm: np.ndarray | None  # (D, 3) surface normals at the directors
     dtree: cKDTree | None
 
 
-def _fields(mesh: trimesh.Trimesh, order_df: pd.DataFrame, directors_df: pd.DataFrame | None) -> _Fields:
+@dataclass
+class _Geometry:
+    verts: np.ndarray  # (N, 3)
+    normals: np.ndarray  # (N, 3)
+    faces: np.ndarray  # (F, 3)
+    vf: sparse.csr_matrix  # (N, F) vertex -> incident faces
+    graph: sparse.csr_matrix  # (N, N) edge lengths
+    kdA: np.ndarray  # (N,) integrated Gaussian curvature per vertex
+    k_source: str
+    boundary: np.ndarray  # (N,) bool, vertices on the mesh boundary
+    h: float  # mean edge length
+
+
+@dataclass
+class _Settings:
+    avg_radius: float
+    winding_field: str
+    curvature_correction: bool
+    exact: bool
+    charge_tolerance: float
+    s_ordered: float
+
+
+def _check_order_table(mesh: trimesh.Trimesh, order_df: pd.DataFrame, tol: float) -> np.ndarray:
+    """Validate the order table against the mesh; return its vertex column."""
     n = len(mesh.vertices)
     for col in ("vertex", "S", "nx", "ny", "nz"):
         if col not in order_df.columns:
@@ -378,16 +490,58 @@ def _fields(mesh: trimesh.Trimesh, order_df: pd.DataFrame, directors_df: pd.Data
         raise NemoError(
             f"order table refers to vertex {int(vtx.max())} but the mesh has {n} vertices: "
             "it was computed on another mesh")
-    tol = 1e-3 * float(np.mean(mesh.edges_unique_length))  # PLY stores float32 coordinates
     if {"x", "y", "z"} <= set(order_df.columns):
         dev = np.abs(order_df[["x", "y", "z"]].to_numpy(dtype=np.float64) - np.asarray(mesh.vertices)[vtx]).max()
         if dev > tol:
             raise NemoError(f"the order table's vertex positions differ from the mesh by up to {dev:.3g}: "
                             "it was computed on another mesh; give the mesh it was made on")
+    return vtx
+
+
+def _director_fields(mesh: trimesh.Trimesh, directors_df: pd.DataFrame | None, tol: float):
+    """Raw directors: positions, directions, coherency, normals, KD-tree (all None without)."""
+    if directors_df is None or not len(directors_df):
+        return None, None, None, None, None
+    n = len(mesh.vertices)
+    for col in ("x", "y", "z", "nx", "ny", "nz"):
+        if col not in directors_df.columns:
+            raise NemoError(f"directors table lacks column {col!r}; make it with 'nemo directors'")
+    dpos = directors_df[["x", "y", "z"]].to_numpy(dtype=np.float64)
+    if "vertex" in directors_df.columns:
+        dv = directors_df["vertex"].to_numpy()
+        ok = (dv >= 0) & (dv < n)
+        dev = (np.abs(dpos[ok] - np.asarray(mesh.vertices)[dv[ok]]).max() if ok.any() else 0.0)
+        if not ok.all() or dev > tol:
+            raise NemoError("the directors table does not match the mesh (vertex indices or positions "
+                            "differ): it was computed on another mesh; give the mesh it was made on")
+    else:
+        _, dv = cKDTree(np.asarray(mesh.vertices)).query(np.nan_to_num(dpos))
+    ddir = directors_df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64)
+    dcoh = (directors_df["coherency"].to_numpy(dtype=np.float64)
+            if "coherency" in directors_df.columns else np.ones(len(dpos)))
+    ok = np.all(np.isfinite(dpos), axis=1) & np.all(np.isfinite(ddir), axis=1)
+    dnrm = vertex_normals(mesh)[np.asarray(dv, dtype=np.int64)[ok]]
+    dpos, ddir, dcoh = dpos[ok], ddir[ok], np.nan_to_num(dcoh[ok], nan=0.0)
+    ddir = _project_tangent(ddir, dnrm)
+    good = np.all(np.isfinite(ddir), axis=1)
+    dpos, ddir, dcoh, dnrm = dpos[good], ddir[good], dcoh[good], dnrm[good]
+    if not len(dpos):
+        return None, None, None, None, None
+    return dpos, ddir, dcoh, dnrm, cKDTree(dpos)
+
+
+def _fields(mesh: trimesh.Trimesh, order_df: pd.DataFrame, directors_df: pd.DataFrame | None) -> _Fields:
+    n = len(mesh.vertices)
+    tol = 1e-3 * float(np.mean(mesh.edges_unique_length))  # PLY stores float32 coordinates
+    vtx = _check_order_table(mesh, order_df, tol)
     S = np.full(n, np.nan)
     navg = np.full((n, 3), np.nan)
     S[vtx] = order_df["S"].to_numpy(dtype=np.float64)
     navg[vtx] = order_df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64)
+    count = None
+    if "count" in order_df.columns:
+        count = np.full(n, np.nan)
+        count[vtx] = order_df["count"].to_numpy(dtype=np.float64)
     missing = ~np.isfinite(S)
     if missing.any():
         # order computed on a subset of targets: nearest computed vertex fills the rest
@@ -397,31 +551,70 @@ def _fields(mesh: trimesh.Trimesh, order_df: pd.DataFrame, directors_df: pd.Data
         _, j = cKDTree(mesh.vertices[have]).query(mesh.vertices[missing])
         S[missing] = S[have[j]]
         navg[missing] = navg[have[j]]
-    dpos = ddir = dcoh = dtree = None
-    if directors_df is not None and len(directors_df):
-        for col in ("x", "y", "z", "nx", "ny", "nz"):
-            if col not in directors_df.columns:
-                raise NemoError(f"directors table lacks column {col!r}; make it with 'nemo directors'")
-        dpos = directors_df[["x", "y", "z"]].to_numpy(dtype=np.float64)
-        if "vertex" in directors_df.columns:
-            dv = directors_df["vertex"].to_numpy()
-            ok = (dv >= 0) & (dv < n)
-            dev = (np.abs(dpos[ok] - np.asarray(mesh.vertices)[dv[ok]]).max() if ok.any() else 0.0)
-            if not ok.all() or dev > tol:
-                raise NemoError("the directors table does not match the mesh (vertex indices or positions "
-                                "differ): it was computed on another mesh; give the mesh it was made on")
-        ddir = directors_df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64)
-        dcoh = (directors_df["coherency"].to_numpy(dtype=np.float64)
-                if "coherency" in directors_df.columns else np.ones(len(dpos)))
-        ok = np.all(np.isfinite(dpos), axis=1) & np.all(np.isfinite(ddir), axis=1)
-        dpos, ddir, dcoh = dpos[ok], ddir[ok], np.nan_to_num(dcoh[ok], nan=0.0)
-        dtree = cKDTree(dpos) if len(dpos) else None
-    return _Fields(S, navg, dpos, ddir, dcoh, dtree)
+        if count is not None:
+            count[missing] = count[have[j]]
+    return _Fields(S, navg, count, *_director_fields(mesh, directors_df, tol))
 
 
 def euler_characteristic(mesh: trimesh.Trimesh) -> int:
     """χ = V − E + F of the mesh."""
     return int(len(mesh.vertices) - len(mesh.edges_unique) + len(mesh.faces))
+
+
+def _geometry(mesh: trimesh.Trimesh, curvature: np.ndarray | None) -> _Geometry:
+    """Mesh arrays, edge graph, integrated curvature per vertex and boundary vertices."""
+    n = len(mesh.vertices)
+    graph = edge_graph(mesh)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    # vertex -> incident faces (CSR rows), so that a ball's faces cost O(ball), not O(mesh)
+    vf = sparse.csr_matrix((np.ones(faces.size, dtype=np.int8),
+                            (faces.ravel(), np.repeat(np.arange(len(faces)), 3))), shape=(n, len(faces)))
+    if curvature is not None:
+        curvature = np.asarray(curvature, dtype=np.float64)
+        if curvature.shape != (n,):
+            raise NemoError(f"curvature has shape {curvature.shape}, expected ({n},) = one K per vertex")
+        if not np.all(np.isfinite(curvature)):
+            logger.warning("curvature has %d NaN values: using angle defects for the K term",
+                           int((~np.isfinite(curvature)).sum()))
+            curvature = None
+    if curvature is not None:
+        kdA = curvature * vertex_areas(mesh)
+        k_source = "curvature table K x vertex area"
+    else:
+        kdA = smooth_conserving(np.asarray(mesh.vertex_defects, dtype=np.float64), graph, 3)
+        k_source = "angle defects (discrete Gauss-Bonnet, 3 conservative smoothing passes)"
+    boundary = np.zeros(n, dtype=bool)
+    if not mesh.is_watertight:
+        edges = np.sort(np.asarray(mesh.edges), axis=1)
+        uniq, counts = np.unique(edges, axis=0, return_counts=True)
+        boundary[uniq[counts == 1].ravel()] = True
+    return _Geometry(np.asarray(mesh.vertices, dtype=np.float64), vertex_normals(mesh), faces, vf, graph,
+                     kdA, k_source, boundary, float(np.mean(mesh.edges_unique_length)))
+
+
+def _estimate_avg_radius(geo: _Geometry, S: np.ndarray, s_ref: float, size: float) -> float:
+    """Geodesic distance over which S recovers from its minimum to 0.9 × S_ref (module doc)."""
+    idx, dist = geodesic_ball(geo.graph, int(np.nanargmin(S)), 2 * size)
+    rec = dist[S[idx] >= 0.9 * s_ref]
+    avg = float(rec.min()) if len(rec) else size / 4
+    avg = float(np.clip(avg, 1.5 * geo.h, size))  # at least the spacing of a coarse mesh
+    logger.info("averaging radius not given: estimated %.3g from the S field", avg)
+    return avg
+
+
+def _suppress(graph: sparse.csr_matrix, S: np.ndarray, cand: np.ndarray, min_distance: float) -> list[int]:
+    """Non-maximum suppression: lowest S first, candidates within ``min_distance`` discarded."""
+    centres: list[int] = []
+    order_idx = np.argsort(np.where(cand, S, np.inf))
+    alive = cand.copy()
+    # visits candidates in increasing S; one Dijkstra per accepted vertex
+    for v in order_idx[: int(cand.sum())].tolist():
+        if not alive[v]:
+            continue
+        centres.append(v)
+        idx, _ = geodesic_ball(graph, v, min_distance)
+        alive[idx] = False
+    return centres
 
 
 def find_defects(
@@ -451,11 +644,12 @@ def find_defects(
     mesh : trimesh.Trimesh
         Surface with outward normals, N vertices (physical units, µm).
     order_df : DataFrame
-        Order table (``vertex``, ``S``, ``nx``, ``ny``, ``nz``) on this mesh, ideally at every
-        vertex (``targets="all"``); missing vertices take the nearest computed value.
+        Order table (``vertex``, ``S``, ``nx``, ``ny``, ``nz``, optional ``count``) on this mesh,
+        ideally at every vertex (``targets="all"``); missing vertices take the nearest computed value.
     directors_df : DataFrame, optional
         Raw directors (``x``, ``y``, ``z``, ``nx``, ``ny``, ``nz``, ``coherency``): used for the
-        sub-vertex refinement, the noise floor of ``S`` and ``winding_field="directors"``.
+        sub-vertex refinement, the noise floor of ``S``, the averaged field on sampled circle
+        contours and ``winding_field="directors"``.
     curvature : ndarray, shape (N,), optional
         Per-vertex Gaussian curvature K (1/µm²). None: discrete angle defects.
     s_threshold : float, optional
@@ -466,10 +660,10 @@ def find_defects(
         Stop after this many accepted defects.
     contour_radius : float, optional
         Geodesic radius of the charge contour (µm). Default 1.5 × ``avg_radius`` (grown up to
-        2.5 × when S on the contour is low), capped at 0.45 × the distance to the nearest other
-        dip or defect and kept off the mesh boundary, at least 3 edge lengths. A given radius is
-        used as is, and grown up to 1.67 × (within the same cap) only where S on it is still
-        low, before the candidate is rejected as disordered.
+        1.67 × when S on the contour is low), capped at 0.45 × the distance to the nearest other
+        dip or defect and kept off the mesh boundary, at least min(3 edge lengths, ``avg_radius``).
+        A given radius is used as is, and grown up to 1.67 × (within the same cap) only where S
+        on it is still low, before the candidate is rejected as disordered.
     curvature_correction : bool
         Add (1/2π)∫K dA over the enclosed patch (the paper's correction).
     avg_radius : float, optional
@@ -480,7 +674,8 @@ def find_defects(
     refine : {"model", "q", "none"}
         Sub-vertex refinement (module docstring).
     s_ordered : float, optional
-        Minimum median ``S`` on the contour for a defect to be reported.
+        Minimum median ``S`` on the contour for a defect to be reported, on top of the noise
+        floor (:func:`noise_floor`). Default ``s_threshold``.
     charge_tolerance : float
         Maximum ``|charge − charge_rounded|`` for a confident charge.
     exact_angles : bool
@@ -496,7 +691,9 @@ def find_defects(
         vertex), ``S`` (at that vertex), ``charge``, ``charge_winding``, ``charge_curvature``,
         ``charge_rounded`` and diagnostics ``contour_radius``, ``n_contour``, ``contour_S``
         (median S on the contour), ``max_step_deg``, ``refine`` (method used), ``shift`` (µm from
-        the minimum-S vertex). ``df.attrs`` holds the parameters used and ``euler_check``.
+        the minimum-S vertex). ``df.attrs`` holds the parameters used (with the rejection counts
+        ``rejected`` and the contour kinds ``contours``), ``euler_check`` and ``candidates``
+        (every examined candidate with its reason, as records: :func:`candidate_table`).
     """
     if winding_field not in ("average", "directors"):
         raise NemoError(f"winding_field must be 'average' or 'directors', not {winding_field!r}")
@@ -504,7 +701,7 @@ def find_defects(
         raise NemoError(f"refine must be 'model', 'q' or 'none', not {refine!r}")
     for name, value in (("s_threshold", s_threshold), ("min_distance", min_distance),
                         ("contour_radius", contour_radius), ("avg_radius", avg_radius),
-                        ("fit_radius", fit_radius)):
+                        ("fit_radius", fit_radius), ("s_ordered", s_ordered)):
         if value is not None and not (np.isfinite(value) and value > 0):
             raise NemoError(f"{name} must be a positive number, got {value}")
     if max_defects is not None and max_defects < 1:
@@ -512,157 +709,74 @@ def find_defects(
     f = _fields(mesh, order_df, directors_df)
     if winding_field == "directors" and f.dtree is None:
         raise NemoError("winding_field='directors' needs a directors table")
-    n = len(mesh.vertices)
-    verts = np.asarray(mesh.vertices, dtype=np.float64)
-    normals = vertex_normals(mesh)
-    h = float(np.mean(mesh.edges_unique_length))
-    size = math.sqrt(float(mesh.area) / (4 * math.pi))  # radius of the sphere of equal area
-    graph = edge_graph(mesh)
-    faces_arr = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-    # vertex -> incident faces (CSR rows), so that a ball's faces cost O(ball), not O(mesh)
-    vf = sparse.csr_matrix((np.ones(faces_arr.size, dtype=np.int8),
-                            (faces_arr.ravel(), np.repeat(np.arange(len(faces_arr)), 3))),
-                           shape=(n, len(faces_arr)))
+    geo = _geometry(mesh, curvature)
     S = f.S
     s_ref = float(np.nanpercentile(S, 90))
-    if s_threshold is None:
-        s_threshold = 0.5 * s_ref
-    if curvature is not None:
-        curvature = np.asarray(curvature, dtype=np.float64)
-        if curvature.shape != (n,):
-            raise NemoError(f"curvature has shape {curvature.shape}, expected ({n},) = one K per vertex")
-        if not np.all(np.isfinite(curvature)):
-            logger.warning("curvature has %d NaN values: using angle defects for the K term",
-                           int((~np.isfinite(curvature)).sum()))
-            curvature = None
-    if curvature is not None:
-        kdA = curvature * vertex_areas(mesh)
-        k_source = "curvature table K x vertex area"
-    else:
-        kdA = smooth_conserving(np.asarray(mesh.vertex_defects, dtype=np.float64), graph, 3)
-        k_source = "angle defects (discrete Gauss-Bonnet, 3 conservative smoothing passes)"
-    boundary_vertices = np.zeros(n, dtype=bool)
-    if not mesh.is_watertight:
-        edges = np.sort(np.asarray(mesh.edges), axis=1)
-        uniq, counts = np.unique(edges, axis=0, return_counts=True)
-        boundary_vertices[uniq[counts == 1].ravel()] = True
-
-    vmin = int(np.nanargmin(S))
+    s_threshold = 0.5 * s_ref if s_threshold is None else s_threshold
+    size = math.sqrt(float(mesh.area) / (4 * math.pi))  # radius of the sphere of equal area
+    for name, value in (("contour_radius", contour_radius), ("avg_radius", avg_radius), ("fit_radius", fit_radius)):
+        if value is not None and value > MAX_RADIUS_PER_SIZE * size:
+            raise NemoError(
+                f"`{name}` {value:.4g} is larger than {MAX_RADIUS_PER_SIZE:g} × the surface's size ({size:.4g}, "
+                f"the radius of the sphere of equal area): a defect's contour must enclose a small piece of "
+                f"the surface; leave it unset (derived from the averaging radius) or give a smaller value"
+            )
     if avg_radius is None:
-        idx, dist = geodesic_ball(graph, vmin, 2 * size)
-        rec = dist[S[idx] >= 0.9 * s_ref]
-        avg_radius = float(rec.min()) if len(rec) else size / 4
-        avg_radius = float(np.clip(avg_radius, 5 * h, size))
-        logger.info("averaging radius not given: estimated %.3g from the S field", avg_radius)
-    if min_distance is None:
-        min_distance = avg_radius
+        avg_radius = _estimate_avg_radius(geo, S, s_ref, size)
+    min_distance = avg_radius if min_distance is None else min_distance
     r_contour_default = contour_radius if contour_radius is not None else CONTOUR_PER_AVERAGING * avg_radius
-    if s_ordered is None:
-        s_ordered = s_threshold  # raised per defect to 3x the isotropic floor (see module doc)
-
+    st = _Settings(float(avg_radius), winding_field, bool(curvature_correction), exact_angles,
+                   charge_tolerance, float(s_threshold if s_ordered is None else s_ordered))
     cand = np.isfinite(S) & (S < s_threshold)
     logger.info("defects: %d candidate vertices with S < %.3g (S_ref = P90 = %.3g)",
                 int(cand.sum()), s_threshold, s_ref)
-    # --- non-maximum suppression --------------------------------------------------------------
-    centres: list[int] = []
-    order_idx = np.argsort(np.where(cand, S, np.inf))
-    alive = cand.copy()
-    pos = 0
-    n_cand_total = int(cand.sum())
-    # NMS visits candidates in increasing S; one Dijkstra per accepted vertex
-    while pos < n_cand_total:
-        v = int(order_idx[pos])
-        pos += 1
-        if not alive[v]:
-            continue
-        centres.append(v)
-        idx, dist = geodesic_ball(graph, v, min_distance)
-        alive[idx] = False
-
-    # --- charge, rejection, refinement --------------------------------------------------------
-    rows = []
-    rejected = {"disordered contour": 0, "unresolved winding": 0, "zero charge": 0,
-                "off-half charge": 0, "no contour": 0, "same dip": 0}
-    # low-S dips = connected components of the candidate vertices. Several zeros of the
-    # averaged Q-tensor can share one dip (an |m| = 1 defect splits into two ±1/2 zeros a few
-    # µm apart under noise): the lowest centre of a dip is measured first and the others of the
-    # same dip that its contour encloses are part of it, not defects of their own.
-    sub = graph[cand][:, cand]
-    _, labels = sparse.csgraph.connected_components(sub, directed=False)
-    comp = np.full(n, -1)
-    comp[np.flatnonzero(cand)] = labels
-    accepted: list[tuple[np.ndarray, float, int]] = []  # (point, contour radius, dip)
-    cpos = verts[centres] if centres else np.zeros((0, 3))
-    ccomp = comp[centres] if centres else np.zeros(0, dtype=np.int64)
-    for k, v in enumerate(centres):
-        if max_defects is not None and len(rows) >= max_defects:
-            break
-        if any(c == comp[v] and np.linalg.norm(p - verts[v]) < r for p, r, c in accepted):
-            rejected["same dip"] += 1
-            continue
-        # contour radius: not reaching other dips, other defects or the mesh boundary; when the
-        # field on the contour is not yet ordered (S recovers more slowly around |m| = 1
-        # defects) the default radius grows up to 2x before the candidate is rejected
-        near = [cpos[(ccomp != comp[v])]] + [p[None] for p, _, _ in accepted]
-        near = np.concatenate(near) if near else np.zeros((0, 3))
-        dmin = float(np.min(np.linalg.norm(near - verts[v], axis=1))) if len(near) else np.inf
-        if contour_radius is None:
-            radii = sorted({max(min(fac * r_contour_default, 0.45 * dmin), 3 * h) for fac in (1.0, 1.33, 1.67)})
-        else:  # the given radius first; grown (not past other dips) only if S on it is still low
-            radii = [contour_radius] + sorted(
-                {r for r in (min(fac * contour_radius, 0.45 * dmin) for fac in (1.33, 1.67)) if r > contour_radius})
-        floor = s_ordered
-        if f.dtree is not None:
-            n_dir = len(f.dtree.query_ball_point(verts[v], avg_radius))
-            floor = max(floor, 3 * math.sqrt(math.pi / (4 * max(n_dir, 1))))
-        res = None
-        for r_c in radii:
-            res = _charge(faces_arr, vf, graph, verts, normals, f, kdA, boundary_vertices, v, r_c, h,
-                          winding_field, curvature_correction, exact_angles)
-            if res is None or res["contour_S"] >= floor:
-                break
-        if res is None:
-            rejected["no contour"] += 1
-            continue
-        r_c = res["contour_radius"]
-        reason = None
-        if res["contour_S"] < floor:
-            reason = "disordered contour"
-        elif res["max_step_deg"] > 60:
-            reason = "unresolved winding"
-        elif res["charge_rounded"] == 0:
-            reason = "zero charge"
-        elif curvature_correction and abs(res["charge"] - res["charge_rounded"]) > charge_tolerance:
-            reason = "off-half charge"
-        if reason:
-            rejected[reason] += 1
-            logger.debug("rejected candidate at vertex %d (S=%.3g): %s (contour S %.3g, charge %.3f)",
-                         v, S[v], reason, res["contour_S"], res["charge"])
-            continue
-        rho = fit_radius if fit_radius is not None else 0.75 * avg_radius
-        if len(centres) > 1:
-            rho = min(rho, 0.5 * dmin)
-        point, method = _refine(mesh, graph, verts, normals, f, v, res["charge_rounded"],
-                                max(rho, 3 * h), h, refine, fit_exclude, fit_harmonic)
-        # final vertex = nearest to the refined point; recentre the contour when it moved
-        ball_idx, _ = geodesic_ball(graph, v, max(4 * h, np.linalg.norm(point - verts[v]) + 2 * h))
-        vv = int(ball_idx[np.argmin(np.linalg.norm(verts[ball_idx] - point, axis=1))])
-        if vv != v:
-            res2 = _charge(faces_arr, vf, graph, verts, normals, f, kdA, boundary_vertices, vv, r_c, h,
-                           winding_field, curvature_correction, exact_angles)
-            if res2 is not None and res2["charge_rounded"] == res["charge_rounded"]:
-                res = res2
-        accepted.append((point, res["contour_radius"], comp[v]))
-        rows.append({
-            "x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(S[vv]),
-            **{key: res[key] for key in ("charge", "charge_winding", "charge_curvature",
-                                         "charge_rounded", "n_contour", "contour_S",
-                                         "max_step_deg")},
-            "contour_radius": res["contour_radius"], "refine": method,
-            "shift": float(np.linalg.norm(point - verts[v])),
-        })
+    centres = _suppress(geo.graph, S, cand, min_distance)
+    rows, records, tally = _examine(mesh, geo, f, st, centres, cand, contour_radius, r_contour_default,
+                                    max_defects, {"refine": refine, "fit_radius": fit_radius,
+                                                  "fit_exclude": fit_exclude, "fit_harmonic": fit_harmonic})
     df = pd.DataFrame(rows, columns=list(COLUMNS))
     df = df.astype({"vertex": np.int64, "n_contour": np.int64}) if len(df) else df
+    df.attrs["euler_check"] = _euler_check(mesh, df)
+    df.attrs["parameters"] = {
+        "s_threshold": float(s_threshold), "s_ref": s_ref, "min_distance": float(min_distance),
+        "contour_radius": float(r_contour_default), "avg_radius": float(avg_radius),
+        "max_defects": max_defects, "curvature_correction": bool(curvature_correction),
+        "curvature_source": geo.k_source, "winding_field": winding_field, "refine": refine,
+        "s_ordered": st.s_ordered, "noise_z": NOISE_Z, "charge_tolerance": charge_tolerance,
+        "exact_angles": exact_angles, "fit_radius": fit_radius, **tally,
+    }
+    df.attrs["candidates"] = records
+    logger.info("defects: %d found, %d low-S candidates rejected (%s)", len(df), sum(tally["rejected"].values()),
+                ", ".join(f"{k}: {v}" for k, v in tally["rejected"].items() if v) or "none")
+    return df
+
+
+def candidate_table(df: pd.DataFrame) -> pd.DataFrame:
+    """Every candidate :func:`find_defects` examined, accepted or not, as a table.
+
+    Parameters
+    ----------
+    df : DataFrame
+        A result of :func:`find_defects` (its ``attrs["candidates"]``).
+
+    Returns
+    -------
+    DataFrame
+        One row per candidate (K rows), columns :data:`CANDIDATE_COLUMNS`: position ``x, y, z``
+        (refined for accepted ones, else the vertex), ``vertex``, ``S``, ``charge``,
+        ``charge_rounded``, ``contour_S``, ``s_floor`` (the acceptance floor of contour S),
+        ``max_step_deg``, ``step_limit_deg``, ``n_contour``, ``contour`` (``loop``, ``ring`` or
+        ``circle``), ``contour_radius``, ``accepted`` and ``reason`` (empty when accepted).
+    """
+    recs = df.attrs.get("candidates")
+    if recs is None:
+        raise NemoError("this table has no candidate records: make it with nemo.defects.find_defects")
+    out = pd.DataFrame(list(recs), columns=list(CANDIDATE_COLUMNS))
+    return out.astype({"vertex": np.int64, "n_contour": np.int64, "accepted": bool})
+
+
+def _euler_check(mesh: trimesh.Trimesh, df: pd.DataFrame) -> dict:
+    """Σ charge against the Euler characteristic (Poincaré–Hopf on a closed surface), logged."""
     chi = euler_characteristic(mesh)
     closed = bool(mesh.is_watertight)
     check = {
@@ -671,9 +785,6 @@ def find_defects(
         "euler_characteristic": chi, "closed": closed,
         "matches": bool(closed and len(df) and abs(df["charge_rounded"].sum() - chi) < 1e-9),
     }
-    n_rej = sum(rejected.values())
-    logger.info("defects: %d found, %d low-S candidates rejected (%s)", len(df), n_rej,
-                ", ".join(f"{k}: {v}" for k, v in rejected.items() if v) or "none")
     if closed:
         logger.info("Euler check: sum of charges %.3f (rounded %.1f) vs chi = %d (%s)",
                     check["sum_charge"], check["sum_charge_rounded"], chi,
@@ -681,57 +792,263 @@ def find_defects(
     else:
         logger.info("Euler check skipped: the surface is open (chi = %d, sum of charges %.3f)",
                     chi, check["sum_charge"])
-    df.attrs["euler_check"] = check
-    df.attrs["parameters"] = {
-        "s_threshold": float(s_threshold), "s_ref": s_ref, "min_distance": float(min_distance),
-        "contour_radius": float(r_contour_default), "avg_radius": float(avg_radius),
-        "max_defects": max_defects, "curvature_correction": bool(curvature_correction),
-        "curvature_source": k_source, "winding_field": winding_field, "refine": refine,
-        "s_ordered": float(s_ordered), "charge_tolerance": charge_tolerance,
-        "exact_angles": exact_angles, "fit_radius": fit_radius, "rejected": rejected,
+    return check
+
+
+def _contour_radii(r_default: float, given: float | None, dmin: float, h: float, avg: float) -> list[float]:
+    """Radii to try in turn: the default (or given) one, then grown while S on it is low."""
+    r_min = min(3 * h, avg)
+    if given is None:
+        return sorted({max(min(fac * r_default, 0.45 * dmin), r_min) for fac in (1.0, 1.33, 1.67)})
+    # the given radius first; grown (not past other dips) only if S on it is still low
+    return [given] + sorted({r for r in (min(fac * given, 0.45 * dmin) for fac in (1.33, 1.67)) if r > given})
+
+
+def _rejection(res: dict | None, st: _Settings) -> str | None:
+    """Reason a measured candidate is not a defect (module doc), or None."""
+    if res is None:
+        return "no contour"
+    if res["contour_S"] < res["s_floor"]:
+        return "disordered contour"
+    if res["max_step_deg"] > res["step_limit_deg"]:
+        return "unresolved winding"
+    if res["charge_rounded"] == 0:
+        return "zero charge"
+    if st.curvature_correction and abs(res["charge"] - res["charge_rounded"]) > st.charge_tolerance:
+        return "off-half charge"
+    return None
+
+
+def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int], cand: np.ndarray,
+             contour_radius: float | None, r_default: float, max_defects: int | None, fit: dict):
+    """Measure, accept or reject and refine each suppressed candidate in turn.
+
+    Returns the defect rows, the candidate records (every candidate examined) and the tallies
+    ``rejected`` (reason -> count) and ``contours`` (contour kind -> count, ``shrunk`` at a rim).
+    """
+    rejected = dict.fromkeys(("disordered contour", "unresolved winding", "zero charge", "off-half charge",
+                              "no contour", "same dip"), 0)
+    contours = dict.fromkeys(("loop", "ring", "circle", "shrunk"), 0)
+    # low-S dips = connected components of the candidate vertices. Several zeros of the averaged
+    # Q-tensor can share one dip (an |m| = 1 defect splits into two ±1/2 zeros a few µm apart under
+    # noise): the lowest centre of a dip is measured first and the others of the same dip that its
+    # contour encloses are part of it, not defects of their own.
+    comp = np.full(len(geo.verts), -1)
+    comp[np.flatnonzero(cand)] = sparse.csgraph.connected_components(
+        geo.graph[cand][:, cand], directed=False)[1]
+    accepted: list[tuple[np.ndarray, float, int]] = []  # (point, contour radius, dip)
+    cpos, ccomp = geo.verts[centres].reshape(-1, 3), comp[centres]
+    rows, records = [], []
+    for v in centres:  # a handful of suppressed candidates, not the vertices
+        if max_defects is not None and len(rows) >= max_defects:
+            break
+        rec = {"x": geo.verts[v, 0], "y": geo.verts[v, 1], "z": geo.verts[v, 2], "vertex": v, "S": f.S[v]}
+        if any(c == comp[v] and np.linalg.norm(p - geo.verts[v]) < r for p, r, c in accepted):
+            rejected["same dip"] += 1
+            records.append(_record(rec, None, "same dip"))
+            continue
+        near = np.concatenate([cpos[ccomp != comp[v]]] + [p[None] for p, _, _ in accepted])
+        dmin = float(np.min(np.linalg.norm(near - geo.verts[v], axis=1))) if len(near) else np.inf
+        res = None
+        for r_c in _contour_radii(r_default, contour_radius, dmin, geo.h, st.avg_radius):
+            res = _charge(geo, f, st, v, r_c)
+            if res is None or res["contour_S"] >= res["s_floor"]:
+                break
+        if res is not None:
+            contours[res["contour"]] += 1
+            contours["shrunk"] += int(res["shrunk"])
+        reason = _rejection(res, st)
+        if reason:
+            rejected[reason] += 1
+            records.append(_record(rec, res, reason))
+            logger.debug("rejected candidate at vertex %d (S=%.3g): %s", v, f.S[v], reason)
+            continue
+        row = _accept(mesh, geo, f, st, v, res, dmin if len(centres) > 1 else np.inf, fit)
+        accepted.append((np.array([row["x"], row["y"], row["z"]]), row["contour_radius"], comp[v]))
+        rows.append(row)
+        records.append(_record({**rec, "x": row["x"], "y": row["y"], "z": row["z"]}, res, ""))
+    return rows, records, {"rejected": rejected, "contours": contours}
+
+
+def _record(rec: dict, res: dict | None, reason: str) -> dict:
+    """One candidate record (JSON-serialisable, :data:`CANDIDATE_COLUMNS`)."""
+    keys = ("charge", "charge_rounded", "contour_S", "s_floor", "max_step_deg", "step_limit_deg",
+            "n_contour", "contour", "contour_radius")
+    out = {k: float(rec[k]) for k in ("x", "y", "z", "S")}
+    out["vertex"] = int(rec["vertex"])
+    for k in keys:
+        val = None if res is None else res[k]
+        out[k] = val if isinstance(val, str) or val is None else (int(val) if k == "n_contour" else float(val))
+    out["n_contour"] = out["n_contour"] or 0
+    out["contour"] = out["contour"] or ""
+    out.update(accepted=not reason, reason=reason)
+    return out
+
+
+def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, dmin: float, fit: dict) -> dict:
+    """Refine an accepted candidate's position and re-measure its charge there (a defect row)."""
+    h = geo.h
+    rho = fit["fit_radius"] if fit["fit_radius"] is not None else 0.75 * st.avg_radius
+    rho = min(rho, 0.5 * dmin)
+    point, method = _refine(mesh, geo.graph, geo.verts, geo.normals, f, v, res["charge_rounded"],
+                            max(rho, 3 * h), h, fit["refine"], fit["fit_exclude"], fit["fit_harmonic"])
+    # final vertex = nearest to the refined point; recentre the contour when it moved
+    ball_idx, _ = geodesic_ball(geo.graph, v, max(4 * h, np.linalg.norm(point - geo.verts[v]) + 2 * h))
+    vv = int(ball_idx[np.argmin(np.linalg.norm(geo.verts[ball_idx] - point, axis=1))])
+    if vv != v:
+        res2 = _charge(geo, f, st, vv, res["contour_radius"])
+        if res2 is not None and res2["charge_rounded"] == res["charge_rounded"]:
+            res = res2
+    return {
+        "x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(f.S[vv]),
+        **{key: res[key] for key in ("charge", "charge_winding", "charge_curvature", "charge_rounded",
+                                     "n_contour", "contour_S", "max_step_deg", "contour_radius")},
+        "refine": method, "shift": float(np.linalg.norm(point - geo.verts[v])),
     }
-    return df
 
 
-def _charge(faces_arr, vf, graph, verts, normals, f: _Fields, kdA, boundary_vertices, v: int, r_c: float,
-            h: float, winding_field: str, curvature_correction: bool, exact: bool) -> dict | None:
-    """Winding + curvature charge on the geodesic circle of radius r_c around vertex v."""
-    idx, dist = geodesic_ball(graph, v, 1.5 * r_c + 2 * h)
-    if boundary_vertices[idx[dist < r_c + h]].any():
-        # shrink the contour so it stays off the mesh boundary
-        db = float(dist[boundary_vertices[idx]].min())
-        r_c = 0.9 * db - h
-        if r_c < 3 * h:
+def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> dict | None:
+    """Winding + curvature charge on a closed contour of geodesic radius ``r_c`` around vertex ``v``.
+
+    The contour is the boundary loop of the geodesic ball (``loop``), else the ring of vertices
+    at the radius sorted by angle (``ring``); when it has fewer vertices than
+    :func:`steps_needed` (a coarse mesh), a circle sampled in ``v``'s tangent plane and projected
+    onto the surface (``circle``, :func:`_circle_contour`). Shrunk to stay off a mesh boundary.
+    """
+    h = geo.h
+    idx, dist = geodesic_ball(geo.graph, v, 1.5 * r_c + 2 * h)
+    shrunk = bool(geo.boundary[idx[dist < r_c + h]].any())
+    if shrunk:  # shrink the contour so it stays off the mesh boundary
+        r_c = 0.9 * float(dist[geo.boundary[idx]].min()) - h
+        if r_c < min(3 * h, st.avg_radius):
             return None
-    inside = np.zeros(len(verts), dtype=bool)
+    inside = np.zeros(len(geo.verts), dtype=bool)
     inside[idx[dist < r_c]] = True
-    loop, region = boundary_loop(faces_arr, inside, vf[idx].indices)
+    # unique faces: vf lists a face once per incident ball vertex, and duplicated border edges
+    # would read as a pinched boundary
+    loop, region = boundary_loop(geo.faces, inside, np.unique(geo.vf[idx].indices))
+    kind = "loop"
     if loop is not None and len(loop) >= 8:
-        enclosed = float(kdA[region].sum() - 0.5 * kdA[loop].sum())  # contour vertices count half
+        enclosed = float(geo.kdA[region].sum() - 0.5 * geo.kdA[loop].sum())  # contour vertices count half
     else:  # non-manifold ball boundary: ring of vertices sorted by angle, ball = enclosed
-        loop = angle_sorted_contour(verts, verts[v], normals[v], idx, dist, r_c, 2 * h)
-        if len(loop) < 8:
-            return None
-        enclosed = float(kdA[idx[dist < r_c]].sum())
-    if winding_field == "average":
+        loop = angle_sorted_contour(geo.verts, geo.verts[v], geo.normals[v], idx, dist, r_c, 2 * h)
+        enclosed = float(geo.kdA[idx[dist < r_c]].sum())
+        kind = "ring"
+    n_pts = steps_needed(r_c, st.avg_radius)
+    if len(loop) < n_pts * (2 if kind == "ring" else 1):  # a ring is a band about two vertices wide
+        return _circle_contour(geo, f, st, v, r_c, idx, 2 * n_pts, shrunk)
+    pts = geo.verts[loop]
+    if st.winding_field == "average":
         dirs = f.navg[loop]
-        s_loop = f.S[loop]
     else:
-        _, j = f.dtree.query(verts[loop])
-        dirs = f.ddir[j]
-        s_loop = f.S[loop]
-    dirs = _project_tangent(dirs, normals[loop])
-    if not np.all(np.isfinite(dirs)):
+        dirs = f.ddir[f.dtree.query(pts)[1]]
+    if f.count is not None:
+        n_dir = float(np.median(f.count[loop]))
+    elif f.dtree is not None:
+        n_dir = float(np.median(f.dtree.query_ball_point(pts, st.avg_radius, return_length=True)))
+    else:
+        n_dir = None
+    return _winding_result(dirs, geo.normals[loop], f.S[loop], n_dir, pts, enclosed, st,
+                           {"contour": kind, "contour_radius": float(r_c), "shrunk": shrunk})
+
+
+def _circle_contour(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float, ball: np.ndarray,
+                    n_pts: int, shrunk: bool) -> dict | None:
+    """Charge on ``n_pts`` points of a circle of radius ``r_c`` around vertex ``v`` (coarse meshes).
+
+    The points are placed in ``v``'s tangent plane and projected onto the closest surface
+    triangle of the ball; the normal there is the barycentric mean of the vertex normals. The
+    averaged field at each point is recomputed from the raw directors within ``avg_radius`` (the
+    order table's own average, :func:`nemo.order.lift_q`), or interpolated from the order table's
+    Q-tensor without raw directors. The enclosed curvature weights each ball vertex by the
+    fraction of its cell inside the circle (a linear ramp one edge length wide).
+    """
+    x0 = geo.verts[v]
+    t1, t2 = tangent_basis(geo.normals[v])
+    phi = 2 * np.pi * np.arange(n_pts) / n_pts
+    target = x0 + r_c * (np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2)
+    fids = np.unique(geo.vf[ball].indices)
+    tri = geo.verts[geo.faces[fids]]  # (T, 3, 3)
+    n_t = len(tri)
+    cp = trimesh.triangles.closest_point(np.tile(tri, (n_pts, 1, 1)), np.repeat(target, n_t, axis=0))
+    j = np.linalg.norm(cp - np.repeat(target, n_t, axis=0), axis=1).reshape(n_pts, n_t).argmin(axis=1)
+    pts = cp.reshape(n_pts, n_t, 3)[np.arange(n_pts), j]
+    corner = geo.faces[fids[j]]  # (P, 3)
+    bary = trimesh.triangles.points_to_barycentric(tri[j], pts)
+    nrm = np.einsum("pk,pkj->pj", bary, geo.normals[corner])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    dirs, s_pts, n_dir = _field_at_points(geo, f, st, pts, nrm, corner, bary)
+    r_e = float(np.mean(np.linalg.norm(pts - x0, axis=1)))
+    w = np.clip(0.5 + (r_e - np.linalg.norm(geo.verts[ball] - x0, axis=1)) / geo.h, 0.0, 1.0)
+    enclosed = float(np.sum(w * geo.kdA[ball]))
+    return _winding_result(dirs, nrm, s_pts, n_dir, pts, enclosed, st,
+                           {"contour": "circle", "contour_radius": float(r_c), "shrunk": shrunk})
+
+
+def _field_at_points(geo: _Geometry, f: _Fields, st: _Settings, pts: np.ndarray, nrm: np.ndarray,
+                     corner: np.ndarray, bary: np.ndarray) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """Director, S and directors per disc at P surface points (on triangles ``corner``, (P, 3)).
+
+    With raw directors around every point: their tangential Q-average within ``avg_radius``
+    (as :func:`nemo.order.order` does at vertices), or the nearest raw director for
+    ``winding_field="directors"``. Otherwise the barycentric interpolation of the order table's
+    Q-tensor ``S (n nᵀ − ½ P)``, which is a continuous field with the same zeros.
+
+    Returns
+    -------
+    dirs : ndarray, shape (P, 3)
+    s_pts : ndarray, shape (P,)
+    n_dir : float or None
+        Median number of raw directors per averaging disc (None when unknown).
+    """
+    n_pts = len(pts)
+    if f.dtree is not None:
+        lens = f.dtree.query_ball_point(pts, st.avg_radius, return_length=True)
+        if lens.min() > 0:
+            lists = f.dtree.query_ball_point(pts, st.avg_radius)
+            flat = np.concatenate([np.asarray(a, dtype=np.int64) for a in lists])  # a few dozen points
+            q6 = np.zeros((n_pts, 6))
+            np.add.at(q6, np.repeat(np.arange(n_pts), lens), lift_q(f.ddir[flat], f.dnrm[flat]))
+            s_pts, dirs = tangential_eig(q6 / lens[:, None], nrm)
+            if st.winding_field == "directors":
+                dirs = f.ddir[f.dtree.query(pts)[1]]
+            return dirs, s_pts, float(np.median(lens))
+    qv = f.S[corner][..., None] * lift_q(f.navg[corner].reshape(-1, 3),
+                                         geo.normals[corner].reshape(-1, 3)).reshape(n_pts, 3, 6)
+    s_pts, dirs = tangential_eig(np.einsum("pk,pkc->pc", bary, qv), nrm)
+    n_dir = None
+    if f.count is not None:
+        n_dir = float(np.median(np.einsum("pk,pk->p", bary, f.count[corner])))
+    elif f.dtree is not None:
+        n_dir = float(np.median(f.dtree.query_ball_point(pts, st.avg_radius, return_length=True)))
+    return dirs, s_pts, n_dir
+
+
+def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir: float | None,
+                    pts: np.ndarray, enclosed: float, st: _Settings, extra: dict) -> dict | None:
+    """Winding, charge and acceptance diagnostics of one closed contour of L points.
+
+    ``dirs``, ``nrm``, ``pts``: (L, 3) directors, normals and positions in contour order;
+    ``s_pts``: (L,) S on the contour; ``n_dir``: directors per averaging disc (None: unknown);
+    ``enclosed``: ∫K dA inside the contour.
+    """
+    dirs = _project_tangent(dirs, nrm)
+    if len(dirs) < 8 or not np.all(np.isfinite(dirs)):
         return None
-    steps = winding_steps(dirs, normals[loop], exact=exact)
+    steps = winding_steps(dirs, nrm, exact=st.exact)
     wind = float(steps.sum() / (2 * math.pi))
     kterm = enclosed / (2 * math.pi)
-    charge = wind + (kterm if curvature_correction else 0.0)
+    charge = wind + (kterm if st.curvature_correction else 0.0)
+    length = float(np.linalg.norm(pts - np.roll(pts, -1, axis=0), axis=1).sum())
+    floor = st.s_ordered
+    if n_dir is not None:  # independent averaging discs along the contour: length / diameter
+        floor = max(floor, noise_floor(n_dir, length / (2 * st.avg_radius)))
     return {
         "charge": charge, "charge_winding": wind, "charge_curvature": kterm,
-        "charge_rounded": float(np.round(2 * charge) / 2), "n_contour": int(len(loop)),
-        "contour_radius": float(r_c),
-        "contour_S": float(np.median(s_loop)), "max_step_deg": float(np.degrees(np.abs(steps).max())),
+        "charge_rounded": float(np.round(2 * charge) / 2), "n_contour": len(dirs),
+        "contour_S": float(np.nanmedian(s_pts)), "s_floor": float(floor),
+        "max_step_deg": float(np.degrees(np.abs(steps).max())), "step_limit_deg": step_limit_deg(len(dirs)),
+        **extra,
     }
 
 

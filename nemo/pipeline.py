@@ -160,7 +160,7 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
               if layer["channels"] == "all" or c in layer["channels"]}
     results = {name: layer_frame(name, layer, volume, info, meshes, sections, out, written, timed,
                                  prov={"image": frame["image"], "t": t, "c": c, "unit": info.unit},
-                                 final=final)
+                                 final=final, dataset=frame["dataset"])
                for name, layer in layers.items()}
     del volume
     for a, b in sections["alignment"] or []:
@@ -251,10 +251,12 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
 
 
 def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov,
-                final: Path | None = None) -> dict:
+                final: Path | None = None, dataset: str | None = None) -> dict:
     """Peel → directors → order → defects of one layer (the workflow's per-layer rules).
 
-    Files go to ``out``; provenance names them in ``final`` (default ``out``), where they end up.
+    A layer with ``directors_from`` imports its directors from that file instead of peel →
+    directors (the workflow's ``directors_import`` rule). Files go to ``out``; provenance names
+    them in ``final`` (default ``out``), where they end up.
     """
     from nemo.mesh import mean_edge_length
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
@@ -270,18 +272,23 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
         written.append(path.name)
         return path
 
-    shift = None
-    if layer["shift"]:
-        shift = field_on_vertices(read_table(out / layout.THICKNESS, "thickness", n_vertices=n), "thickness", n,
-                                  layout.THICKNESS, exact=True)
-    with timed("peel"):
-        ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift)
-    layer_path = save("layer", ldf, parameters=lp)
-    intensity = field_on_vertices(read_table(layer_path, "layer", n_vertices=n), "intensity", n, layer_path,
-                                  exact=True)
-    with timed("directors"):
-        ddf, dp = stages.directors(mesh, intensity, sections["directors"])
-    dir_path = save("directors", ddf, parameters=dp)
+    if layer.get("directors_from"):
+        ddf, dp, points = _imported_directors(name, layer, mesh, prov["t"], prov["c"], dataset, timed)
+        dir_path = save("directors", ddf, parameters=dp, points=points)
+        lp, intensity = None, None  # no layer table, no refinement pass (as the workflow's rules)
+    else:
+        shift = None
+        if layer["shift"]:
+            shift = field_on_vertices(read_table(out / layout.THICKNESS, "thickness", n_vertices=n), "thickness",
+                                      n, layout.THICKNESS, exact=True)
+        with timed("peel"):
+            ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift)
+        layer_path = save("layer", ldf, parameters=lp)
+        intensity = field_on_vertices(read_table(layer_path, "layer", n_vertices=n), "intensity", n, layer_path,
+                                      exact=True)
+        with timed("directors"):
+            ddf, dp = stages.directors(mesh, intensity, sections["directors"])
+        dir_path = save("directors", ddf, parameters=dp)
     ddf, dp = read_table(dir_path, "directors", n_vertices=n), read_provenance(dir_path)["parameters"]
     with timed("order"):
         odf, op = stages.order(mesh, ddf, sections["order"], patch_radius=dp.get("nominal_radius"))
@@ -305,6 +312,20 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
             "n_directors": int(len(ddf)), "S": {"mean": float(np.nanmean(s)), "median": float(np.nanmedian(s))},
             "defects": fdf[["x", "y", "z", "charge", "charge_rounded", "S"]].to_dict(orient="records"),
             "euler_check": fdf.attrs["euler_check"]}
+
+
+def _imported_directors(name, layer, mesh, t: int, c: int, dataset: str | None, timed):
+    """Directors of a layer with ``directors_from`` (the workflow's ``directors_import`` rule).
+
+    Returns the directors table, its parameters and the file they came from.
+    """
+    from nemo.import_directors import read_points
+
+    path = nconfig.directors_from_path(layer["directors_from"], f"layers.{name}.directors_from",
+                                       dataset=dataset or "", t=t, c=c, layer=name)
+    with timed("directors"):
+        ddf, dp = stages.import_directors(mesh, read_points(path), layer.get("import"), source=path)
+    return ddf, dp, path
 
 
 def align_frame(a: str, b: str, mesh_a, out: Path, written: list) -> None:

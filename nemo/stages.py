@@ -18,6 +18,8 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 ``directors.n_patches``     30 per patch area, at most the number of vertices
 ``directors.pixel``         ``edge / 4``, at least ``patch_radius / 97`` (micro-images ≤ 195 px)
                             (these three: nemo.directors, the same defaults as ``directors()``)
+``directors_import``        ``max_distance``: ``2 edge``; imported directors record the patch
+                            radius of the same density, ``sqrt(30 area / (π n_directors))``
 ``order.radius``            ``2.5 patch_radius`` (the paper: 50 µm for 20 µm patches)
 ``defects.min_distance``    the averaging radius; ``contour_radius``: 1.5 × it (nemo.defects)
 ==========================  =====================================================================
@@ -36,7 +38,7 @@ from nemo.errors import NemoError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
 
 __all__ = ["object_radius", "mesh", "curvature", "curvature_defaults", "thickness", "peel", "directors",
-           "directors_defaults", "order", "defects", "tracking_distance"]
+           "directors_defaults", "import_directors", "order", "defects", "tracking_distance"]
 
 #: Stacks with more voxels than this are meshed every 2 voxels by default.
 STEP2_VOXELS = 64_000_000
@@ -210,6 +212,39 @@ def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
     df = measure_directors(mesh, intensity, patch_radius=p["patch_radius"], patch_k=p["patch_k"],
                            n_patches=int(p["n_patches"]), pixel=float(p["pixel"]), sigma=p["sigma"],
                            frames=p["frames"], rng=int(p["seed"]))
+    return df, p
+
+
+def import_directors(mesh: trimesh.Trimesh, points: pd.DataFrame, params: dict | None = None,
+                     source: str = "the points") -> tuple[pd.DataFrame, dict]:
+    """Directors from another tool, mapped onto ``mesh`` (``nemo directors import``).
+
+    ``params`` is the ``directors_import`` section: ``max_distance`` defaults to 2 mean edge
+    lengths. The result records ``nominal_radius``, the patch radius at which NEMO's own
+    directors would have this density (30 per patch area, as ``directors.n_patches``), so that
+    ``order.radius`` defaults to 2.5 × it as for measured directors; and the counts of
+    :func:`nemo.import_directors.import_directors` (points, far, nearly normal, directors).
+
+    Returns
+    -------
+    directors : DataFrame, shape (M, 8)
+    resolved : dict
+    """
+    from nemo.directors import PATCHES_PER_AREA
+    from nemo.import_directors import MAX_DISTANCE_EDGES
+    from nemo.import_directors import import_directors as map_directors
+    from nemo.mesh import mean_edge_length
+
+    p = nconfig.section("directors_import", params)
+    if p["max_distance"] is None:
+        p["max_distance"] = MAX_DISTANCE_EDGES * mean_edge_length(mesh)
+    df, counts = map_directors(mesh, points, basis=p["basis"], axis=p["axis"], angle_unit=p["angle_unit"],
+                               max_distance=float(p["max_distance"]), min_tangential=float(p["min_tangential"]),
+                               source=source)
+    p["nominal_radius"] = float(np.sqrt(PATCHES_PER_AREA * float(mesh.area) / (np.pi * len(df))))
+    p.update(counts)
+    logger.info("directors import: %d points -> %d directors (%d far, %d nearly normal)", counts["n_points"],
+                counts["n_directors"], counts["n_far"], counts["n_nearly_normal"])
     return df, p
 
 

@@ -70,7 +70,9 @@ def _num(value) -> float:
 
 
 def _layer_columns(r: Mapping) -> dict:
-    row = {"intensity_mean": _finite_mean(read_table(r["layer_table"], "layer")["intensity"])}
+    # an imported layer (directors_from) has no peeled intensity
+    row = {"intensity_mean": _finite_mean(read_table(r["layer_table"], "layer")["intensity"])
+           if r.get("layer_table") else math.nan}
     d = read_table(r["directors"], "directors")
     row["n_directors"] = len(d)
     row["coherency_mean"] = _finite_mean(d["coherency"])
@@ -92,7 +94,8 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     records : iterable of mapping
         Each with keys ``t``, ``c``, ``layer``, ``surface`` and the paths ``measure`` (JSON of
         ``nemo measure``), ``layer_table``, ``directors``, ``order``, ``defects`` and optionally
-        ``curvature`` and ``thickness`` (None when not computed).
+        ``curvature`` and ``thickness`` (None when not computed). A layer imported with
+        ``directors_from`` has no ``layer_table`` (``intensity_mean`` NaN).
 
     Returns
     -------
@@ -117,7 +120,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             row["thickness_mean"] = _finite_mean(th)
             row["thickness_median"] = _finite_median(th)
             row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
-        if r.get("layer_table"):  # a morphology-only record has no layer tables
+        if r.get("directors"):  # a morphology-only record has no layer tables
             row.update(_layer_columns(r))
         rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))

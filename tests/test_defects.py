@@ -20,10 +20,14 @@ from scipy.spatial.transform import Rotation
 from skimage.measure import marching_cubes
 
 from nemo.defects import (
+    CANDIDATE_COLUMNS,
     boundary_loop,
+    candidate_table,
     edge_graph,
     find_defects,
     geodesic_ball,
+    noise_floor,
+    step_limit_deg,
     tangent_basis,
     winding_steps,
 )
@@ -389,3 +393,223 @@ def test_winding_from_raw_directors_and_no_refinement(sphere60):
                                np.asarray(mesh.vertices)[plain["vertex"].to_numpy()])
     # the model refinement beats the minimum-S vertex, which the averaging biases
     assert match(find_defects(mesh, odf, ddf, avg_radius=15.0), 60.0 * dirs).mean() < match(plain, 60.0 * dirs).mean()
+
+
+# ------------------------------------------------------------------------------------------------
+# contour path, curvature term and every rejection branch on constructed cases
+
+
+def test_contour_is_the_ball_boundary_loop_and_k_term_is_k_times_area():
+    """On a clean closed surface every charge uses the boundary loop of the geodesic ball (not
+    the fallback ring), and with a constant K the curvature term is K × (area of the enclosed
+    faces) / 2π: interior vertices count fully and contour vertices half (module doc)."""
+    radius, r_c = 50.0, 20.0
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    _, ddf, odf = sphere_case(radius, None, rotated(TETRA, 3), [0.5] * 4, 4000, 8.0, seed=1, mesh=mesh)
+    k = np.full(len(mesh.vertices), 1.0 / radius**2)
+    df = find_defects(mesh, odf, ddf, curvature=k, avg_radius=8.0, contour_radius=r_c, refine="none")
+    assert len(df) == 4
+    assert df.attrs["parameters"]["contours"] == {"loop": 4, "ring": 0, "circle": 0, "shrunk": 0}
+    graph = edge_graph(mesh)
+    for _, row in df.iterrows():
+        idx, dist = geodesic_ball(graph, int(row["vertex"]), 2 * r_c)
+        inside = np.zeros(len(mesh.vertices), bool)
+        inside[idx[dist < row["contour_radius"]]] = True
+        area = mesh.area_faces[inside[mesh.faces].all(axis=1)].sum()
+        # counting the contour vertices fully (or not at all) is off by ≈ 2e-3 here
+        assert row["charge_curvature"] == pytest.approx(area / radius**2 / (2 * np.pi), abs=1e-3)
+        assert row["n_contour"] > 40
+
+
+def _planar_case(theta_fn, centre=(0.0, 0.0), half=40.0, h=1.0, a=6.0):
+    """Grid mesh with a hand-made order table: S = min(1, r / a) around ``centre``, n from θ(x, y)."""
+    mesh = grid_mesh(half, h)
+    v = np.asarray(mesh.vertices)
+    r = np.hypot(v[:, 0] - centre[0], v[:, 1] - centre[1])
+    th = theta_fn(v[:, 0] - centre[0], v[:, 1] - centre[1])
+    odf = pd.DataFrame({"vertex": np.arange(len(v)), "S": np.clip(r / a, 0.02, 1.0),
+                        "nx": np.cos(th), "ny": np.sin(th), "nz": np.zeros(len(v))})
+    return mesh, odf
+
+
+@pytest.mark.parametrize(("theta", "kwargs", "reason"), [
+    # a wall where the director jumps by 80°: the contour crosses it twice (+80°, −80°)
+    (lambda x, y: np.where(x < 0, 0.0, np.radians(80.0)), {}, "unresolved winding"),
+    # a uniform field around an S dip (a disordered spot, not a defect)
+    (lambda x, y: np.zeros_like(x), {}, "zero charge"),
+    # a +1/2 field with a K term that adds 0.3: 0.8 is not a multiple of 1/2 within 0.15
+    (lambda x, y: 0.5 * np.arctan2(y, x), {"curvature": 0.3 * 2 / 15.0**2}, "off-half charge"),
+])
+def test_rejection_branches(theta, kwargs, reason):
+    mesh, odf = _planar_case(theta)
+    if "curvature" in kwargs:
+        kwargs = {"curvature": np.full(len(mesh.vertices), kwargs["curvature"])}
+    df = find_defects(mesh, odf, None, avg_radius=6.0, contour_radius=15.0, **kwargs)
+    assert len(df) == 0
+    rejected = df.attrs["parameters"]["rejected"]
+    assert rejected[reason] == 1 and sum(rejected.values()) == 1, rejected
+    cands = candidate_table(df)
+    assert list(cands["reason"]) == [reason] and not cands["accepted"].any()
+    # the same field as a +1/2 defect is accepted: the branch is the field, not the set-up
+    mesh, odf = _planar_case(lambda x, y: 0.5 * np.arctan2(y, x))
+    assert len(find_defects(mesh, odf, None, avg_radius=6.0, contour_radius=15.0)) == 1
+
+
+def test_contour_shrinks_at_an_open_rim():
+    """A defect 8 µm from the rim is measured on a contour shrunk off the rim (the default is
+    1.5 × 6 = 9 µm); one 2 µm from the rim has no room for a contour ("no contour")."""
+    half = 40.0
+    mesh, odf = _planar_case(lambda x, y: 0.5 * np.arctan2(y, x), centre=(half - 8.3, 0.2))
+    df = find_defects(mesh, odf, None, avg_radius=6.0)
+    assert len(df) == 1 and df["charge_rounded"].iloc[0] == 0.5
+    assert df.attrs["parameters"]["contours"]["shrunk"] == 1
+    assert df["contour_radius"].iloc[0] < 0.9 * 8.3
+    mesh, odf = _planar_case(lambda x, y: 0.5 * np.arctan2(y, x), centre=(half - 2.3, 0.2))
+    df = find_defects(mesh, odf, None, avg_radius=6.0)
+    assert len(df) == 0 and df.attrs["parameters"]["rejected"]["no contour"] == 1
+
+
+# ------------------------------------------------------------------------------------------------
+# acceptance rule scaled with the sampling
+
+
+@pytest.mark.parametrize("n_dir", [4, 7, 14, 30, 100])
+def test_noise_floor_bounds_isotropic_contours(n_dir):
+    """The floor exceeds the median contour S of an isotropic field in ≥ 99 % of draws (Monte
+    Carlo over n_indep independent discs of n_dir random directors), and stays below the S
+    that ordered directors reach (20° noise: S = exp(−2σ²) ≈ 0.78) from 7 directors on."""
+    rng = np.random.default_rng(n_dir)
+    n_indep = 5
+    phase = np.exp(2j * rng.uniform(0, np.pi, (20000, n_indep, n_dir)))
+    s_med = np.median(np.abs(phase.mean(axis=2)), axis=1)
+    floor = noise_floor(n_dir, n_indep)
+    cap = 0.5 * (1 + math.sqrt(math.pi / (4 * n_dir)))  # midway between noise and perfect order
+    if n_dir >= 7:
+        assert floor < cap and np.mean(s_med < floor) > 0.99
+    else:  # too few directors to be 3 standard errors sure: the cap keeps order reachable
+        assert floor == pytest.approx(cap) and np.mean(s_med < floor) > 0.95
+    assert floor < 1.0
+    if n_dir >= 7:
+        s_ordered = np.abs(np.exp(2j * np.radians(20.0) * rng.standard_normal((2000, n_dir))).mean(axis=1))
+        assert floor < np.median(s_ordered) - 0.1
+    # the old rule 3 sqrt(π/4N) reached 1 at N = 7: nothing sparse could pass
+    assert noise_floor(7, 4.7) < 0.6
+
+
+def test_step_limit_follows_contour_length():
+    assert step_limit_deg(40) == 60.0
+    assert step_limit_deg(6) == pytest.approx(75.0)  # a 1/2 defect turns 30° per step on average
+    assert step_limit_deg(3) == 80.0  # never near the 90° head-tail ambiguity
+
+
+def test_candidate_table_reports_accepted_and_rejected(sphere60):
+    dirs = rotated(TETRA, 0)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=0, noise=5.0, mesh=sphere60)
+    df = find_defects(mesh, odf, ddf, avg_radius=15.0, s_threshold=0.6)  # a generous threshold
+    cands = candidate_table(df)
+    assert list(cands.columns) == list(CANDIDATE_COLUMNS)
+    assert cands["accepted"].sum() == len(df) == 4
+    np.testing.assert_allclose(cands.loc[cands["accepted"], ["x", "y", "z"]], df[["x", "y", "z"]])
+    assert (cands.loc[cands["accepted"], "reason"] == "").all()
+    rej = cands.loc[~cands["accepted"]]
+    assert rej["reason"].isin(df.attrs["parameters"]["rejected"].keys()).all()
+    assert rej["reason"].value_counts().to_dict() == {k: v for k, v in df.attrs["parameters"]["rejected"].items() if v}
+    with pytest.raises(NemoError, match="candidate records"):
+        candidate_table(pd.DataFrame())
+
+
+def test_cli_writes_candidates(tmp_path, sphere60):
+    from nemo.cli import main
+    from nemo.mesh import save_mesh
+    from nemo.tables import read_provenance, write_table
+
+    dirs = rotated(TETRA, 0)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=0, noise=5.0, mesh=sphere60)
+    save_mesh(mesh, tmp_path / "m.ply")
+    odf = odf.assign(x=mesh.vertices[:, 0], y=mesh.vertices[:, 1], z=mesh.vertices[:, 2],
+                     count=np.ones(len(odf), dtype=np.int64))
+    write_table(odf, tmp_path / "o.parquet", radius=15.0)
+    write_table(ddf, tmp_path / "d.parquet")
+    assert main(["defects", str(tmp_path / "m.ply"), str(tmp_path / "o.parquet"), str(tmp_path / "d.parquet"),
+                 "-o", str(tmp_path / "x.parquet"), "--candidates", str(tmp_path / "c.parquet")]) == 0
+    cands = pd.read_parquet(tmp_path / "c.parquet")
+    assert list(cands.columns) == list(CANDIDATE_COLUMNS) and cands["accepted"].sum() == 4
+    assert read_provenance(tmp_path / "c.parquet")["command"] == "defects candidates"
+
+
+# ------------------------------------------------------------------------------------------------
+# sparse fields: one director per vertex of a coarse mesh (tests/sparse_fields.py)
+
+
+def _sparse_check(mesh, ddf, truth, charges, with_directors=True, avg_radius="order"):
+    """Order radius 1.7 × spacing, default defect parameters: every defect within 2 spacings,
+    right charge, no extras."""
+    import sparse_fields as sf
+
+    from nemo.order import order
+
+    d = sf.mean_spacing(mesh)
+    odf = order(mesh, ddf, 1.7 * d)
+    df = find_defects(mesh, odf, ddf if with_directors else None,
+                      avg_radius=1.7 * d if avg_radius == "order" else None)
+    sc = sf.score(df, truth, charges)
+    assert sc["found"] == len(truth) and sc["extras"] == 0, (sc, df.attrs["parameters"]["rejected"])
+    assert sc["charge_ok"], df
+    assert sc["dist"].max() < 2 * d, sc["dist"] / d
+    return df
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("noise", [0.0, 10.0, 20.0])
+@pytest.mark.parametrize("spacing", [6.0, 10.0])
+def test_sparse_sphere_four_half_defects(spacing, noise, seed):
+    """R = 50 µm, vertices 6 or 10 µm apart (≈ 10 directors per averaging disc), randomly
+    rotated tetrahedral +1/2 defects (the old noise floor 3 sqrt(π/4N) ≈ 0.9 rejected them)."""
+    import sparse_fields as sf
+
+    dirs = sf.rotated_defects(sf.TETRA, seed)
+    mesh, ddf, truth = sf.sphere_case(50.0, spacing, dirs, [0.5] * 4, noise, seed)
+    df = _sparse_check(mesh, ddf, truth, [0.5] * 4)
+    assert df.attrs["parameters"]["contours"]["circle"] >= 3  # edges ~ averaging radius: circles
+    assert df.attrs["euler_check"]["matches"]
+    np.testing.assert_allclose(df["charge"], 0.5, atol=0.1)
+
+
+@pytest.mark.parametrize("noise", [0.0, 10.0, 20.0])
+@pytest.mark.parametrize("spacing", [6.0, 10.0])
+def test_sparse_open_cap_plus_and_minus_half(spacing, noise):
+    """Open spherical cap (75° from the pole) with a +1/2 and a −1/2 defect 50° apart."""
+    import sparse_fields as sf
+
+    dirs = sf.polar_dirs([25.0, 25.0], [0.0, 180.0])
+    mesh, ddf, truth = sf.cap_case(50.0, spacing, 75.0, dirs, [0.5, -0.5], noise, int(noise))
+    assert not mesh.is_watertight
+    df = _sparse_check(mesh, ddf, truth, [0.5, -0.5])
+    assert not df.attrs["euler_check"]["closed"]
+
+
+@pytest.mark.parametrize("spacing", [6.0, 10.0])
+def test_sparse_without_directors_or_radius(spacing):
+    """Only the order table (circle contours interpolate its Q-tensor), or no averaging radius
+    (estimated from S, at least 1.5 mesh edges)."""
+    import sparse_fields as sf
+
+    dirs = sf.rotated_defects(sf.TETRA, 4)
+    mesh, ddf, truth = sf.sphere_case(50.0, spacing, dirs, [0.5] * 4, 10.0, 4)
+    _sparse_check(mesh, ddf, truth, [0.5] * 4, with_directors=False)
+    df = _sparse_check(mesh, ddf, truth, [0.5] * 4, avg_radius=None)
+    assert 1.3 < df.attrs["parameters"]["avg_radius"] / sf.mean_spacing(mesh) < 2.5
+
+
+def test_radii_larger_than_the_surface_are_refused():
+    """--contour-radius 300 on a 50 µm sphere took 80 s and meant nothing: now a clear error."""
+    import sparse_fields as sf
+
+    mesh, ddf, _ = sf.sphere_case(50.0, 6.0, sf.rotated_defects(sf.TETRA, 0), [0.5] * 4, 0.0, 0)
+    from nemo.order import order
+
+    odf = order(mesh, ddf, radius=10.2)
+    for name in ("contour_radius", "avg_radius", "fit_radius"):
+        with pytest.raises(NemoError, match=f"`{name}` 300 is larger than 2 × the surface's size"):
+            find_defects(mesh, odf, ddf, **{name: 300.0})
+    assert len(find_defects(mesh, odf, ddf, contour_radius=20.0)) == 4

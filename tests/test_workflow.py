@@ -636,3 +636,79 @@ def test_report_of_the_default_run_has_figures_and_captions(demo_run, tmp_path):
     for needle in ("tracks_basal", "tracks_apical", "frames.png", "Per-frame summary",
                    "Defect tracks of dataset"):
         assert needle in html, needle
+
+
+# ----------------------------------------------------------------------------- directors from other tools
+def test_directors_from_files_replace_peel_and_directors(tmp_path):
+    """A layer with `directors_from` (issue 17): the dry run plans `directors_import` instead of
+    peel + directors for it (and the rest unchanged), a missing file stops the parse naming the
+    key, and a real run on a small vesicle whose analytic field is given as angles finds its four
+    +½ defects in every frame and tracks them."""
+    from nemo.pipeline import run_frame
+    from nemo.synthetic import truth_directors, write_vesicle
+
+    cfg = default_config()
+    frames = cfg["datasets"]["demo"]["synthetic"]["frames"]
+    (tmp_path / "ext").mkdir()
+    for t in range(frames):
+        (tmp_path / "ext" / f"t{t}_c0.csv").write_text("x,y,z,nx,ny,nz\n")
+    cfg["layers"]["ext"] = {"surface": "inner", "directors_from": "ext/t{t}_c{c}.csv"}
+    cfg["alignment"].append(["basal", "ext"])
+    counts = job_counts(smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c.yaml", cfg)))
+    peeled = len(cfg["layers"]) - 1
+    assert counts["directors_import"] == frames
+    assert counts["peel"] == counts["directors"] == frames * peeled
+    assert counts["order"] == counts["defects"] == frames * (peeled + 1)
+    assert counts["align"] == frames * 2 and counts["aggregate_frames"] == 1
+    (tmp_path / "ext" / "t1_c0.csv").unlink()
+    proc = smk(tmp_path, "-n", "--configfile", tmp_path / "c.yaml", check=False)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert "config key 'layers.ext.directors_from'" in proc.stderr and "ext/t1_c0.csv (t=1, c=0)" in proc.stderr
+
+    # a real run: a small vesicle, its analytic field at scattered points as angles in degrees
+    # from the projection of ẑ (what another tool would give), the imported layer only
+    R, work = 60.0, tmp_path / "run"
+    (work / "dirs").mkdir(parents=True)
+    truth = write_vesicle(work / "ves.tif", radius=R, spacing=(2, 2, 2), frames=2, frame_rotation=10, seed=1)
+    rng = np.random.default_rng(0)
+    for t in range(2):
+        u = rng.normal(size=(6000, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        p = np.asarray(truth["centre"]) + u * (R + rng.uniform(-0.5, 0.5, (len(u), 1)))
+        n = truth_directors(truth, p, t=t)
+        e1 = np.array([0.0, 0.0, 1.0]) - u[:, 2:3] * u
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        angle = np.degrees(np.arctan2(np.einsum("ij,ij->i", n, np.cross(u, e1)), np.einsum("ij,ij->i", n, e1)))
+        pd.DataFrame({"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "angle": angle}).to_csv(work / f"dirs/t{t}.csv",
+                                                                                         index=False)
+    run_cfg = {"datasets": {"ves": {"path": "ves.tif"}}, "curvature": None, "thickness": None, "alignment": [],
+               "layers": {"ext": {"directors_from": "dirs/t{t}.csv",
+                                  "import": {"basis": "axis", "axis": [0, 0, 1], "angle_unit": "degrees"}}},
+               "order": {"radius": 15}, "tracking": {"max_distance": 20}, "report": {"summary": False}}
+    proc = smk(work, "--cores", "2", "--configfile", write_config(work / "c.yaml", run_cfg))
+    assert "peel" not in job_counts(proc) and not list(work.rglob("layer_ext.parquet"))
+    f = _summary(work, "frames", "ves")
+    assert f["t"].tolist() == [0, 1] and f["intensity_mean"].isna().all() and (f["n_directors"] > 4000).all()
+    assert (f["n_defects"] == 4).all() and np.allclose(f["charge_sum"], 2.0, atol=0.02), f
+    defects = _summary(work, "defects", "ves")
+    for t in range(2):
+        true = np.array([[d["x"], d["y"], d["z"]] for d in truth["frames"][t]["layers"][0]["defects"]])
+        found = defects.loc[defects["t"] == t, ["x", "y", "z"]].to_numpy()
+        assert np.linalg.norm(found[:, None] - true[None], axis=2).min(axis=0).max() < 0.1 * R
+    tracks = _summary(work, "tracks", "ves")
+    assert len(tracks) == 4 and (tracks["length"] == 2).all()
+    # nemo run with the same config imports the same file and gives the workflow's numbers
+    from nemo.tables import read_table
+
+    cwd = os.getcwd()
+    os.chdir(work)  # relative dataset and directors_from paths, as for the workflow (-d work)
+    try:
+        run_frame(None, work / "one", work / "c.yaml", t=1, c=0, dataset="ves")
+    finally:
+        os.chdir(cwd)
+    frame = work / "results" / "ves" / "t1" / "c0"
+    for kind in ("directors", "order", "defects"):
+        a = read_table(work / "one" / f"{kind}_ext.parquet")
+        b = read_table(frame / f"{kind}_ext.parquet")
+        pd.testing.assert_frame_equal(a, b, check_exact=False, rtol=1e-9)
+    assert not (work / "one" / "layer_ext.parquet").exists()

@@ -58,6 +58,10 @@ def add_arguments(parser) -> None:
                              "extra director (default 0.5; 0 = no refinement pass)")
     parser.add_argument("--refined", metavar="FILE.parquet",
                         help="with --layer: also write the refinement directors to this table")
+    parser.add_argument("--candidates", metavar="FILE.parquet",
+                        help="also write every examined low-S candidate (position, S, charge, contour S "
+                             "and its acceptance floor, largest winding step and its limit, accepted, "
+                             "reason) to this table")
     add_common(parser, output_help="output defects table (.parquet)")
 
 
@@ -69,6 +73,7 @@ def run(args) -> int:
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
 
     out = output_path(args.output)
+    cand_out = output_path(args.candidates) if args.candidates else None
     mesh = load_mesh(args.mesh)
     n = len(mesh.vertices)
     odf = read_table(args.order, kind="order", n_vertices=n)
@@ -108,6 +113,16 @@ def run(args) -> int:
         refined = extra if extra is not None else ddf.iloc[:0]
         write_table(refined, output_path(args.refined), command="defects refinement directors",
                     layer=args.layer, **prov, parameters=director_params)
+    if cand_out is not None:
+        from nemo.defects import candidate_table
+
+        cands = candidate_table(df)
+        write_table(cands, cand_out, command="defects candidates", order=str(args.order),
+                    directors=str(args.directors), **prov, find_parameters=df.attrs["parameters"])
+        rej = cands.loc[~cands["accepted"], "reason"].value_counts()
+        print(f"{len(cands)} candidate(s), {len(cands) - int(cands['accepted'].sum())} rejected"
+              + (f" ({', '.join(f'{k}: {v}' for k, v in rej.items())})" if len(rej) else "")
+              + f" -> {cand_out}")
     if len(df):
         cols = ["x", "y", "z", "S", "charge", "charge_winding", "charge_curvature", "charge_rounded"]
         print(df[cols].to_string(float_format=lambda v: f"{v:.3f}", index=False))

@@ -21,7 +21,7 @@ def _frame_records(name):
         surface = s["layers"][layer]["surface"]
         records.append({"t": t, "c": c, "layer": layer, "surface": surface, **morphology(t, surface),
                         **{k if k != "layer" else "layer_table": f"{frame}/{layout.layer_file(k, layer)}"
-                           for k in layout.LAYER_KINDS}})
+                           for k in layout.LAYER_KINDS if k != "layer" or not imported(name, layer)}})
     if not s["layers"]:
         records = [{"t": t, "c": d["seg"], "layer": "", "surface": surface, **morphology(t, surface)}
                    for t in d["t"] for surface in s["surfaces"]]

@@ -311,3 +311,66 @@ def summary_targets(name):
 
 
 _check_layer_channels()
+
+
+# ----------------------------------------------------------------------------- imported directors
+# A layer with `directors_from` takes its directors from another tool's files (nemo directors
+# import) instead of peel + directors: no layer table, the same directors table path, so the
+# order, defects, align and track rules run unchanged on it (docs/workflow.md).
+def imported(dataset, layer):
+    """True when the dataset's layer takes its directors from files (layers.NAME.directors_from)."""
+    return bool(sec(dataset, "layers")[layer].get("directors_from"))
+
+
+def directors_source(wc):
+    """Input function: the file holding a frame's directors of an imported layer."""
+    return nconfig.directors_from_path(layer_cfg(wc)["directors_from"], dataset=wc.dataset, t=int(wc.t),
+                                       c=int(wc.c), layer=wc.layer)
+
+
+def _layer_regex(names):
+    return "|".join(map(re.escape, sorted(names))) or "(?!)"  # (?!): matches nothing
+
+
+def _split_layer_names():
+    """(imported, measured) layer names; one name is either imported or measured in every dataset,
+    so that exactly one rule writes its directors tables."""
+    kinds = {}
+    for name in DATA:
+        for layer in sec(name, "layers") or {}:
+            kinds.setdefault(layer, {})[imported(name, layer)] = name
+    both = {layer: k for layer, k in kinds.items() if len(k) == 2}
+    for layer, k in both.items():
+        config_error(f"layers.{layer}.directors_from", f"layer '{layer}' takes its directors from files in "
+                     f"dataset '{k[True]}' but is peeled in dataset '{k[False]}': give one of them another name")
+    return ({layer for layer, k in kinds.items() if True in k}, {layer for layer, k in kinds.items() if False in k})
+
+
+def _check_directors_files():
+    """Every file an imported layer needs exists (checked before any job starts)."""
+    from nemo.import_directors import SUFFIXES
+
+    for name in DATA:
+        for layer, cfg in nconfig.imported_layers(SECTIONS[name]).items():
+            over = "layers" in (config["datasets"][name] or {})
+            key = f"{'datasets.' + name + '.' if over else ''}layers.{layer}.directors_from"
+            pattern = cfg["directors_from"]
+            if not pattern.lower().endswith(SUFFIXES):
+                config_error(key, f"{pattern!r}: directors are read from {', '.join(SUFFIXES)} files")
+            frames = [(t, c) for t, c, lay in layer_frames(name) if lay == layer]
+            try:
+                paths = {(t, c): nconfig.directors_from_path(pattern, key, dataset=name, t=t, c=c, layer=layer)
+                         for t, c in frames}
+            except NemoError as exc:
+                _fail(str(exc))
+            missing = [f"{p} (t={t}, c={c})" for (t, c), p in paths.items() if not Path(p).is_file()]
+            if missing:
+                config_error(key, f"{len(missing)} of {len(paths)} director file(s) of dataset '{name}' not found "
+                             f"(relative to {os.getcwd()}): {', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''}")
+            if len(set(paths.values())) < len(paths):
+                warnings.warn(f"{key}: {pattern!r} names the same file for several frames (no {{t}} or {{c}}): "
+                              "every frame gets the same directors")
+
+
+IMPORTED_LAYERS, MEASURED_LAYERS = _split_layer_names()
+_check_directors_files()

@@ -7,8 +7,9 @@ def _defects_inputs(wc):
         "mesh": layer_mesh(wc),
         "order": frame_file(wc, layout.layer_file("order", wc.layer)),
         "directors": frame_file(wc, layout.layer_file("directors", wc.layer)),
-        "layer": frame_file(wc, layout.layer_file("layer", wc.layer)),
     }
+    if not imported(wc.dataset, wc.layer):  # imported directors: no layer, no refinement pass
+        inputs["layer"] = frame_file(wc, layout.layer_file("layer", wc.layer))
     d = sec(wc.dataset, "defects")
     if d["curvature_source"] == "table" and d["curvature_correction"]:
         inputs["curvature"] = f"{seg_dir(wc)}/{layout.curvature_file(layer_cfg(wc)['surface'])}"
@@ -25,6 +26,7 @@ rule defects:
         opts=lambda wc: cli_opts(sec(wc.dataset, "defects"), skip=("curvature_correction",))
         + ("" if sec(wc.dataset, "defects")["curvature_correction"] else " --no-curvature-correction"),
         curvature=lambda wc, input: f"--curvature {shlex.quote(input.curvature)}" if "curvature" in input.keys() else "",
+        layer=lambda wc, input: f"--layer {shlex.quote(input.layer)}" if "layer" in input.keys() else "",
     log:
         LOGS + "/defects/t{t}_c{c}_{layer}.log",
     benchmark:
@@ -39,5 +41,5 @@ rule defects:
         "../envs/nemo.yaml"
     shell:
         NEMO + " defects {input.mesh:q} {input.order:q} {input.directors:q} {params.curvature}"
-        " --layer {input.layer:q} --refined {output.refined:q} -o {output.defects:q} {params.opts}"
+        " {params.layer} --refined {output.refined:q} -o {output.defects:q} {params.opts}"
         " > {log:q} 2>&1"

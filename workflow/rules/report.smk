@@ -9,7 +9,8 @@ def _render_inputs(wc):
     seg = seg_dir(wc)
     s = SECTIONS[wc.dataset]
     surface = layer_cfg(wc)["surface"]
-    inputs = [layer_mesh(wc)] + [frame_file(wc, layout.layer_file(kind, wc.layer)) for kind in layout.LAYER_KINDS]
+    kinds = [k for k in layout.LAYER_KINDS if k != "layer" or not imported(wc.dataset, wc.layer)]
+    inputs = [layer_mesh(wc)] + [frame_file(wc, layout.layer_file(kind, wc.layer)) for kind in kinds]
     if s["curvature"] is not None:
         inputs.append(f"{seg}/{layout.curvature_file(surface)}")
     if s["thickness"] is not None and s["thickness"]["from"] == surface:
