@@ -83,7 +83,9 @@ zero into two ±½ zeros a few µm apart inside one dip of S. Candidates are the
 into dips (connected components of ``S < s_threshold``); the lowest centre of a dip is measured
 first with a contour of 1.5 × the averaging radius (grown to 2.5× when S on it is still low),
 and further centres of the same dip inside that contour belong to it. Contours never reach
-another dip (radius ≤ 0.45 × the distance to it).
+another dip (radius ≤ 0.45 × the distance to it). On sparse fields two dips can still lead to
+one defect (their refined cores coincide): a defect whose core lies within half an averaging
+radius of one already accepted is rejected as "same defect".
 
 Euler check
 -----------
@@ -141,6 +143,10 @@ CANDIDATE_COLUMNS = (
 # ----------------------------------------------------------------------------------------------
 # geometry helpers
 
+
+#: Two accepted defects whose refined cores lie closer than this (in averaging radii) are one
+#: defect found from two candidates: the second is rejected as "same defect".
+SAME_DEFECT_PER_AVERAGING = 0.5
 
 #: Largest contour, averaging or fit radius, in units of the surface's size sqrt(area / 4π).
 MAX_RADIUS_PER_SIZE = 2.0
@@ -827,7 +833,7 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
     ``rejected`` (reason -> count) and ``contours`` (contour kind -> count, ``shrunk`` at a rim).
     """
     rejected = dict.fromkeys(("disordered contour", "unresolved winding", "zero charge", "off-half charge",
-                              "no contour", "same dip"), 0)
+                              "no contour", "same dip", "same defect"), 0)
     contours = dict.fromkeys(("loop", "ring", "circle", "shrunk"), 0)
     # low-S dips = connected components of the candidate vertices. Several zeros of the averaged
     # Q-tensor can share one dip (an |m| = 1 defect splits into two ±1/2 zeros a few µm apart under
@@ -864,6 +870,12 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
             logger.debug("rejected candidate at vertex %d (S=%.3g): %s", v, f.S[v], reason)
             continue
         row = _accept(mesh, geo, f, st, v, res, dmin if len(centres) > 1 else np.inf, fit)
+        here = np.array([row["x"], row["y"], row["z"]])
+        if any(np.linalg.norm(p - here) < SAME_DEFECT_PER_AVERAGING * st.avg_radius for p, _, _ in accepted):
+            # two candidates of different dips whose contours (and refined cores) found one defect
+            rejected["same defect"] += 1
+            records.append(_record({**rec, "x": row["x"], "y": row["y"], "z": row["z"]}, res, "same defect"))
+            continue
         accepted.append((np.array([row["x"], row["y"], row["z"]]), row["contour_radius"], comp[v]))
         rows.append(row)
         records.append(_record({**rec, "x": row["x"], "y": row["y"], "z": row["z"]}, res, ""))
