@@ -18,6 +18,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from skimage.measure import marching_cubes
+from sparse_fields import stereo_field
 
 from nemo.defects import (
     CANDIDATE_COLUMNS,
@@ -41,21 +42,7 @@ OCTA = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0, 0,
 # analytic fields and meshes
 
 
-def stereo_director(points: np.ndarray, defect_dirs: np.ndarray, charges) -> np.ndarray:
-    """Unit tangent director on a sphere about the origin: ψ = Σ m_k arg(w − w_k) lifted."""
-    u = points / np.linalg.norm(points, axis=1, keepdims=True)
-    w = (u[:, 0] + 1j * u[:, 1]) / (1 + u[:, 2])
-    dd = defect_dirs / np.linalg.norm(defect_dirs, axis=1, keepdims=True)
-    wk = (dd[:, 0] + 1j * dd[:, 1]) / (1 + dd[:, 2])
-    psi = sum(m * np.angle(w - k) for m, k in zip(charges, wk))
-    a, b = w.real, w.imag
-    d = 1 + a * a + b * b
-    eu = np.column_stack([2 / d - 4 * a * a / d**2, -4 * a * b / d**2, -4 * a / d**2])
-    ev = np.column_stack([-4 * a * b / d**2, 2 / d - 4 * b * b / d**2, -4 * b / d**2])
-    eu /= np.linalg.norm(eu, axis=1, keepdims=True)
-    ev /= np.linalg.norm(ev, axis=1, keepdims=True)
-    n = np.cos(psi)[:, None] * eu + np.sin(psi)[:, None] * ev
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
+stereo_director = stereo_field  # ψ = Σ m_k arg(w − w_k) lifted (tests/sparse_fields.py)
 
 
 def rotated(dirs: np.ndarray, seed: int) -> np.ndarray:
