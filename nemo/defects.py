@@ -27,7 +27,8 @@ Localisation
 Charge
 ------
 A closed contour around the defect is the boundary loop of the geodesic ball
-``{v : d(v) < contour_radius}`` (the faces whose three vertices are inside); walking its
+``{v : d(v) < contour_radius + h/2}`` (h the mean edge, so that the loop's vertices lie at
+the radius on average; the faces whose three vertices are inside); walking its
 boundary edges in the faces' outward winding order makes the loop counter-clockwise seen from
 the outward normal, and each step is one mesh edge. The director on the contour (``winding_field``:
 the averaged field ``n_avg`` of the order table, or the nearest raw director) is projected onto
@@ -935,7 +936,7 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
         if r_c < min(3 * h, st.avg_radius):
             return None
     inside = np.zeros(len(geo.verts), dtype=bool)
-    inside[idx[dist < r_c]] = True
+    inside[idx[dist < r_c + 0.5 * h]] = True  # loop vertices then lie at r_c on average (ring: r_c ± h)
     # unique faces: vf lists a face once per incident ball vertex, and duplicated border edges
     # would read as a pinched boundary
     loop, region = boundary_loop(geo.faces, inside, np.unique(geo.vf[idx].indices))
