@@ -11,6 +11,7 @@ parameters, timings, peak memory, counts and the Euler check of each layer.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import resource
@@ -94,14 +95,14 @@ def run_frame(
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
     frame = frame_setup(cfg, dataset, image, spacing)
     sections = nconfig.analysis(cfg, frame["dataset"])
-    final = Path(outdir)
+    final = Path(outdir).resolve()  # `-o .`, `-o a/..` and symlinked folders: stage beside the real one
+    _check_imports_outside(sections, final, frame["dataset"], t, c)
     out = _staging_folder(final)
     try:
         summary = _run_in(out, final, cfg, frame, sections, t, c)
-    except BaseException:
-        shutil.rmtree(out, ignore_errors=True)  # the previous results in `final` stay as they were
-        raise
-    _publish(out, final, summary["files"])
+        _publish(out, final, summary["files"])
+    finally:
+        shutil.rmtree(out, ignore_errors=True)  # on failure the previous results in `final` stay
     logger.info("nemo run: %d layer(s) in %.1f s, peak memory %.0f MB", len(summary["layers"]),
                 summary["total_s"], summary["peak_rss_mb"])
     return summary
@@ -125,9 +126,24 @@ def _publish(stage: Path, final: Path, written: list[str]) -> None:
     """Move a successful run's files from ``stage`` into ``final``; drop the stale ones there."""
     final.mkdir(parents=True, exist_ok=True)
     for name in [*written, layout.SUMMARY_JSON]:
-        os.replace(stage / name, final / name)
+        try:
+            os.replace(stage / name, final / name)
+        except OSError as exc:
+            if exc.errno != errno.EXDEV:
+                raise
+            shutil.move(stage / name, final / name)  # another file system: copy, then remove
     _remove_stale(final, written)
-    shutil.rmtree(stage, ignore_errors=True)
+
+
+def _check_imports_outside(sections: dict, final: Path, dataset: str | None, t: int, c: int) -> None:
+    """Refuse a layer whose ``directors_from`` file lies in the output folder (it would be replaced)."""
+    for name, layer in (sections["layers"] or {}).items():
+        if layer.get("directors_from"):
+            path = Path(nconfig.directors_from_path(layer["directors_from"], dataset=dataset or "", t=t, c=c,
+                                                    layer=name)).resolve()
+            if path.parent == final:
+                raise NemoError(f"layers.{name}.directors_from {path} lies in the output folder {final}, where "
+                                "nemo run writes its results: move it, or choose another output folder")
 
 
 def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: int, c: int) -> dict:
@@ -346,9 +362,11 @@ def _remove_stale(out: Path, written: list[str]) -> None:
     keep = set(written) | {layout.SUMMARY_JSON}
     for path in out.iterdir():
         name = path.name
+        suffix = Path(name).suffix
         ours = (name in layout.MESH.values() or name == layout.THICKNESS
-                or name.startswith(("measure_", "curvature_", "refined_", "align_"))
-                or any(name.startswith(kind + "_") for kind in layout.LAYER_KINDS))
+                or (name.startswith("measure_") and suffix == ".json")
+                or (suffix == ".parquet" and (name.startswith(("curvature_", "refined_", "align_"))
+                                              or any(name.startswith(kind + "_") for kind in layout.LAYER_KINDS))))
         if ours and path.is_file() and name not in keep and not name.startswith("."):
             path.unlink()
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -264,3 +265,39 @@ def test_provenance_names_the_final_folder(small_run):
     out, _, _ = small_run
     prov = read_provenance(out / layout.layer_file("order", "fibres"))
     assert prov["mesh"] == str(out / layout.MESH["inner"])
+
+
+def test_run_into_dot_and_a_symlinked_folder_leaves_no_staging_folder(small_run, small_vesicle, tmp_path,
+                                                                      monkeypatch):
+    """`-o .` stages beside the real folder; a symlink is followed; nothing is left behind."""
+    import errno
+    import os
+
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real)
+    calls = []
+    replace = os.replace
+
+    def cross_device(src, dst):  # publishing the first file meets another file system (HPC scratch)
+        if not calls and ".partial" in Path(src).parent.name and not Path(src).name.startswith("."):
+            calls.append(src)
+            raise OSError(errno.EXDEV, "Invalid cross-device link")
+        return replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", cross_device)
+    cfg = {**SMALL, "curvature": None, "thickness": None}
+    run_frame(small_vesicle[0], tmp_path / "link", cfg)
+    assert calls and (real / "summary.json").exists() and (real / "mesh.ply").exists()
+    monkeypatch.chdir(real)
+    run_frame(small_vesicle[0], ".", cfg)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "real"]
+    assert not [p for p in real.iterdir() if p.name.startswith(".")]
+
+
+def test_stale_removal_keeps_files_that_are_not_results(small_vesicle, tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "directors_cells.csv").write_text("x,y,z,angle\n")  # a user's input, named like a table
+    run_frame(small_vesicle[0], out, {**SMALL, "curvature": None, "thickness": None})
+    assert (out / "directors_cells.csv").exists()
