@@ -230,15 +230,18 @@ def _images(series: tifffile.TiffPageSeries) -> int:
 def _held(tif: tifffile.TiffFile, series: tifffile.TiffPageSeries, size: int) -> tuple[int, int | None]:
     """(complete images the file holds, bytes the series' pixel data need or None), headers only."""
     page = tif.pages.first
-    if series.kind not in ("imagej", "ome") and tif.is_imagej:  # tifffile rejected the ImageJ header
+    if series.kind in ("generic", "uniform") and tif.is_imagej:  # tifffile rejected the ImageJ header
         held = max(0, size - page.dataoffsets[0]) // max(page.nbytes, 1) if page.compression == 1 else len(tif.pages)
         return held, None
     if series.dataoffset is not None:  # contiguous uncompressed data (ImageJ, tifffile)
         per = max(series.nbytes // max(_images(series), 1), 1)
         return max(0, size - series.dataoffset) // per, int(series.dataoffset + series.nbytes)
     pages = [p for p in series._pages if p is not None]  # parsed headers; iterating the series reads IFDs
+    # a multi-file series (OME, Micro-Manager) keeps each page's data in its own file
+    own = [p.parent.filehandle.size if p.parent is not tif else size for p in pages]
     ends = [_page_end(p) for p in pages]
-    return sum(end <= size for end in ends), max(ends, default=0)
+    held = sum(end <= limit for end, limit in zip(ends, own))
+    return held, (max(ends, default=0) if all(p.parent is tif for p in pages) else None)
 
 
 def _imagej_images(tif: tifffile.TiffFile) -> int | None:
@@ -271,7 +274,7 @@ def _check_intact(tif: tifffile.TiffFile, path: str | os.PathLike, log: list[str
     if announced is None or series.kind == "ome":
         announced = _images(series)
     held, need = _held(tif, series, size)
-    if held < announced or (tif.is_imagej and series.kind not in ("imagej", "ome")):
+    if held < announced or (tif.is_imagej and series.kind in ("generic", "uniform")):
         if need is None and tif.pages.first.compression == 1:
             need = tif.pages.first.dataoffsets[0] + announced * tif.pages.first.nbytes
         needs = f", the pixel data need {need} bytes" if need and need > size else ""

@@ -276,3 +276,28 @@ def test_cli_info_on_truncated_file_is_one_error_line(tmp_path, rng, capsys, nam
     assert "Traceback" not in err and out == ""
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("nemo info: error:") and "is truncated or corrupt: " in lines[0], err
+
+
+def test_a_multi_file_ome_series_is_whole_not_truncated(tmp_path):
+    """Micro-Manager / Bio-Formats split acquisitions: each page's data lies in its own file."""
+    import uuid
+
+    data = (np.random.default_rng(0).random((12, 32, 32)) * 200).astype(np.uint8)
+    ua, ub = (f"urn:uuid:{uuid.uuid4()}" for _ in range(2))
+
+    def xml(root):
+        return (f'<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/'
+                f'2016-06" UUID="{root}"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" '
+                'Type="uint8" SizeX="32" SizeY="32" SizeZ="12" SizeC="1" SizeT="1" PhysicalSizeX="1" '
+                'PhysicalSizeY="1" PhysicalSizeZ="2"><Channel ID="Channel:0:0" SamplesPerPixel="1"/>'
+                f'<TiffData FirstZ="0" IFD="0" PlaneCount="2"><UUID FileName="a.ome.tif">{ua}</UUID></TiffData>'
+                f'<TiffData FirstZ="2" IFD="0" PlaneCount="10"><UUID FileName="b.ome.tif">{ub}</UUID></TiffData>'
+                '</Pixels></Image></OME>')
+
+    tifffile.imwrite(tmp_path / "a.ome.tif", data[:2], description=xml(ua), metadata=None)
+    tifffile.imwrite(tmp_path / "b.ome.tif", data[2:], description=xml(ub), metadata=None)
+    stack, info = read_stack(tmp_path / "a.ome.tif")
+    assert info.shape["Z"] == 12 and np.array_equal(stack, data)
+    (tmp_path / "b.ome.tif").write_bytes((tmp_path / "b.ome.tif").read_bytes()[:3000])  # cut the second file
+    with pytest.raises(NemoError, match="truncated or corrupt"):
+        read_stack(tmp_path / "a.ome.tif")
