@@ -617,8 +617,9 @@ def thickness(
     return d
 
 
-#: Largest size ratio of two surfaces of one object (walls of a shell, layers of a tissue).
-MAX_SIZE_RATIO = 4.0
+#: Largest size ratio of two surfaces of one object (walls of a shell, an organoid and its
+#: lumen, layers of a tissue); a unit mix-up is a factor of about 1000.
+MAX_SIZE_RATIO = 30.0
 
 
 def check_same_object(mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh) -> None:
@@ -636,10 +637,11 @@ def check_same_object(mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh) -> None:
             f"{size_b:.4g}): they cannot be two walls of one object. Is one of them in another unit "
             "(nm, mm) or from another image? Re-export both in the image's unit"
         )
-    if np.any(hi_a < lo_b) or np.any(hi_b < lo_a):
+    gap = float(np.linalg.norm(np.maximum(0.0, np.maximum(lo_a - hi_b, lo_b - hi_a))))
+    if gap > max(size_a, size_b):  # two sheets of a slab may be apart, but not farther than they are large
         raise NemoError(
-            "the two meshes do not overlap (their bounding boxes are disjoint): they are not walls of "
-            "one object; pass two surfaces of the same frame, in the same unit"
+            f"the two meshes are {gap:.4g} apart, more than either is large ({size_a:.4g}, {size_b:.4g}): "
+            "they are not walls of one object; pass two surfaces of the same frame, in the same unit"
         )
 
 

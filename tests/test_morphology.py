@@ -451,8 +451,12 @@ def test_thickness_refuses_a_mesh_in_another_unit_and_warns_on_misses(tmp_path, 
     with pytest.raises(NemoError, match="differ in size by × 1e\\+03|another unit"):
         thickness(inner, outer_nm)
     far = make_mesh(np.asarray(outer.vertices) + [500.0, 0, 0], outer.faces)
-    with pytest.raises(NemoError, match="do not overlap"):
+    with pytest.raises(NemoError, match="are 4.* apart, more than either is large"):
         thickness(inner, far)
+    lumen = sphere_mesh(3.0, ISO, c)  # an organoid (R 17) and its lumen (R 3): ratio 5.7 is fine
+    assert np.isfinite(thickness(outer, lumen, "inward")).all()
+    upper = make_mesh(np.asarray(inner.vertices) + [0, 0, 30.0], inner.faces)  # disjoint boxes, near
+    thickness(inner, upper, "outward", max_distance=100)
     with pytest.warns(NemoWarning, match="100 % of the rays"):
         thickness(outer, inner, "outward")  # the inner wall lies inward: every ray misses
     save_mesh(inner, tmp_path / "in.ply")
