@@ -255,44 +255,60 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
     mesh : trimesh.Trimesh
         The whole surface (every component).
     split : bool
-        The surface is to be split into inner/outer walls: several objects are an error (their
-        walls would be mixed up).
+        The surface is to be split into inner/outer walls.
     keep : {"largest", "all"}
-        Without ``split``: ``"largest"`` keeps the largest component and warns about other
-        objects; ``"all"`` keeps everything.
+        ``"largest"``: with several objects, the largest (with the walls nested in it when
+        splitting, else its largest component) and a warning naming the others. ``"all"``:
+        everything; several objects with ``split`` are an error (their walls would be mixed).
     min_fraction : float
         Relative area below which a component is noise, not an object.
 
     Returns
     -------
     trimesh.Trimesh
-        ``mesh`` (split, or ``keep="all"``), else its largest component with ``mesh``'s metadata.
+        The surface to analyse, with ``mesh``'s metadata.
 
     Raises
     ------
     NemoError
-        ``split`` with several objects.
+        ``split`` with ``keep="all"`` and several objects.
     """
     objects = find_objects(mesh, min_fraction)
     unit = getattr(mesh, "units", None) or "um"
-    if len(objects) > 1 and split:
-        raise NemoError(
-            f"the image holds {len(objects)} objects (separate surfaces, not nested in each other, of at least "
-            f"{min_fraction:.0%} of the largest one's area): {_describe_objects(objects, unit)}. Splitting into "
-            "inner and outer walls needs a single object: give a `mask` selecting one object (config: the "
-            "dataset's mask), crop the image to one object, or set `split` none with `keep` largest (config mesh.split: none, mesh.keep: largest) "
-            "to analyse the largest only"
-        )
-    if split or keep == "all":
+    if len(objects) < 2 or keep == "all":
+        if len(objects) > 1 and split:
+            raise NemoError(
+                f"the image holds {len(objects)} objects (separate surfaces, not nested in each other, of at "
+                f"least {min_fraction:.0%} of the largest one's area): {_describe_objects(objects, unit)}. "
+                "Splitting them all into one inner and one outer wall would mix their walls: set `keep` largest "
+                "(config mesh.keep: largest) to analyse the largest, give a `mask` selecting one object "
+                "(config: the dataset's mask), or crop the image to one object"
+            )
         if len(objects) > 1:
             logger.info("keeping all %d objects: %s", len(objects), _describe_objects(objects, unit))
-        return mesh
-    if len(objects) > 1:
-        warnings.warn(
-            f"the image holds {len(objects)} objects: analysing the largest ({_describe_objects(objects[:1], unit)}) "
-            f"and ignoring {len(objects) - 1} other object(s): {_describe_objects(objects[1:], unit)}; give a "
-            "`mask` or crop the image to analyse another one", NemoWarning, stacklevel=3)
-    out = keep_components(mesh, keep)
+        return mesh if split or keep == "all" else _with_metadata(keep_components(mesh, keep), mesh)
+    warnings.warn(
+        f"the image holds {len(objects)} objects: analysing the largest ({_describe_objects(objects[:1], unit)}) "
+        f"and ignoring {len(objects) - 1} other object(s): {_describe_objects(objects[1:], unit)}; give a "
+        "`mask` or crop the image to analyse another one", NemoWarning, stacklevel=3)
+    if split:  # the largest object with its own inner walls (components nested in it)
+        return _with_metadata(_object_with_nested(mesh, objects[0]["component"]), mesh)
+    return _with_metadata(keep_components(mesh, keep), mesh)
+
+
+def _object_with_nested(mesh: trimesh.Trimesh, component: int) -> trimesh.Trimesh:
+    """Component ``component`` of ``mesh`` and every component lying inside it (winding number)."""
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    labels = face_components(faces, len(vertices))
+    first_face = np.unique(labels, return_index=True)[1]
+    probes = vertices[faces[first_face, 0]]  # one vertex of every component
+    inside = np.abs(_winding_numbers(probes, vertices, faces[labels == component])) > 0.5
+    inside[component] = True
+    return submesh(mesh, inside[labels])
+
+
+def _with_metadata(out: trimesh.Trimesh, mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``out`` (a part of ``mesh``) with ``mesh``'s metadata, not the part's parent indices."""
     if out is not mesh:
         out.metadata.update({k: v for k, v in mesh.metadata.items() if k not in ("parent_faces", "parent_vertices")})
         out.metadata.pop("parent_faces", None)

@@ -111,17 +111,26 @@ def _balls(shape, spheres, sigma=1.0):
 TWO_SHELLS = [(20, 20, 20, 9, 14), (56, 20, 20, 9, 14)]
 
 
-def test_mesh_split_of_two_objects_is_an_error():
+def test_mesh_split_of_two_objects_keeps_the_largest_or_refuses_to_mix_them():
+    from nemo.errors import NemoWarning
+    from nemo.morphology import measure
+
+    vol = _balls((40, 40, 76), [(20, 20, 20, 10, 14), (56, 20, 20, 7, 10)])  # two hollow shells
+    with pytest.warns(NemoWarning, match=r"2 objects: analysing the largest .*centred at \(56, 20, 20\)"):
+        meshes, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})  # keep: largest (default)
+    for wall, radius in (("inner", 10), ("outer", 14)):  # the larger shell's walls, nothing of the other
+        assert measure(meshes[wall])["euler_characteristic"] == 2
+        assert stages.object_radius(meshes[wall]) == pytest.approx(radius, abs=0.6)
     vol = _balls((40, 40, 76), TWO_SHELLS)
     with pytest.raises(NemoError, match="2 objects") as err:
-        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
+        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
     msg = str(err.value)
     radii = [float(r) for r in re.findall(r"radius of equal area ([\d.]+) um", msg)]
     assert radii == pytest.approx([14, 14], abs=0.3)
     assert "(20, 20, 20)" in msg and "(56, 20, 20)" in msg
-    assert "`mask`" in msg and "`split` none" in msg and "`keep` largest" in msg
+    assert "`mask`" in msg and "`keep` largest" in msg
     with pytest.raises(NemoError, match="2 objects"):
-        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "axis", "axis": [0, 0, 1]})
+        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "axis", "axis": [0, 0, 1], "keep": "all"})
 
 
 def test_mesh_keep_largest_of_two_balls_warns_and_keeps_one():
@@ -158,8 +167,11 @@ def test_cli_run_on_two_objects_is_a_clean_error(tmp_path, capsys):
 
     tif = tmp_path / "two.tif"
     write_hyperstack(tif, _balls((40, 40, 76), TWO_SHELLS).astype(np.uint8)[None, :, None], spacing=(1, 1, 1))
-    code = main(["run", str(tif), "-o", str(tmp_path / "out")])
+    cfg = tmp_path / "all.yaml"
+    cfg.write_text("mesh: {keep: all}\n")
+    code = main(["run", str(tif), "--config", str(cfg), "-o", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert code == 2
     assert "nemo run: error:" in err and "2 objects" in err and "Traceback" not in err
-    assert "mesh.split: none" in err and "--split" not in err  # nemo run is configured by keys, not flags
+    assert "mesh.keep: largest" in err and "--keep" not in err  # nemo run is configured by keys, not flags
+    assert not (tmp_path / "out").exists()
