@@ -18,8 +18,8 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 ``directors.n_patches``     30 per patch area, at most the number of vertices
 ``directors.pixel``         ``edge / 4``, at least ``patch_radius / 97`` (micro-images ≤ 195 px)
                             (these three: nemo.directors, the same defaults as ``directors()``)
-``directors_import``        ``max_distance``: ``2 edge``; imported directors record the patch
-                            radius of the same density, ``sqrt(30 area / (π n_directors))``
+``directors_import``        ``max_distance``: ``2 edge``; the order radius of imported directors
+                            holds about 10 of them (1.78 × their spacing ``sqrt(area / n)``)
 ``order.radius``            ``2.5 patch_radius`` (the paper: 50 µm for 20 µm patches)
 ``defects.min_distance``    the averaging radius; ``contour_radius``: 1.5 × it (nemo.defects)
 ==========================  =====================================================================
@@ -39,6 +39,9 @@ from nemo.mesh import object_radius  # the object's scale, used by the defaults 
 
 __all__ = ["object_radius", "mesh", "curvature", "curvature_defaults", "thickness", "peel", "directors",
            "directors_defaults", "import_directors", "order", "defects", "tracking_distance"]
+
+#: Imported directors per default averaging disc (``order.radius`` of an imported layer).
+IMPORTED_PER_DISC = 10.0
 
 #: Stacks with more voxels than this are meshed every 2 voxels by default.
 STEP2_VOXELS = 64_000_000
@@ -220,9 +223,9 @@ def import_directors(mesh: trimesh.Trimesh, points: pd.DataFrame, params: dict |
     """Directors from another tool, mapped onto ``mesh`` (``nemo directors import``).
 
     ``params`` is the ``directors_import`` section: ``max_distance`` defaults to 2 mean edge
-    lengths. The result records ``nominal_radius``, the patch radius at which NEMO's own
-    directors would have this density (30 per patch area, as ``directors.n_patches``), so that
-    ``order.radius`` defaults to 2.5 × it as for measured directors; and the counts of
+    lengths. The result records ``nominal_radius`` such that ``order.radius`` (2.5 × it) defaults
+    to the disc holding about ``IMPORTED_PER_DISC`` = 10 imported directors (1.78 × their spacing:
+    other tools' fields are often one director per cell or grid point); and the counts of
     :func:`nemo.import_directors.import_directors` (points, far, nearly normal, directors).
 
     Returns
@@ -230,7 +233,6 @@ def import_directors(mesh: trimesh.Trimesh, points: pd.DataFrame, params: dict |
     directors : DataFrame, shape (M, 8)
     resolved : dict
     """
-    from nemo.directors import PATCHES_PER_AREA
     from nemo.import_directors import MAX_DISTANCE_EDGES
     from nemo.import_directors import import_directors as map_directors
     from nemo.mesh import mean_edge_length
@@ -241,7 +243,10 @@ def import_directors(mesh: trimesh.Trimesh, points: pd.DataFrame, params: dict |
     df, counts = map_directors(mesh, points, basis=p["basis"], axis=p["axis"], angle_unit=p["angle_unit"],
                                max_distance=float(p["max_distance"]), min_tangential=float(p["min_tangential"]),
                                source=source)
-    p["nominal_radius"] = float(np.sqrt(PATCHES_PER_AREA * float(mesh.area) / (np.pi * len(df))))
+    # the order radius defaults to ORDER_PER_PATCH × nominal_radius: make it the disc holding about
+    # IMPORTED_PER_DISC directors (1.78 × their spacing; Eckert et al. 2025 average over 1.7 × the grid)
+    spacing = float(np.sqrt(float(mesh.area) / max(len(df), 1)))
+    p["nominal_radius"] = float(np.sqrt(IMPORTED_PER_DISC / np.pi) * spacing / ORDER_PER_PATCH)
     p.update(counts)
     logger.info("directors import: %d points -> %d directors (%d far, %d nearly normal)", counts["n_points"],
                 counts["n_directors"], counts["n_far"], counts["n_nearly_normal"])

@@ -347,8 +347,8 @@ def test_cli_import_then_order_and_defects_find_the_two_poles(run_cli, tmp_path,
     assert prov["n_vertices"] == len(sphere.vertices) and prov["unit"] == "um"
     params = prov["parameters"]
     assert params["n_points"] == 6000 and params["max_distance"] == pytest.approx(2 * mean_edge_length(sphere))
-    # nemo order's default radius follows the imported density: 2.5 × sqrt(30 area / (π n))
-    nominal = np.sqrt(30 * sphere.area / (np.pi * params["n_directors"]))
+    # nemo order's default radius follows the imported density: the disc of about 10 directors
+    nominal = np.sqrt(10 / np.pi) * np.sqrt(sphere.area / params["n_directors"]) / 2.5
     assert params["nominal_radius"] == pytest.approx(nominal)
     assert read_provenance(tmp_path / "o.parquet")["radius"] == pytest.approx(2.5 * nominal)
     assert len(defects) == 2, defects
@@ -475,3 +475,25 @@ def test_peeling_a_layer_with_directors_from_is_refused():
     with pytest.raises(NemoError, match="is not peeled: its directors are imported"):
         config.section("layer", {"directors_from": "d/t{t}.csv"})
     assert config.section("layer", {"range": [0, 5]})["range"] == [0, 5]
+
+
+@pytest.mark.parametrize("spacing", [6.0, 10.0])
+def test_a_sparse_import_finds_its_defects_with_every_default(spacing):
+    """One director per 6 or 10 µm vertex (the five +1/2, one -1/2 set), imported and analysed
+    with no length given: the default averaging disc holds about 10 directors."""
+    import sparse_fields as sf
+
+    from nemo import stages
+    from nemo.synthetic import director_field, preset_defects, projection_pole
+
+    dirs, charges = preset_defects("five-one")
+    mesh = sf.fibonacci_sphere(50.0, spacing)
+    n = director_field(np.asarray(mesh.vertices), dirs, charges, pole=projection_pole(dirs))
+    v = np.asarray(mesh.vertices)
+    points = pd.DataFrame({"x": v[:, 0], "y": v[:, 1], "z": v[:, 2], "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2]})
+    ddf, dp = stages.import_directors(mesh, points)
+    odf, op = stages.order(mesh, ddf, None, patch_radius=dp["nominal_radius"])
+    assert op["radius"] == pytest.approx(np.sqrt(10 / np.pi) * sf.mean_spacing(mesh), rel=0.1)
+    found, _, _ = stages.defects(mesh, odf, ddf, None, avg_radius=op["radius"])
+    sc = sf.score(found, 50.0 * dirs, charges)
+    assert sc["found"] == 6 and sc["extras"] == 0 and sc["charge_ok"], (sc, found)
