@@ -220,19 +220,20 @@ def order(
     })
 
 
-#: Largest median distance between matched directors, as a fraction of layer A's size.
-MAX_MATCH_DISTANCE_PER_SIZE = 0.5
+#: Largest distance (10th percentile of the matches) between the two layers, in A's rms radii.
+MAX_MATCH_DISTANCE_PER_SIZE = 1.0
 
 
 def _check_overlap(dist: np.ndarray, pos_a: np.ndarray) -> None:
-    """Refuse two director sets that do not lie on the same object (median match too far)."""
+    """Refuse two director sets that do not lie on the same object: even the closest tenth of the
+    matches is farther than A's size (walls of a thick shell, or B covering part of A, pass)."""
     size = float(np.sqrt(np.mean(np.sum((pos_a - pos_a.mean(axis=0)) ** 2, axis=1))))
-    median = float(np.median(dist))
-    if median > MAX_MATCH_DISTANCE_PER_SIZE * size:
+    near = float(np.quantile(dist, 0.1))
+    if near > MAX_MATCH_DISTANCE_PER_SIZE * size:
         raise NemoError(
-            f"the two director tables do not overlap: the nearest director of B is a median {median:.4g} "
-            f"away from those of A, while A's layer spans about {size:.4g} (rms radius). Pass tables of the "
-            "same object, frame and unit (e.g. two layers of one `nemo run`)"
+            f"the two director tables do not overlap: 90 % of the directors of A have no director of B "
+            f"within {near:.4g}, while A's layer spans about {size:.4g} (rms radius). Pass tables of the "
+            "same object, frame and unit (e.g. two layers of one `nemo run`), or give `max_distance`"
         )
 
 
@@ -285,7 +286,8 @@ def alignment(
         raise NemoError("a directors table has no valid director: rerun 'nemo directors'")
     normals = nrm_mesh if normals_a is None else normals_a
     dist, j = cKDTree(pos_b).query(pos_a[ok_a], workers=-1)
-    _check_overlap(dist, pos_a[ok_a])
+    if max_distance is None:  # with a limit, directors of A without a B near them get NaN instead
+        _check_overlap(dist, pos_a[ok_a])
     na, nb = n_a[ok_a], n_b[j]
     if normals is not None:
         nrm = _unit(normals[ok_a])

@@ -262,6 +262,11 @@ def test_alignment_refuses_tables_that_do_not_overlap(tmp_path, run_cli):
     near = da.copy()
     near[["x", "y", "z"]] *= (R + 0.4 * R) / R  # a second wall 0.4 R outside: still the same object
     assert np.isfinite(alignment(da, near, mesh_a=mesh)["c"]).all()
+    thick = da.copy()
+    thick[["x", "y", "z"]] *= 1.75  # a thick shell: walls R and 1.75 R from the centre
+    assert np.isfinite(alignment(da, thick)["c"]).all()
+    cap = da[da["z"] > 0.6 * R]  # B covers only a cap of A: NaN elsewhere with max_distance
+    assert np.isnan(alignment(da, cap, max_distance=2.0)["c"]).mean() > 0.5
     far = da.copy()
     far["x"] += 836.0
     with pytest.raises(NemoError, match="do not overlap"):
