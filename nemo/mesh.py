@@ -250,7 +250,7 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
     return mesh
 
 
-def load_mesh(path: str | os.PathLike, unit: str | None = None) -> trimesh.Trimesh:
+def load_mesh(path: str | os.PathLike, unit: str | None = None, manifold: bool = True) -> trimesh.Trimesh:
     """Read a PLY or OBJ surface and check it is usable.
 
     Parameters
@@ -259,6 +259,10 @@ def load_mesh(path: str | os.PathLike, unit: str | None = None) -> trimesh.Trime
         ``.ply`` (NEMO's or any other program's) or ``.obj``.
     unit : str, optional
         Unit to assume when the file does not say (default ``"um"``).
+    manifold : bool
+        Refuse a non-manifold surface (the analysis steps); False for diagnostics (``nemo
+        measure``, renders). Meshes written by NEMO's mesh step are manifold by construction and
+        not checked again (the check costs about a second per million vertices).
 
     Returns
     -------
@@ -290,8 +294,8 @@ def load_mesh(path: str | os.PathLike, unit: str | None = None) -> trimesh.Trime
         raise NemoError(f"cannot read mesh {path}: NEMO reads .ply and .obj meshes")
     if unit is not None:
         mesh.units = unit
-    check_mesh(mesh, str(path))
-    trusted = mesh.metadata.get("nemo_surface") is True
+    trusted = mesh.metadata.get("nemo_surface") is True  # written by NEMO's mesh step: manifold
+    check_mesh(mesh, str(path), manifold=manifold and not trusted)
     if not trusted and mesh.is_watertight and signed_volume(mesh.vertices, mesh.faces) < 0:
         mesh.faces = mesh.faces[:, ::-1]
         warnings.warn(

@@ -574,7 +574,7 @@ def load_frame(files: FrameFiles | str | os.PathLike | list) -> Frame:
     meshes = {}
     for key, path in ff.meshes.items():
         try:
-            mesh = load_mesh(path)
+            mesh = load_mesh(path, manifold=False)  # show what is there
         except NemoError as exc:
             warnings.warn(f"not shown: {exc}", NemoWarning, stacklevel=2)
             continue
@@ -1416,7 +1416,7 @@ def _frame_centres(dataset_dir: Path) -> dict[tuple[int, int], np.ndarray]:
         ff = discover_frame(d)
         mkey = next((k for k in (*_MESH_PREFERENCE, *ff.meshes) if k in ff.meshes), None)
         try:
-            centres[key] = surface_centre(load_mesh(ff.meshes[mkey]))
+            centres[key] = surface_centre(load_mesh(ff.meshes[mkey], manifold=False))
         except NemoError:
             continue
     return centres

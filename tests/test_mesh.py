@@ -319,3 +319,20 @@ def test_split_nonmanifold_vertices_repairs_a_split_half_of_a_noisy_surface():
     v2, f2, index = split_nonmanifold_vertices(v, half, return_index=True)
     np.testing.assert_array_equal(index[f2], half)
     check_mesh(trimesh.Trimesh(v2, f2, process=False))
+
+
+def test_measure_reports_a_non_manifold_mesh_instead_of_refusing_it(tmp_path, run_cli):
+    """nemo measure is a diagnostic: it loads a non-manifold surface and says so in its notes."""
+    a = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
+    b = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
+    top = int(np.argmax(a.vertices[:, 2]))
+    shift = a.vertices[top] - b.vertices[int(np.argmin(b.vertices[:, 2]))]
+    vertices = np.vstack([a.vertices, b.vertices + shift])
+    faces = np.vstack([a.faces, b.faces + len(a.vertices)])
+    faces[faces == len(a.vertices) + int(np.argmin(b.vertices[:, 2]))] = top  # share one vertex
+    path = tmp_path / "bowtie.ply"
+    save_mesh(make_mesh(vertices, faces, orient_outward=False), path)
+    code, out, err = run_cli("measure", path)
+    assert code == 0 and "not a manifold orientable surface" in out, err
+    code, _, err = run_cli("curvature", path, "-o", tmp_path / "c.parquet")
+    assert code == 2 and "not a manifold surface" in err

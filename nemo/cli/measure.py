@@ -36,7 +36,7 @@ def run(args) -> int:
     from nemo.morphology import measure
     from nemo.tables import read_table
 
-    mesh = load_mesh(args.mesh)
+    mesh = load_mesh(args.mesh, manifold=False)  # measure reports a non-manifold surface in its notes
     curv = read_table(args.curvature, "curvature", n_vertices=len(mesh.vertices)) if args.curvature else None
     res = measure(mesh, curv)
     if args.json:
