@@ -173,8 +173,8 @@ _FIX = ("the file was cut off or damaged (incomplete copy or download, full disk
         "from the source, or re-save it from Fiji")
 # tifffile's log messages that mean offsets in the file point nowhere: a cut or damaged file
 _BROKEN_LOG = re.compile(
-    r"invalid (page |value |next page |offset to (first )?page)|corrupted tag list|circular reference|"
-    r"missing (data offset|data ByteCounts|ByteCounts)|incorrect Strip"
+    r"invalid (page |next page |offset to (first )?page)|corrupted tag list|circular reference|"
+    r"missing (data offset|data ByteCounts|ByteCounts)"
 )
 # tifffile's messages about metadata it ignored and replaced (checked by _check_intact): kept quiet
 _QUIET_LOG = re.compile(r"corrupted file")
