@@ -1,4 +1,4 @@
-"""Atomic file writes: an interrupted or failed write leaves the previous file intact.
+"""Atomic file writes and output folders: an interrupted or failed write leaves the previous file intact.
 
 Every NEMO output goes through :func:`atomic_path`: the content is written to a temporary
 name beside the target (same folder, so the final :func:`os.replace` is atomic on POSIX) and
@@ -41,6 +41,28 @@ def atomic_path(path: str | os.PathLike, keep_suffix: bool = False) -> Iterator[
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)  # gone after a successful replace
+
+
+def make_folder(folder: str | os.PathLike) -> Path:
+    """Create an output ``folder`` (and its parents) or raise :class:`NemoError` saying why not.
+
+    A file in the way, a refused ``mkdir`` (read-only file system, permissions) or a folder that
+    is not writable each get a message naming the folder and the fix.
+    """
+    from nemo.errors import NemoError
+
+    folder = Path(folder)
+    blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise NemoError(f"cannot create the folder {folder}: {blocker} is a file; choose another output path")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise NemoError(f"cannot create the folder {folder} ({exc.strerror}); choose a writable output path") \
+            from None
+    if not os.access(folder, os.W_OK):
+        raise NemoError(f"the folder {folder} is not writable; choose a writable output path")
+    return folder
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:

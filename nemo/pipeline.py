@@ -21,7 +21,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from nemo import atomic
 from nemo import config as nconfig
@@ -32,11 +31,6 @@ from nemo.errors import NemoError
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def write_json(obj, path: Path) -> None:
-    """Write JSON atomically (temporary file + rename)."""
-    atomic.write_json(path, obj, default=_json_default)
 
 
 def frame_setup(cfg: dict, dataset: str | None, image, spacing) -> dict:
@@ -112,13 +106,9 @@ def _staging_folder(final: Path) -> Path:
     """A fresh, empty folder beside ``final`` where a run writes until it succeeds."""
     if final.exists() and not final.is_dir():
         raise NemoError(f"the output {final} is a file: give a folder (-o OUTDIR)")
-    parent = final.absolute().parent
-    blocker = next((p for p in (parent, *parent.parents) if p.exists() and not p.is_dir()), None)
-    if blocker is not None:
-        raise NemoError(f"cannot create the folder {final}: {blocker} is a file; choose another output folder")
-    stage = parent / f".{final.name}.partial{os.getpid()}"
+    stage = atomic.make_folder(final.parent) / f".{final.name}.partial{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
-    stage.mkdir(parents=True)
+    stage.mkdir()
     return stage
 
 
@@ -185,7 +175,7 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     summary.update(config=sections, mesh=mesh_params, layers=results, files=sorted(written),
                    timings_s=timings, total_s=round(time.perf_counter() - start, 3),
                    peak_rss_mb=round(_peak_rss_mb(), 1))
-    write_json(summary, out / layout.SUMMARY_JSON)
+    atomic.write_json(out / layout.SUMMARY_JSON, summary)
     return summary
 
 
@@ -222,7 +212,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
         sections["tracking"] = stages.tracking_distance(sections["tracking"],
                                                         [v["defects"] for v in per_layer.values()])
     sections.update(image=frame["image"], t=t, c=c, spacing=list(info.spacing), unit=info.unit)
-    return json.loads(json.dumps(sections, default=_json_default))
+    return json.loads(json.dumps(sections, default=atomic.json_default))
 
 
 def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None):
@@ -245,7 +235,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
         meshes = {name: load_mesh(out / layout.MESH[name]) for name in meshes}
     for surface in sections["measure"]["surfaces"] or sections["surfaces"]:
         with timed("measure"):
-            write_json(measure(meshes[surface]), out / layout.measure_file(surface))
+            atomic.write_json(out / layout.measure_file(surface), measure(meshes[surface]))
         written.append(layout.measure_file(surface))
     if sections["curvature"] is not None:
         for surface in sections["surfaces"]:
@@ -369,13 +359,3 @@ def _remove_stale(out: Path, written: list[str]) -> None:
                                               or any(name.startswith(kind + "_") for kind in layout.LAYER_KINDS))))
         if ours and path.is_file() and name not in keep and not name.startswith("."):
             path.unlink()
-
-
-def _json_default(obj):
-    if isinstance(obj, (np.integer, np.floating, np.bool_)):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, pd.Timestamp):
-        return str(obj)
-    return str(obj)

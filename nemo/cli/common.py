@@ -9,6 +9,7 @@ import os
 import sys
 from pathlib import Path
 
+from nemo.atomic import make_folder
 from nemo.errors import NemoError
 
 
@@ -53,8 +54,10 @@ def number(text: str) -> float:
     return value
 
 
-def positive(kind=float, minimum: float = 1e-9):
-    """argparse type: a number in [``minimum``, :data:`MAX_VALUE`], > 0 (``kind`` float or int)."""
+def positive(kind=float, minimum: float | None = None):
+    """argparse type: a number in [``minimum``, :data:`MAX_VALUE`] (``kind`` float or int;
+    ``minimum`` default 1e-9 for lengths, 1 for counts)."""
+    minimum = (1 if kind is int else 1e-9) if minimum is None else minimum
 
     def parse(text: str):
         try:
@@ -106,22 +109,6 @@ def output_path(path: str | Path, suffixes: tuple[str, ...] = (".parquet",)) -> 
         raise NemoError(f"output {path} is a folder: give a file name ending in {' or '.join(suffixes)}")
     make_folder(path.parent)
     return path
-
-
-def make_folder(folder: str | Path) -> Path:
-    """Create ``folder`` (and parents) or raise :class:`NemoError` saying why it cannot be."""
-    folder = Path(folder)
-    blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
-    if blocker is not None:
-        raise NemoError(f"cannot create the folder {folder}: {blocker} is a file; choose another output path")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise NemoError(f"cannot create the folder {folder} ({exc.strerror}); choose a writable output path") \
-            from None
-    if not os.access(folder, os.W_OK):
-        raise NemoError(f"the folder {folder} is not writable; choose a writable output path")
-    return folder
 
 
 #: Option names (argparse ``dest``) that name files a command writes.
