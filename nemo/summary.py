@@ -5,7 +5,8 @@ these functions collect the per-frame tables into ``results/{dataset}/summary/``
 
 * :func:`frame_summary` -> ``frames.parquet``: one row per (t, c, layer) with the surface's
   area, volume, Euler characteristic, mean H and K, mean thickness, mean layer intensity,
-  director count and coherency, mean S, number of defects and their total charge;
+  director count and coherency, mean S, number of defects, their total charge and the frame's
+  quality control (``qc_pass``, ``qc_flags``);
 * :func:`collect_defects` -> the defects of all frames with ``t``, ``c``, ``layer`` columns
   (``nemo track`` then adds ``track_id``);
 * :func:`alignment_summary` -> ``alignment.parquet``: one row per (t, c, layer pair).
@@ -32,8 +33,17 @@ FRAME_COLUMNS = (
     "t", "c", "layer", "surface", "area", "volume", "euler_characteristic", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "n_directors", "coherency_mean", "S_mean", "S_median", "n_defects",
-    "charge_sum", "charge_rounded_sum",
+    "charge_sum", "charge_rounded_sum", "qc_pass", "qc_flags",
 )
+#: Largest |Σ charge − χ| of a closed surface's defects that passes quality control: a missed or
+#: spurious ±½ defect changes the sum by 0.5, the curvature term's discretisation by ≪ 0.1.
+QC_CHARGE_TOLERANCE = 0.25
+#: Smallest fraction of vertices with a finite thickness that passes (rays that miss the other
+#: surface mean the surfaces do not enclose each other there).
+QC_MIN_THICKNESS_VALID = 0.9
+#: Lowest Euler characteristic that passes: χ = 2 − 2g, so this allows a sphere, a torus and a
+#: double torus; lower values come from porous meshes (holes through a noisy wall).
+QC_MIN_EULER = -2
 #: Columns of defects.parquet before tracking (``nemo track`` appends ``track_id``).
 DEFECT_COLUMNS = ("t", "c", "layer", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
                   "charge_winding", "charge_curvature")
@@ -86,6 +96,44 @@ def _layer_columns(r: Mapping) -> dict:
     return row
 
 
+def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
+    """Reasons to distrust one frame's row of ``frames.parquet`` (empty list: it passes).
+
+    Parameters
+    ----------
+    row : mapping
+        The row's columns so far (``euler_characteristic``, ``charge_sum``, ``n_defects``,
+        ``thickness_valid``, ``n_directors``, ``S_mean`` where computed).
+    measure : mapping
+        The surface's ``nemo measure --json`` record (``n_components``,
+        ``n_boundary_loops``).
+
+    Returns
+    -------
+    list of str
+        Human-readable reasons, e.g. ``"Σ charge 1.50 ≠ χ 2"``. On an open surface the charge
+        sum is not checked (the Poincaré–Hopf sum depends on the field at the rim).
+    """
+    flags = []
+    chi = row.get("euler_characteristic", math.nan)
+    closed = not measure.get("n_boundary_loops")
+    if (measure.get("n_components") or 1) > 1:
+        flags.append(f"surface has {measure['n_components']} pieces")
+    if closed and np.isfinite(chi) and chi < QC_MIN_EULER:
+        flags.append(f"surface χ = {chi:.0f}: holes or handles (porous mesh?)")
+    valid = row.get("thickness_valid", math.nan)
+    if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID:
+        flags.append(f"thickness found at {100 * valid:.0f} % of vertices")
+    if "n_directors" not in row:
+        return flags
+    if not row["n_directors"] or not np.isfinite(row["S_mean"]):
+        flags.append("no directors")
+    charge = row["charge_sum"]
+    if closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
+        flags.append(f"Σ charge {charge:.2f} ≠ χ {chi:.0f} ({row['n_defects']} defects)")
+    return flags
+
+
 def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     """One row per (t, c, layer) from the per-frame files.
 
@@ -101,7 +149,8 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     -------
     DataFrame, shape (n_records, len(FRAME_COLUMNS))
         Sorted by t, c, layer. Means ignore NaN (e.g. thickness rays that hit nothing);
-        ``thickness_valid`` is the fraction of vertices with a finite thickness.
+        ``thickness_valid`` is the fraction of vertices with a finite thickness;
+        ``qc_pass`` and ``qc_flags`` are the frame's quality control (:func:`quality_flags`).
     """
     rows = []
     for r in records:
@@ -122,9 +171,13 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
         if r.get("directors"):  # a morphology-only record has no layer tables
             row.update(_layer_columns(r))
+        flags = quality_flags(row, m)
+        row["qc_pass"] = not flags
+        row["qc_flags"] = "; ".join(flags)
         rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
-    out = out.astype({"t": "int64", "c": "int64", "n_directors": "Int64", "n_defects": "Int64"})
+    out = out.astype({"t": "int64", "c": "int64", "n_directors": "Int64", "n_defects": "Int64",
+                      "qc_pass": "bool", "qc_flags": "str"})
     return out.sort_values(["t", "c", "layer"], kind="stable").reset_index(drop=True)
 
 

@@ -17,6 +17,7 @@ from nemo.summary import (
     alignment_summary,
     collect_defects,
     frame_summary,
+    quality_flags,
 )
 from nemo.tables import write_table
 
@@ -66,7 +67,8 @@ def test_frame_summary_means_ignore_nan(frame_files):
         "thickness_mean": 3.0, "thickness_median": 2.0, "thickness_valid": 0.75,  # 3 of 4 finite
         "intensity_mean": 2.0, "n_directors": 2, "coherency_mean": 0.3,
         "S_mean": 0.4, "S_median": 0.2, "n_defects": 3,
-        "charge_sum": 0.55, "charge_rounded_sum": 0.5,
+        "charge_sum": 0.55, "charge_rounded_sum": 0.5, "qc_pass": False,
+        "qc_flags": "thickness found at 75 % of vertices; Σ charge 0.55 ≠ χ 2 (3 defects)",
     }
     for key, value in expected.items():
         if isinstance(value, str):
@@ -94,6 +96,35 @@ def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
         assert np.isnan(row[key]), key
     assert pd.isna(row["n_defects"]) and pd.isna(row["n_directors"])
     assert out.iloc[1]["n_defects"] == out.iloc[2]["n_defects"] == 3
+
+
+GOOD = {"euler_characteristic": 2.0, "thickness_valid": 1.0, "n_directors": 100, "S_mean": 0.8,
+        "charge_sum": 2.01, "n_defects": 4}
+CLOSED = {"n_components": 1, "n_boundary_loops": 0}
+
+
+@pytest.mark.parametrize("change, measure, expected", [
+    ({}, CLOSED, []),
+    ({"charge_sum": 1.5, "n_defects": 3}, CLOSED, ["Σ charge 1.50 ≠ χ 2 (3 defects)"]),
+    ({"charge_sum": 2.24}, CLOSED, []),                      # within the ±0.25 tolerance
+    ({"charge_sum": 0.0, "n_defects": 0}, CLOSED, ["Σ charge 0.00 ≠ χ 2 (0 defects)"]),
+    ({"charge_sum": 0.5}, {"n_components": 1, "n_boundary_loops": 1}, []),   # open: not checked
+    ({"euler_characteristic": 0.0, "charge_sum": 0.0}, CLOSED, []),          # a torus passes
+    ({"euler_characteristic": -589.0, "charge_sum": 1.5}, CLOSED,
+     ["surface χ = -589: holes or handles (porous mesh?)", "Σ charge 1.50 ≠ χ -589 (4 defects)"]),
+    ({}, {"n_components": 3, "n_boundary_loops": 0}, ["surface has 3 pieces"]),
+    ({"thickness_valid": 0.5}, CLOSED, ["thickness found at 50 % of vertices"]),
+    ({"n_directors": 0, "S_mean": NAN}, CLOSED, ["no directors"]),
+])
+def test_quality_flags_name_each_reason(change, measure, expected):
+    assert quality_flags({**GOOD, **change}, measure) == expected
+
+
+def test_quality_flags_of_a_morphology_only_row_check_the_surface():
+    row = {"euler_characteristic": 2.0, "thickness_valid": NAN}
+    assert quality_flags(row, CLOSED) == []
+    assert quality_flags({**row, "euler_characteristic": -40.0}, CLOSED) == [
+        "surface χ = -40: holes or handles (porous mesh?)"]
 
 
 def test_frame_summary_of_nothing_is_an_empty_table():
