@@ -1,29 +1,59 @@
-# Two commands do all the set-up on a fresh machine with python3:
-#   make demo   -- build .venv if missing and run the workflow on the bundled default config
-#   make test   -- build .venv if missing and run the test suite
+# Set-up and entry points on a fresh machine with python3 (each target builds .venv as needed):
+#   make demo     -- install NEMO (no viewer) and run the workflow on the bundled default config
+#   make test     -- install NEMO + test tools + the napari viewer, run the test suite
+#   make viewer   -- install the napari viewer (extra [napari]) for `nemo view`
+# Each install step leaves a stamp file in .venv, so `make demo` then `make test` installs
+# only what is still missing, and editing pyproject.toml reinstalls.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 CORES  ?= 2
+# --no-compile: pip would byte-compile every installed module (a third of the install time);
+# Python compiles the modules actually imported on first use instead.
+PIP    := $(BIN)/python -m pip --quiet --disable-pip-version-check
+PIPI   := $(PIP) install --no-compile
 
-.PHONY: demo test test-slow test-slurm clean
+STAMP_CORE   := $(VENV)/.stamp-core
+STAMP_NAPARI := $(VENV)/.stamp-napari
+STAMP_TEST   := $(VENV)/.stamp-test
 
-$(BIN)/nemo: pyproject.toml
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,napari]'
-	touch $(BIN)/nemo
+.PHONY: demo test test-slow test-slurm viewer install clean
 
-demo: $(BIN)/nemo
+$(BIN)/python:
+	@echo "make: creating the virtualenv $(VENV)"
+	@$(PYTHON) -m venv $(VENV)
+	@$(PIP) install --upgrade pip
+
+$(STAMP_CORE): pyproject.toml | $(BIN)/python
+	@echo "make: installing NEMO into $(VENV) (about 1-2 min on first run)..."
+	@start=$$(date +%s); $(PIPI) -e . && touch $@ && \
+	echo "make: NEMO installed in $$(( $$(date +%s) - start )) s"
+
+$(STAMP_NAPARI): $(STAMP_CORE)
+	@echo "make: installing the napari viewer (napari + PyQt6) into $(VENV) (about 1 min on first run)..."
+	@start=$$(date +%s); $(PIPI) -e '.[napari]' && touch $@ && \
+	echo "make: napari installed in $$(( $$(date +%s) - start )) s"
+
+$(STAMP_TEST): $(STAMP_NAPARI)
+	@echo "make: installing the test tools (pytest, hypothesis) into $(VENV)..."
+	@$(PIPI) -e '.[test,napari]' && touch $@
+
+install: $(STAMP_CORE)
+
+viewer: $(STAMP_NAPARI)
+	@echo "make: napari installed: .venv/bin/nemo view results/demo"
+
+demo: $(STAMP_CORE)
+	@echo "make: running the workflow on config/config.yaml with $(CORES) cores (results/demo/)"
 	$(BIN)/snakemake --cores $(CORES) --configfile config/config.yaml --rerun-incomplete
 
-test: $(BIN)/nemo
+test: $(STAMP_TEST)
 	$(BIN)/python -m pytest -n 2 tests
 
-test-slow: $(BIN)/nemo
+test-slow: $(STAMP_TEST)
 	$(BIN)/python -m pytest -m slow tests
 
-test-slurm: $(BIN)/nemo
+test-slurm: $(STAMP_TEST)
 	bash tests/slurm/run_slurm_test.sh
 
 clean:
