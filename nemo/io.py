@@ -1,8 +1,9 @@
 """Lazy reading and writing of microscopy hyperstacks.
 
-Images are ImageJ hyperstacks or OME-TIFF files with any subset of the axes T, Z, C, Y, X.
-Only the (Z, Y, X) stack of one time point and channel is ever read: tifffile exposes the file
-as a chunked zarr store (one chunk per page), so a 10 GB file costs one stack of memory.
+Images are ImageJ hyperstacks, OME-TIFF files or OME-Zarr folders (:mod:`nemo.ome_zarr`) with
+any subset of the axes T, Z, C, Y, X. Only the (Z, Y, X) stack of one time point and channel is
+ever read: tifffile exposes a TIFF file as a chunked zarr store (one chunk per page), and an
+OME-Zarr image is read chunk by chunk, so a 10 GB file costs one stack of memory.
 
 Spacing is returned as ``(dz, dy, dx)`` in micrometres whenever the unit is known; an
 uncalibrated file gives spacing 1 with unit ``"pixel"`` and a :class:`~nemo.errors.NemoWarning`.
@@ -118,18 +119,28 @@ def _ome_spacing(ome_xml: str) -> tuple[list[float | None], list[str | None]]:
     return vals, units
 
 
+def _calibration(vals: list[float | None], units: list[str | None]) -> tuple[tuple[float, float, float], str, bool]:
+    """Spacing, unit and calibrated flag from per-axis (Z, Y, X) sizes and units (OME metadata).
+
+    Recognised units are converted to µm; an unknown unit is kept as given; no unit at all
+    keeps the sizes (their ratios still matter) with unit ``"pixel"``, uncalibrated.
+    """
+    dz = vals[0] if vals[0] is not None else vals[2]
+    if not any(units):
+        return (float(dz), float(vals[1]), float(vals[2])), "pixel", False
+    scales = [_unit_scale(u) if u else None for u in units]
+    if all(s is not None for s, v in zip(scales, vals) if v is not None):
+        dz = vals[0] * scales[0] if vals[0] is not None else vals[2] * scales[2]
+        return (dz, vals[1] * scales[1], vals[2] * scales[2]), "um", True
+    return (dz, vals[1], vals[2]), next(u for u in units if u), True
+
+
 def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, float], str, bool]:
     """Return (spacing in µm or raw units, unit, calibrated)."""
     if tif.is_ome and tif.ome_metadata:
         vals, units = _ome_spacing(tif.ome_metadata)
         if vals[1] is not None and vals[2] is not None:
-            scales = [_unit_scale(u) if u else None for u in units]
-            if all(s is not None for s, v in zip(scales, vals) if v is not None):
-                dz = vals[0] * scales[0] if vals[0] is not None else vals[2] * scales[2]
-                return (dz, vals[1] * scales[1], vals[2] * scales[2]), "um", True
-            unit = next(u for u in units if u)
-            dz = vals[0] if vals[0] is not None else vals[2]
-            return (dz, vals[1], vals[2]), unit, True
+            return _calibration(vals, units)
     page = tif.pages.first
     ij = tif.imagej_metadata or {}
     xres = page.tags.get("XResolution")
@@ -298,7 +309,8 @@ def _open_tiff(path: str | os.PathLike) -> tifffile.TiffFile:
     if not path.exists():
         raise NemoError(f"image file not found: {path}")
     if path.is_dir():
-        raise NemoError(f"{path} is a folder, not a TIFF image")
+        raise NemoError(f"{path} is a folder but not an OME-Zarr image (no .zattrs, .zgroup or zarr.json "
+                        "in it): give a TIFF file or an OME-Zarr folder")
     if path.stat().st_size == 0:
         raise NemoError(f"{path} is empty (0 bytes); {_FIX}")
     with _catch_broken_file_log() as log:
@@ -344,8 +356,25 @@ def _info_from_tiff(tif: tifffile.TiffFile, path: str) -> ImageInfo:
     )
 
 
+def _info_from_zarr(path: str | os.PathLike) -> ImageInfo:
+    """The :class:`ImageInfo` of an OME-Zarr image (the level its path selects)."""
+    from nemo import ome_zarr
+
+    d = ome_zarr.describe(path)
+    axes = _normalise_axes(d["axes"])
+    if "Z" not in axes:
+        raise NemoError(f"{path} is a 2-D image (axes {d['axes']!r}); NEMO needs a 3-D stack with a Z axis")
+    spacing, unit, calibrated = _calibration(list(d["spacing"]), d["units"])
+    return ImageInfo(path=str(path), axes=d["axes"], shape={a: int(d["shape"].get(a, 1)) for a in AXES},
+                     dtype=d["dtype"], spacing=spacing, unit=unit, calibrated=calibrated,
+                     _normalised_axes=axes)
+
+
 def read_info(path: str | os.PathLike) -> ImageInfo:
     """Describe a hyperstack (axes, sizes, dtype, spacing, unit) without reading pixels.
+
+    ``path`` is a TIFF file or an OME-Zarr folder (its level 0, or the level folder given,
+    e.g. ``image.zarr/1``).
 
     Raises
     ------
@@ -354,6 +383,10 @@ def read_info(path: str | os.PathLike) -> ImageInfo:
         headers announce more images or pixel data than the file holds; checked from the
         headers only).
     """
+    from nemo import ome_zarr
+
+    if ome_zarr.is_zarr(path):
+        return _info_from_zarr(path)
     with _open_tiff(path) as tif:
         return _info_from_tiff(tif, str(path))
 
@@ -398,22 +431,19 @@ def read_stack(
         As :func:`read_info`; also when ``t``/``c`` are out of range, or when the pixels cannot
         be read or decoded (a truncated or corrupt file), never a shorter stack.
     """
-    with _open_tiff(path) as tif:
-        info = _info_from_tiff(tif, str(path))
+    from nemo import ome_zarr
+
+    if ome_zarr.is_zarr(path):
+        info = _info_from_zarr(path)
         axes = info._normalised_axes
-        for name, index in (("t", t), ("c", c)):
-            size = info.shape[name.upper()]
-            if not isinstance(index, (int, np.integer)) or not 0 <= index < size:
-                raise NemoError(
-                    f"{name} = {index} is out of range: {path} has {size} "
-                    f"{'time point' if name == 't' else 'channel'}{'s' if size != 1 else ''} "
-                    f"(valid: 0 to {size - 1})"
-                )
-        series = tif.series[0]
-        key = tuple(
-            {"T": int(t), "C": int(c)}.get(a, slice(None)) for a in axes
-        )
-        data = _read_pixels(series, key, path)
+        _check_index(info, path, t, c)
+        data = ome_zarr.read(path, {a: int(i) for a, i in (("T", t), ("C", c)) if a in axes})
+    else:
+        with _open_tiff(path) as tif:
+            info = _info_from_tiff(tif, str(path))
+            axes = info._normalised_axes
+            _check_index(info, path, t, c)
+            data = _read_pixels(tif.series[0], _key(axes, t, c), path)
     kept = [a for a in axes if a not in "TC"]
     data = np.transpose(data, [kept.index(a) for a in "ZYX"])
     if spacing is not None:
@@ -422,12 +452,29 @@ def read_stack(
         info.calibrated = True
     elif not info.calibrated:
         warnings.warn(
-            f"{path} has no spatial calibration: using spacing 1 with unit 'pixel'. "
+            f"{path} has no spatial calibration: using spacing {list(info.spacing)} with unit 'pixel'. "
             "Set it with `spacing` (dz, dy, dx).",
             NemoWarning,
             stacklevel=2,
         )
     return data, info
+
+
+def _key(axes: str, t: int, c: int) -> tuple:
+    """The index of time point ``t`` and channel ``c`` into an array with ``axes``."""
+    return tuple({"T": int(t), "C": int(c)}.get(a, slice(None)) for a in axes)
+
+
+def _check_index(info: ImageInfo, path, t: int, c: int) -> None:
+    """Refuse a time point or channel the image does not have."""
+    for name, index in (("t", t), ("c", c)):
+        size = info.shape[name.upper()]
+        if not isinstance(index, (int, np.integer)) or not 0 <= index < size:
+            raise NemoError(
+                f"{name} = {index} is out of range: {path} has {size} "
+                f"{'time point' if name == 't' else 'channel'}{'s' if size != 1 else ''} "
+                f"(valid: 0 to {size - 1})"
+            )
 
 
 def _read_pixels(series: tifffile.TiffPageSeries, key: tuple, path: str | os.PathLike) -> np.ndarray:
@@ -450,10 +497,18 @@ def _read_pixels(series: tifffile.TiffPageSeries, key: tuple, path: str | os.Pat
     return data
 
 
-def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...]) -> np.ndarray:
-    """A binary object mask (nonzero = object) for time point ``t``, channel ``c`` of an image.
+def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
+              labels: list[int] | None = None, threshold: float | None = None) -> np.ndarray:
+    """The object mask for time point ``t``, channel ``c`` of an image, from a segmentation.
 
-    The mask file may have its own T and C axes (then ``t``/``c`` select from them) or none.
+    The mask is a TIFF or OME-Zarr image with its own T and C axes (then ``t``/``c`` select
+    from them) or none. It may be
+
+    * a binary mask (nonzero = object);
+    * a label image (Cellpose, StarDist, ilastik object export): ``labels`` selects the
+      objects; without it every nonzero label is object;
+    * a probability map (ilastik pixel classification, float values in [0, 1]): object where
+      the value exceeds ``threshold`` (0.5 for a float image without a threshold).
 
     Returns
     -------
@@ -462,7 +517,8 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...]) -
     Raises
     ------
     NemoError
-        A mask of another (Z, Y, X) size than the image, or a truncated or corrupt mask file.
+        A mask of another (Z, Y, X) size than the image, a truncated or corrupt mask file,
+        labels absent from the frame, or a mask that selects nothing.
     """
     info = read_info(path)
     mt = t if info.shape["T"] > 1 else 0
@@ -473,7 +529,31 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...]) -
             f"the mask {path} has shape (Z, Y, X) = {data.shape} but the image stack has {tuple(shape)}; "
             "give a mask of the same size"
         )
-    return data != 0
+    mask = _select_object(data, labels, threshold, f"the mask {path} (t = {mt}, c = {mc})")
+    return mask
+
+
+def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float | None,
+                   name: str) -> np.ndarray:
+    """Object voxels of a binary mask, label image or probability map (see :func:`read_mask`)."""
+    if labels:
+        if np.issubdtype(data.dtype, np.floating):
+            raise NemoError(f"{name} holds floating-point values, not labels: drop mask_labels "
+                            "(a probability map takes mask_threshold)")
+        mask = np.isin(data, labels)
+        if not mask.any():
+            present = np.unique(data[data != 0])
+            raise NemoError(f"{name} has none of the labels {list(labels)}; labels present: "
+                            f"{present[:20].tolist()}{' …' if present.size > 20 else ''}")
+        return mask
+    if threshold is None and np.issubdtype(data.dtype, np.floating):
+        threshold = 0.5
+    mask = data > threshold if threshold is not None else data != 0
+    if not mask.any():
+        rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"
+        raise NemoError(f"{name} selects nothing (no voxel {rule}): check the file, the frame and "
+                        "mask_threshold")
+    return mask
 
 
 def write_hyperstack(

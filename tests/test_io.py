@@ -301,3 +301,43 @@ def test_a_multi_file_ome_series_is_whole_not_truncated(tmp_path):
     (tmp_path / "b.ome.tif").write_bytes((tmp_path / "b.ome.tif").read_bytes()[:3000])  # cut the second file
     with pytest.raises(NemoError, match="truncated or corrupt"):
         read_stack(tmp_path / "a.ome.tif")
+
+
+# ------------------------------------------------------------------ masks from segmentation tools
+@pytest.fixture
+def segmentation(tmp_path):
+    """A label image (labels 3 and 5) and a probability map that is 0.7 inside label 3."""
+    labels = np.zeros((2, 6, 10, 10), np.uint16)  # (T, Z, Y, X)
+    labels[:, 1:4, 1:5, 1:5] = 3
+    labels[1, 2:5, 6:9, 6:9] = 5
+    probability = np.where(labels == 3, 0.7, 0.2).astype(np.float32)
+    write_hyperstack(tmp_path / "labels.tif", labels, (1, 1, 1), axes="TZYX")
+    write_hyperstack(tmp_path / "prob.tif", probability, (1, 1, 1), axes="TZYX")
+    return tmp_path, labels
+
+
+def test_mask_from_a_label_image(segmentation):
+    d, labels = segmentation
+    shape = labels.shape[1:]
+    np.testing.assert_array_equal(read_mask(d / "labels.tif", 1, 0, shape), labels[1] != 0)
+    np.testing.assert_array_equal(read_mask(d / "labels.tif", 1, 0, shape, labels=[5]), labels[1] == 5)
+    np.testing.assert_array_equal(read_mask(d / "labels.tif", 1, 0, shape, labels=[3, 5]), labels[1] > 0)
+    with pytest.raises(NemoError, match=r"none of the labels \[5\]; labels present: \[3\]"):
+        read_mask(d / "labels.tif", 0, 0, shape, labels=[5])
+
+
+def test_mask_from_a_probability_map(segmentation):
+    d, labels = segmentation
+    shape = labels.shape[1:]
+    np.testing.assert_array_equal(read_mask(d / "prob.tif", 0, 0, shape), labels[0] == 3)  # default 0.5
+    np.testing.assert_array_equal(read_mask(d / "prob.tif", 0, 0, shape, threshold=0.1), np.ones(shape, bool))
+    with pytest.raises(NemoError, match="selects nothing .*above the threshold 0.9"):
+        read_mask(d / "prob.tif", 0, 0, shape, threshold=0.9)
+    with pytest.raises(NemoError, match="floating-point values, not labels"):
+        read_mask(d / "prob.tif", 0, 0, shape, labels=[1])
+
+
+def test_mask_options_need_a_mask(run_cli, segmentation):
+    d, _ = segmentation
+    code, _, err = run_cli("mesh", d / "labels.tif", "--mask-labels", "3", "-o", d / "m.ply")
+    assert code == 2 and "give the mask file" in err

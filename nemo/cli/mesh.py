@@ -29,7 +29,9 @@ and stores it in MESH.sphere.json.
 examples:
   nemo mesh vesicle.tif -o mesh.ply --split centre --fit-sphere
   nemo mesh embryo.tif --t 3 --c 1 -o embryo.ply --sigma 2 --threshold otsu --step 1
-  nemo mesh stack.tif --mask mask.tif -o mesh.ply --keep all"""
+  nemo mesh stack.tif --mask mask.tif -o mesh.ply --keep all
+  nemo mesh organoid.zarr --mask cellpose_labels.tif --mask-labels 3 -o organoid.ply
+  nemo mesh embryo.zarr/1 --mask probabilities.tif --mask-threshold 0.6 -o embryo.ply   # level 1"""
 
 
 def _threshold(text: str):
@@ -52,7 +54,7 @@ def _nonneg_int(text: str) -> int:
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
+    parser.add_argument("image", help="TIFF hyperstack, OME-TIFF or OME-Zarr folder")
     add_common(parser, frame=True, output_help="output mesh (.ply or .obj)")
     parser.add_argument("--sigma", type=non_negative, default=None, metavar="UM",
                         help="Gaussian blur sigma in the image unit (default: half the sampling distance, "
@@ -62,9 +64,15 @@ def add_arguments(parser) -> None:
     parser.add_argument("--edge", choices=("half", "threshold"), default=None,
                         help="with yen/otsu: surface half-way between object and background intensity "
                              "(default, the true edge of a blurred object) or at the threshold itself")
-    parser.add_argument("--mask", metavar="MASK.tif",
-                        help="binary mask (nonzero = object) used instead of the threshold; same Z, Y, X "
-                             "size as the image (its own t/c = --t/--c when it has them, else 0)")
+    parser.add_argument("--mask", metavar="MASK",
+                        help="segmentation used instead of the threshold (TIFF or OME-Zarr; same Z, Y, X "
+                             "size as the image; its own t/c = --t/--c when it has them, else 0): a "
+                             "binary mask (nonzero = object), a label image or a probability map")
+    parser.add_argument("--mask-labels", type=int, nargs="+", metavar="LABEL",
+                        help="labels of the object in a label image --mask (default: every nonzero label)")
+    parser.add_argument("--mask-threshold", type=number, metavar="P",
+                        help="object where the --mask value exceeds P (default 0.5 for a floating-point "
+                             "probability map, else nonzero)")
     parser.add_argument("--step", type=positive(int), default=None, metavar="N",
                         help="marching-cubes step in voxels (default 1; 2 for stacks above 64 M voxels)")
     parser.add_argument("--smooth", type=_nonneg_int, default=None, metavar="ITER",
@@ -105,7 +113,10 @@ def run(args) -> int:
     volume, info = read_stack(args.image, args.t, args.c, spacing=args.spacing)
     logger.info("read %s t=%d c=%d: %s %s, spacing %s %s", args.image, args.t, args.c,
                 "x".join(map(str, volume.shape)), volume.dtype, tuple(info.spacing), info.unit)
-    mask = read_mask(args.mask, args.t, args.c, volume.shape) if args.mask else None
+    if (args.mask_labels or args.mask_threshold is not None) and not args.mask:
+        raise NemoError("--mask-labels and --mask-threshold select from a --mask: give the mask file")
+    mask = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
+                     threshold=args.mask_threshold) if args.mask else None
     meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
                                  unit=info.unit, centre=args.centre)
     del volume, mask

@@ -31,7 +31,7 @@ examples:
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("image", help="TIFF hyperstack or OME-TIFF")
+    parser.add_argument("image", help="TIFF hyperstack, OME-TIFF or OME-Zarr folder (a level: FOLDER/N)")
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) in the image's physical coordinates")
     parser.add_argument("--range", type=number, nargs=2, default=[0.0, 5.0], metavar=("DMIN", "DMAX"),
                         help="depth range along the normal, in the mesh's unit (µm; negative = against it; "

@@ -27,7 +27,7 @@ examples:
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("image", nargs="?", help="TIFF hyperstack or OME-TIFF (default: the dataset's path)")
+    parser.add_argument("image", nargs="?", help="TIFF hyperstack, OME-TIFF or OME-Zarr folder (default: the dataset's path)")
     parser.add_argument("--config", metavar="FILE", help="the workflow's YAML config (default: built-in defaults)")
     parser.add_argument("--dataset", metavar="NAME",
                         help="take image, spacing, mask, segmented channel and overrides from datasets.NAME")

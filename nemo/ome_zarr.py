@@ -1,0 +1,206 @@
+"""OME-Zarr (OME-NGFF 0.4 and 0.5) images: read one (t, c) stack lazily, write test data.
+
+An OME-Zarr image is a folder: a Zarr group whose ``multiscales`` metadata names the axes
+(any of t, c, z, y, x), their physical unit and, per resolution level, the array's path and
+its ``scale``. NEMO reads the group's level 0, or the level whose array folder is given
+(``image.zarr/1``), so any path a command accepts can pick a resolution level. Only the chunks
+of the requested (t, c) stack are read.
+
+The metadata is two small JSON documents; it is parsed here rather than with ``ome-zarr-py``,
+which would add a network stack (aiohttp, requests) to read two keys.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from nemo.errors import NemoError
+
+#: Files that mark a folder as a Zarr group or array (format 2 and 3).
+_ZARR_MARKERS = (".zattrs", ".zgroup", ".zarray", "zarr.json")
+
+
+def is_zarr(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a Zarr folder (a group or an array, Zarr format 2 or 3)."""
+    p = Path(path)
+    return p.is_dir() and any((p / m).is_file() for m in _ZARR_MARKERS)
+
+
+def _open_group(path: Path):
+    import zarr
+
+    try:
+        return zarr.open_group(str(path), mode="r")
+    except (ValueError, OSError, KeyError, TypeError) as exc:  # zarr's errors (and bad JSON) derive from these
+        raise NemoError(f"{path} is not a readable Zarr group ({exc})") from None
+
+
+def _multiscale(attrs: dict, path: Path) -> dict:
+    """The first ``multiscales`` entry of a group's attributes (NGFF 0.5 nests them in ``ome``)."""
+    scales = attrs.get("ome", attrs).get("multiscales")
+    if not scales:
+        raise NemoError(f"{path} is a Zarr folder without OME-NGFF 'multiscales' metadata: NEMO reads "
+                        "OME-Zarr images (write one with ome-zarr-py, bioformats2raw or napari)")
+    return scales[0]
+
+
+def locate(path: str | os.PathLike) -> tuple[Path, str]:
+    """The multiscale group and the dataset path of the level to read.
+
+    A path to the group reads level 0 (the first dataset); a path to one of its level arrays
+    (``image.zarr/2``) reads that level.
+    """
+    p = Path(path)
+    if not (p / ".zarray").is_file() and not _is_array_v3(p):
+        attrs = dict(_open_group(p).attrs)
+        if attrs.get("ome", attrs).get("multiscales") or not is_zarr(p.parent):
+            return p, _multiscale(attrs, p)["datasets"][0]["path"]
+    parent = _open_group(p.parent)
+    levels = [d["path"] for d in _multiscale(dict(parent.attrs), p.parent)["datasets"]]
+    if p.name not in levels:
+        raise NemoError(f"{p} is not a resolution level of the OME-Zarr image {p.parent} "
+                        f"(levels: {', '.join(levels)})")
+    return p.parent, p.name
+
+
+def _is_array_v3(p: Path) -> bool:
+    import json
+
+    meta = p / "zarr.json"
+    return meta.is_file() and json.loads(meta.read_text()).get("node_type") == "array"
+
+
+def _scale(ms: dict, level: str) -> list[float]:
+    """The level's physical size per axis (its scale times the multiscale's own, if any)."""
+    dataset = next(d for d in ms["datasets"] if d["path"] == level)
+    scale = np.ones(len(ms["axes"]))
+    for transforms in (dataset.get("coordinateTransformations", []),
+                       ms.get("coordinateTransformations", [])):
+        for tr in transforms:
+            if tr.get("type") == "scale":
+                scale = scale * np.asarray(tr["scale"], dtype=float)
+    return scale.tolist()
+
+
+def describe(path: str | os.PathLike) -> dict:
+    """Axes, shape, dtype, spacing and unit of an OME-Zarr image, without reading pixels.
+
+    Returns
+    -------
+    dict
+        ``axes`` (upper-case letters, e.g. ``"TCZYX"``), ``shape`` (per letter), ``dtype``,
+        ``spacing`` ``(dz, dy, dx)`` in ``unit``, ``units`` (the Z, Y, X axes' units or None),
+        ``group`` and ``level`` (the array read).
+    """
+    group_path, level = locate(path)
+    group = _open_group(group_path)
+    ms = _multiscale(dict(group.attrs), group_path)
+    axes = [a["name"] if isinstance(a, dict) else a for a in ms["axes"]]
+    letters = "".join(a.upper() for a in axes)
+    array = group[level]
+    if len(letters) != array.ndim:
+        raise NemoError(f"{group_path}: the metadata names {len(letters)} axes ({letters}) but level "
+                        f"{level} has {array.ndim} dimensions")
+    scale = dict(zip(letters, _scale(ms, level)))
+    units = {a["name"].upper(): a.get("unit") for a in ms["axes"] if isinstance(a, dict)}
+    return {"axes": letters, "shape": dict(zip(letters, array.shape)), "dtype": str(array.dtype),
+            "spacing": tuple(float(scale.get(a, 1.0)) for a in "ZYX"),
+            "units": [units.get(a) for a in "ZYX"], "group": group_path, "level": level}
+
+
+def levels(path: str | os.PathLike) -> list[dict]:
+    """Every resolution level of an OME-Zarr image: ``path`` (the folder to give), ``shape``
+    (per axis letter) and ``spacing`` ``(dz, dy, dx)`` in the metadata's unit."""
+    group_path, _ = locate(path)
+    group = _open_group(group_path)
+    ms = _multiscale(dict(group.attrs), group_path)
+    letters = "".join((a["name"] if isinstance(a, dict) else a).upper() for a in ms["axes"])
+    out = []
+    for d in ms["datasets"]:
+        scale = dict(zip(letters, _scale(ms, d["path"])))
+        out.append({"path": str(group_path / d["path"]), "shape": dict(zip(letters, group[d["path"]].shape)),
+                    "spacing": tuple(float(scale.get(a, 1.0)) for a in "ZYX")})
+    return out
+
+
+def read(path: str | os.PathLike, key: dict[str, int]) -> np.ndarray:
+    """The pixels of one (t, c) selection, in the stored axis order without T and C.
+
+    Parameters
+    ----------
+    path : path-like
+        The OME-Zarr group or one of its level arrays.
+    key : dict
+        Index per axis letter to select (``{"T": 2, "C": 0}``); other axes are read whole.
+    """
+    d = describe(path)
+    array = _open_group(d["group"])[d["level"]]
+    index = tuple(key.get(a, slice(None)) for a in d["axes"])
+    try:
+        return np.asarray(array[index])
+    except (OSError, ValueError, KeyError, RuntimeError) as exc:
+        raise NemoError(f"reading the pixels of {path} failed ({exc}): the Zarr chunks may be "
+                        "missing or damaged; copy the image again") from None
+
+
+def write(path: str | os.PathLike, data: np.ndarray, spacing: tuple[float, float, float],
+          axes: str = "TCZYX", unit: str = "micrometer", levels: int = 1,
+          chunks: tuple[int, ...] | None = None, zarr_format: int = 2) -> Path:
+    """Write an OME-Zarr image (NGFF 0.4 for Zarr format 2, 0.5 for format 3), atomically.
+
+    Parameters
+    ----------
+    data : ndarray
+        Pixels with the axes in ``axes`` (a subset of T, C, Z, Y, X in that order).
+    spacing : (dz, dy, dx)
+        Voxel size in ``unit`` at level 0.
+    levels : int
+        Resolution levels; level k is level 0 down-sampled by 2^k in Y and X (every 2^k-th
+        pixel: enough for tests and previews).
+    chunks : tuple, optional
+        Chunk shape; default one (Z, Y, X) stack per chunk.
+    """
+    import shutil
+
+    final = Path(path)
+    tmp = final.with_name(f".{final.name}.partial{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        _write_group(tmp, data, spacing, axes.upper(), unit, levels, chunks, zarr_format, final.stem)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final
+
+
+def _write_group(path: Path, data, spacing, axes: str, unit: str, levels: int, chunks, zarr_format: int,
+                 name: str) -> None:
+    """The body of :func:`write`, into ``path``."""
+    import zarr
+
+    dz, dy, dx = spacing
+    size = {"Z": dz, "Y": dy, "X": dx}
+    kind = {"T": "time", "C": "channel"}
+    meta_axes = [{"name": a.lower(), "type": kind.get(a, "space"),
+                  **({"unit": unit} if a in "ZYX" else {})} for a in axes]
+    root = zarr.open_group(str(path), mode="w", zarr_format=zarr_format)
+    datasets = []
+    for k in range(levels):
+        step = tuple(2**k if a in "YX" else 1 for a in axes)
+        level = data[tuple(slice(None, None, s) for s in step)]
+        default = tuple(n if a in "ZYX" else 1 for a, n in zip(axes, level.shape))
+        root.create_array(str(k), data=level, chunks=chunks or default)
+        scale = [size.get(a, 1.0) * s for a, s in zip(axes, step)]
+        datasets.append({"path": str(k), "coordinateTransformations": [{"type": "scale", "scale": scale}]})
+    ms = {"version": "0.4" if zarr_format == 2 else "0.5", "axes": meta_axes, "datasets": datasets,
+          "name": name}
+    if zarr_format == 2:
+        root.attrs["multiscales"] = [ms]
+    else:
+        ms.pop("version")
+        root.attrs["ome"] = {"version": "0.5", "multiscales": [ms]}
