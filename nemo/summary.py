@@ -32,8 +32,9 @@ from nemo.tables import read_table
 FRAME_COLUMNS = (
     "t", "c", "layer", "surface", "area", "volume", "euler_characteristic", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "thickness_mean", "thickness_median", "thickness_valid",
-    "intensity_mean", "n_directors", "coherency_mean", "S_mean", "S_median", "n_defects",
-    "charge_sum", "charge_rounded_sum", "qc_pass", "qc_flags",
+    "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
+    "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
+    "qc_pass", "qc_flags",
 )
 #: Largest |Σ charge − χ| of a closed surface's defects that passes quality control: a missed or
 #: spurious ±½ defect changes the sum by 0.5, the curvature term's discretisation by ≪ 0.1.
@@ -44,6 +45,12 @@ QC_MIN_THICKNESS_VALID = 0.9
 #: Lowest Euler characteristic that passes: χ = 2 − 2g, so this allows a sphere, a torus and a
 #: double torus; lower values come from porous meshes (holes through a noisy wall).
 QC_MIN_EULER = -2
+#: Largest fraction of a layer's vertices without an intensity (samples outside the image or on
+#: NaN voxels) or without an order value (no tangent plane, no director in reach) that passes.
+QC_MAX_NAN_FRACTION = 0.05
+#: Lowest median director coherency that passes: below it the layer's micro-images show
+#: hardly any orientation (noise, or no fibres at that depth).
+QC_MIN_COHERENCY = 0.2
 #: Columns of defects.parquet before tracking (``nemo track`` appends ``track_id``).
 DEFECT_COLUMNS = ("t", "c", "layer", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
                   "charge_winding", "charge_curvature")
@@ -64,6 +71,11 @@ def _finite_median(values) -> float:
     return float(np.median(v)) if v.size else math.nan
 
 
+def _nan_fraction(values) -> float:
+    v = np.asarray(values, dtype=np.float64)
+    return float(np.isnan(v).mean()) if v.size else math.nan
+
+
 def _read_measure(path: str | Path) -> dict:
     try:
         with open(path) as fh:
@@ -81,14 +93,17 @@ def _num(value) -> float:
 
 def _layer_columns(r: Mapping) -> dict:
     # an imported layer (directors_from) has no peeled intensity
-    row = {"intensity_mean": _finite_mean(read_table(r["layer_table"], "layer")["intensity"])
-           if r.get("layer_table") else math.nan}
+    intensity = read_table(r["layer_table"], "layer")["intensity"] if r.get("layer_table") else None
+    row = {"intensity_mean": _finite_mean(intensity) if intensity is not None else math.nan,
+           "peel_nan_fraction": _nan_fraction(intensity) if intensity is not None else math.nan}
     d = read_table(r["directors"], "directors")
     row["n_directors"] = len(d)
     row["coherency_mean"] = _finite_mean(d["coherency"])
+    row["coherency_median"] = _finite_median(d["coherency"])
     s = read_table(r["order"], "order")["S"]
     row["S_mean"] = _finite_mean(s)
     row["S_median"] = _finite_median(s)
+    row["order_nan_fraction"] = _nan_fraction(s)
     df = read_table(r["defects"], "defects")
     row["n_defects"] = len(df)
     row["charge_sum"] = float(df["charge"].sum())
@@ -103,7 +118,8 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     ----------
     row : mapping
         The row's columns so far (``euler_characteristic``, ``charge_sum``, ``n_defects``,
-        ``thickness_valid``, ``n_directors``, ``S_mean`` where computed).
+        ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
+        ``order_nan_fraction``, ``coherency_median`` where computed).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
         ``n_boundary_loops``).
@@ -128,6 +144,14 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         return flags
     if not row["n_directors"] or not np.isfinite(row["S_mean"]):
         flags.append("no directors")
+    for key, what in (("peel_nan_fraction", "no layer intensity (samples outside the image?)"),
+                      ("order_nan_fraction", "no order value (no tangent plane or director in reach)")):
+        value = row.get(key, math.nan)
+        if np.isfinite(value) and value > QC_MAX_NAN_FRACTION:
+            flags.append(f"{100 * value:.0f} % of vertices have {what}")
+    coherency = row.get("coherency_median", math.nan)
+    if np.isfinite(coherency) and coherency < QC_MIN_COHERENCY:
+        flags.append(f"median director coherency {coherency:.2f}: hardly any orientation")
     charge = row["charge_sum"]
     if closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
         flags.append(f"Σ charge {charge:.2f} ≠ χ {chi:.0f} ({row['n_defects']} defects)")

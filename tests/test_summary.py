@@ -65,10 +65,12 @@ def test_frame_summary_means_ignore_nan(frame_files):
         "euler_characteristic": 2.0, "H_mean": 0.1, "K_mean": 0.01,
         "H_fit_mean": 1.5, "K_fit_mean": 1.0,                        # NaN dropped
         "thickness_mean": 3.0, "thickness_median": 2.0, "thickness_valid": 0.75,  # 3 of 4 finite
-        "intensity_mean": 2.0, "n_directors": 2, "coherency_mean": 0.3,
-        "S_mean": 0.4, "S_median": 0.2, "n_defects": 3,
-        "charge_sum": 0.55, "charge_rounded_sum": 0.5, "qc_pass": False,
-        "qc_flags": "thickness found at 75 % of vertices; Σ charge 0.55 ≠ χ 2 (3 defects)",
+        "intensity_mean": 2.0, "peel_nan_fraction": 1 / 3, "n_directors": 2, "coherency_mean": 0.3,
+        "coherency_median": 0.3, "S_mean": 0.4, "S_median": 0.2, "order_nan_fraction": 0.25,
+        "n_defects": 3, "charge_sum": 0.55, "charge_rounded_sum": 0.5, "qc_pass": False,
+        "qc_flags": "thickness found at 75 % of vertices; 33 % of vertices have no layer intensity "
+                    "(samples outside the image?); 25 % of vertices have no order value (no tangent "
+                    "plane or director in reach); Σ charge 0.55 ≠ χ 2 (3 defects)",
     }
     for key, value in expected.items():
         if isinstance(value, str):
@@ -92,7 +94,7 @@ def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
     row = out.iloc[0]
     assert row["area"] == 3.0 and row["volume"] == 1.0
     for key in ("H_mean", "K_mean", "H_fit_mean", "thickness_mean", "thickness_valid", "S_mean",
-                "intensity_mean", "charge_sum"):
+                "intensity_mean", "charge_sum", "peel_nan_fraction", "coherency_median"):
         assert np.isnan(row[key]), key
     assert pd.isna(row["n_defects"]) and pd.isna(row["n_directors"])
     assert out.iloc[1]["n_defects"] == out.iloc[2]["n_defects"] == 3
@@ -115,6 +117,12 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({}, {"n_components": 3, "n_boundary_loops": 0}, ["surface has 3 pieces"]),
     ({"thickness_valid": 0.5}, CLOSED, ["thickness found at 50 % of vertices"]),
     ({"n_directors": 0, "S_mean": NAN}, CLOSED, ["no directors"]),
+    ({"peel_nan_fraction": 0.05, "order_nan_fraction": 0.0, "coherency_median": 0.2}, CLOSED, []),
+    ({"peel_nan_fraction": 0.081}, CLOSED,
+     ["8 % of vertices have no layer intensity (samples outside the image?)"]),
+    ({"order_nan_fraction": 0.5}, CLOSED,
+     ["50 % of vertices have no order value (no tangent plane or director in reach)"]),
+    ({"coherency_median": 0.12}, CLOSED, ["median director coherency 0.12: hardly any orientation"]),
 ])
 def test_quality_flags_name_each_reason(change, measure, expected):
     assert quality_flags({**GOOD, **change}, measure) == expected
