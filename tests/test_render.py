@@ -20,17 +20,22 @@ from nemo.napari._sample import defect_field, write_demo_results
 from nemo.render import (
     CAPTIONS,
     alignment_figure,
-    chart_directions,
     charge_text,
+    chart_directions,
+    defect_lonlat,
+    defect_map_figure,
     discover_frame,
     distributions_figure,
     field_label,
     find_frames,
+    frame_qc,
+    frames_figure,
     load_frame,
     morphology_figure,
     planned_figures,
     render_frame,
     render_summary,
+    robust_limits,
     spherical_angles,
     spherical_figure,
     spherical_grid,
@@ -295,9 +300,128 @@ def test_surface_render_shows_the_field(rendered):
 
 def test_summary_figures(demo, tmp_path):
     figs = render_summary(demo["dataset_dir"] / "summary", tmp_path)
-    assert sorted(f.path.name for f in figs) == ["frames.png", "tracks_a.png", "tracks_b.png"]
+    assert sorted(f.path.name for f in figs) == ["defect_map_a.png", "defect_map_b.png", "frames.png",
+                                                 "tracks_a.png", "tracks_b.png"]
+    manifest = json.loads((tmp_path / "figures.json").read_text())
+    assert manifest["defect_map_a.png"]["kind"] == "defect_map"
+    assert "Layer a" in manifest["defect_map_a.png"]["caption"]
     for f in figs:
         assert _png(f.path).std() > 0.02
+
+
+def _frames_table(n_t: int = 3) -> pd.DataFrame:
+    """frames.parquet as the workflow writes it: two layers on one surface, tiny numerical noise."""
+    rows = []
+    for t in range(n_t):
+        for layer in ("apical", "basal"):
+            rows.append({"t": t, "c": 0, "layer": layer, "surface": "inner", "area": 125535.38 - 2.1 * t,
+                         "volume": 4162053.0 + 180 * t, "euler_characteristic": 2.0,
+                         "H_mean": 0.010019 - 1e-6 * t, "K_mean": 1e-4, "H_fit_mean": 0.00997,
+                         "thickness_mean": 10.84 - 0.001 * t, "thickness_median": 10.89,
+                         "S_mean": 0.918, "S_median": 0.95, "n_defects": 4, "charge_sum": 2.004,
+                         "qc_pass": True, "qc_flags": ""})
+    return pd.DataFrame(rows)
+
+
+def _axis(fig, title: str):
+    return next(ax for ax in fig.axes if ax.get_title().startswith(title))
+
+
+def test_frames_figure_reads_without_offsets(tmp_path):
+    """Units on every y axis, no offset text, integer t ticks, S on [0, 1], noise looks flat."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = frames_figure(_frames_table(), unit="um")
+    FigureCanvasAgg(fig).draw()
+    labels = {ax.get_title(): ax.get_ylabel() for ax in fig.axes if ax.get_title()}
+    assert labels["wall thickness"] == "thickness [µm]"
+    assert labels["mean curvature H"] == "H [1/µm]"
+    assert labels["surface area"].startswith("area [") and labels["surface area"].endswith("µm²]")
+    assert labels["enclosed volume"].endswith("µm³]")
+    for ax in fig.axes:
+        if ax.axison:
+            assert ax.yaxis.get_offset_text().get_text() == "", ax.get_title()
+            assert ax.xaxis.get_offset_text().get_text() == "", ax.get_title()
+    ax_t = _axis(fig, "wall thickness")
+    ticks = [tk for tk in ax_t.get_xticks() if ax_t.get_xlim()[0] <= tk <= ax_t.get_xlim()[1]]
+    assert ticks == [0, 1, 2]
+    assert _axis(fig, "nematic order").get_ylim() == (0.0, 1.0)
+    for title, mean in (("mean curvature H", 0.010019), ("wall thickness", 10.84)):
+        lo, hi = _axis(fig, title).get_ylim()
+        assert hi - lo >= 0.099 * mean and lo < mean < hi, title  # spans at least ±5 % of the mean
+    assert _axis(fig, "number of defects").get_ylim()[0] == 0
+    # unit from the table's provenance
+    fig = frames_figure(_frames_table(), unit="nm")
+    assert _axis(fig, "wall thickness").get_ylabel() == "thickness [nm]"
+
+
+def test_frames_figure_marks_flagged_frames():
+    df = _frames_table()
+    bad = (df["t"] == 1) & (df["layer"] == "basal")
+    df.loc[bad, ["charge_sum", "n_defects", "qc_pass", "qc_flags"]] = [1.5, 3, False, "Σ charge 1.50 ≠ χ 2"]
+    fig = frames_figure(df)
+    ax = _axis(fig, "Σ charge")
+    crosses = [ln for ln in ax.get_lines() if ln.get_marker() == "x" and ln.get_color() == "red"]
+    assert len(crosses) == 1
+    np.testing.assert_allclose(crosses[0].get_xdata(), [1], atol=0.1)
+    np.testing.assert_allclose(crosses[0].get_ydata(), [1.5])
+    spans = [p for p in ax.patches if p.get_facecolor()[:3] == (1.0, 0.0, 0.0)]
+    assert len(spans) == 1 and spans[0].get_x() < 1 < spans[0].get_x() + spans[0].get_width()
+    text = " ".join(t.get_text() for a in fig.axes for t in a.texts)
+    assert "t = 1, layer basal: Σ charge 1.50 ≠ χ 2" in text
+    assert not [p for p in _axis(fig, "nematic order").patches if p.get_facecolor()[:3] == (1.0, 0.0, 0.0)
+                if not p.get_x() < 1 < p.get_x() + p.get_width()]
+
+
+def test_frame_qc_without_qc_columns():
+    df = _frames_table().drop(columns=["qc_pass", "qc_flags"])
+    df.loc[1, "charge_sum"] = 1.5
+    df.loc[4, "n_defects"] = 0
+    qc = frame_qc(df)
+    assert qc["qc_pass"].tolist() == [True, False, True, True, False, True]
+    assert "Σ charge 1.50 ≠ χ 2" in qc.loc[1, "qc_flags"] and qc.loc[4, "qc_flags"] == "no defects"
+    fig = frames_figure(df)
+    strip = _axis(fig, "quality control")
+    fails = [ln for ln in strip.get_lines() if ln.get_marker() == "X" and len(ln.get_xdata())]
+    assert sorted(x for ln in fails for x in ln.get_xdata()) == [0, 2]
+
+
+def test_defect_map_places_defects_at_longitude_latitude():
+    centre = np.array([10.0, -5.0, 3.0])
+    lon, lat = np.radians([60.0, -150.0]), np.radians([-30.0, 45.0])
+    u = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=1)
+    xyz = centre + 40.0 * u
+    df = pd.DataFrame({"t": [0, 0], "c": 0, "layer": "a", "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                       "charge": [0.5, -0.5], "track_id": [0, 1]})
+    got_lon, got_lat = defect_lonlat(df, {(0, 0): centre})
+    np.testing.assert_allclose(got_lon, [60, -150], atol=1e-9)
+    np.testing.assert_allclose(got_lat, [-30, 45], atol=1e-9)
+    fig = defect_map_figure(df, "a", {(0, 0): centre})
+    ax = fig.axes[0]
+    assert ax.name == "mollweide"
+    colls = [c for c in ax.collections if c.get_gid() == "defects"]
+    pts = np.concatenate([np.asarray(c.get_offsets()) for c in colls])
+    np.testing.assert_allclose(sorted(map(tuple, pts)), sorted(zip(lon, lat)), atol=1e-9)
+    # diverging charge colours centred on 0: +1/2 red, -1/2 blue, at mirrored positions
+    cols = {round(float(c.get_array()[0]), 1): c.to_rgba(c.get_array())[0][:3] for c in colls}
+    assert cols[0.5][0] > cols[0.5][2] + 0.3 and cols[-0.5][2] > cols[-0.5][0] + 0.3
+    norm = colls[0].norm
+    assert norm(0.0) == pytest.approx(0.5) and norm(0.5) + norm(-0.5) == pytest.approx(1.0)
+
+
+def test_curvature_colour_limits_are_symmetric_about_zero(demo):
+    """An all-positive sphere: H limits ±m (m ≥ max H), so it is red, never half blue."""
+    fr = load_frame(demo["frames"][0]["dir"])
+    H = fr.surfaces["inner"].fields["H"]
+    assert (H > 0).all()
+    lo, hi = robust_limits(H, "H")
+    assert lo == -hi and hi >= np.percentile(H, 99)
+    lo_k, hi_k = robust_limits(fr.surfaces["inner"].fields["K"], "K")
+    assert lo_k == -hi_k > -1
+    fig = morphology_figure(fr.surfaces["inner"])
+    clim = fig.axes[0].images[0].get_clim()
+    assert clim[0] == -clim[1] and clim[1] > 0
+    assert robust_limits(np.array([-3.0, 0.5]), "H") == (-3.0, 3.0)
 
 
 def test_charge_text_and_captions():

@@ -6,13 +6,16 @@ from pathlib import Path
 
 from nemo.cli.common import add_common
 
-HELP = "PNG figures of a frame's results (surface renders, maps, distributions) or of tracks"
+HELP = "PNG figures of a frame's results (surface renders, maps, distributions) or of a time-lapse"
 DESCRIPTION = """\
 Render the figures of one frame: pyvista off-screen renders of the surface coloured by the
 peeled intensity, by S with the averaged directors, with the defects marked by charge, and by
 H, K, thickness; matplotlib figures of the S and charge distributions, a spherical-coordinate
 map (intensity + directors + defects), morphology maps and the inter-layer alignment.
-With --summary: defect tracks over time and per-frame summaries.
+With --summary: per layer the defect tracks and a map of every frame's defects over time
+(tracks_<layer>.png, defect_map_<layer>.png), and frames.png: S, defects, total charge vs the
+Euler characteristic, thickness, mean curvature, area and volume versus t, with units and the
+per-frame quality-control flags.
 
 Inputs are a frame folder or its files (meshes *.ply, tables *.parquet named as in
 docs/viewing.md), so a workflow rule can list its inputs explicitly. The output folder gets
@@ -45,11 +48,17 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from nemo.errors import NemoError
-    from nemo.render import discover_frame, planned_figures, render_frame, render_summary
+    from nemo.render import (
+        discover_frame,
+        planned_figures,
+        render_frame,
+        render_summary,
+    )
 
     if args.summary:
         if args.list:
-            raise NemoError("--list works for frames only (summary figures: tracks_<layer>.png, frames.png)")
+            raise NemoError("--list works for frames only (summary figures: tracks_<layer>.png, "
+                            "defect_map_<layer>.png, frames.png)")
         if not args.output:
             raise NemoError("give the output folder with -o OUTDIR")
         figs = render_summary(args.inputs, args.output, layers=args.layer)
