@@ -10,8 +10,9 @@ BIN    := $(VENV)/bin
 CORES  ?= 2
 # --no-compile: pip would byte-compile every installed module (a third of the install time);
 # Python compiles the modules actually imported on first use instead.
+# PYTHONWARNINGS=ignore: setuptools' notice about editable installs is not for users.
 PIP    := $(BIN)/python -m pip --quiet --disable-pip-version-check
-PIPI   := $(PIP) install --no-compile
+PIPI   := PYTHONWARNINGS=ignore $(PIP) install --no-compile
 
 STAMP_CORE   := $(VENV)/.stamp-core
 STAMP_NAPARI := $(VENV)/.stamp-napari
@@ -21,7 +22,8 @@ STAMP_TEST   := $(VENV)/.stamp-test
 
 $(BIN)/python:
 	@echo "make: creating the virtualenv $(VENV)"
-	@$(PYTHON) -m venv $(VENV)
+	@$(PYTHON) -m venv $(VENV) || { rm -rf $(VENV); \
+	echo "make: cannot create a virtualenv with $(PYTHON) (Debian/Ubuntu: apt-get install python3-venv)"; exit 1; }
 	@$(PIP) install --upgrade pip
 
 $(STAMP_CORE): pyproject.toml | $(BIN)/python
@@ -41,11 +43,12 @@ $(STAMP_TEST): $(STAMP_NAPARI)
 install: $(STAMP_CORE)
 
 viewer: $(STAMP_NAPARI)
-	@echo "make: napari installed: .venv/bin/nemo view results/demo"
+	@echo "make: the viewer is ready: $(BIN)/nemo view results/demo"
 
 demo: $(STAMP_CORE)
 	@echo "make: running the workflow on config/config.yaml with $(CORES) cores (results/demo/)"
 	$(BIN)/snakemake --cores $(CORES) --configfile config/config.yaml --rerun-incomplete
+	@echo "make: done; figures in results/demo/summary/. To browse in 3D: make viewer, then $(BIN)/nemo view results/demo"
 
 test: $(STAMP_TEST)
 	$(BIN)/python -m pytest -n 2 tests

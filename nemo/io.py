@@ -551,8 +551,8 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
     mask = data > threshold if threshold is not None else data != 0
     if not mask.any():
         rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"
-        raise NemoError(f"{name} selects nothing (no voxel {rule}): check the file, the frame and "
-                        "mask_threshold")
+        raise NemoError(f"{name} is empty: no voxel is {rule}. Check the file and the frame, or lower "
+                        "the threshold (`--mask-threshold`, config `mask_threshold`)")
     return mask
 
 

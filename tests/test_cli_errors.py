@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import tifffile
 
+from nemo.errors import NemoWarning
 from nemo.io import write_hyperstack
 from nemo.mesh import make_mesh, save_mesh
 
@@ -87,7 +90,7 @@ def test_mask_of_wrong_shape(hyperstack, tmp_path, run_cli):
 def test_empty_mask(hyperstack, tmp_path, run_cli):
     write_hyperstack(tmp_path / "mask.tif", np.zeros((20, 24, 24), np.uint8), (1, 1, 1), axes="ZYX")
     _one_clear_line(*run_cli("mesh", hyperstack, "-o", tmp_path / "m.ply", "--mask", tmp_path / "mask.tif"),
-                    "mask is empty")
+                    "is empty: no voxel is nonzero")
 
 
 def test_good_mask_is_used(hyperstack, tmp_path, run_cli):
@@ -149,3 +152,41 @@ def test_info_on_a_good_file_still_works(hyperstack, run_cli):
     d = json.loads(out)
     assert d["shape"] == {"T": 2, "C": 2, "Z": 20, "Y": 24, "X": 24}
     assert d["spacing"] == [1.0, 0.5, 0.5] and d["unit"] == "um"
+
+
+def _warn_from(module: str, message: str, category: type[Warning]) -> None:
+    """Raise a warning as if from code in ``module`` (the filters match the caller's ``__name__``)."""
+    warnings.warn_explicit(message, category, module.replace(".", "/") + ".py", 1, module=module)
+
+
+def _warning_command(monkeypatch):
+    """``nemo info`` replaced by a command that warns from a dependency, from NEMO and as a NemoWarning."""
+    import nemo.cli.info
+
+    def run(args):
+        _warn_from("pydantic.fields", "dependency deprecation", DeprecationWarning)
+        _warn_from("nemo.fake", "numbers from nemo code", RuntimeWarning)
+        _warn_from("somewhere", "a nemo warning", NemoWarning)
+        return 0
+
+    monkeypatch.setattr(nemo.cli.info, "run", run)
+
+
+def test_only_nemo_warnings_are_printed(monkeypatch, tmp_path, run_cli):
+    _warning_command(monkeypatch)
+    monkeypatch.delenv("NEMO_DEBUG", raising=False)
+    monkeypatch.setattr("sys.warnoptions", [])
+    code, _, err = run_cli("info", tmp_path)
+    assert code == 0, err
+    assert "nemo: warning: a nemo warning" in err
+    assert "nemo: warning: numbers from nemo code" in err
+    assert "dependency deprecation" not in err
+    # asked for: NEMO_DEBUG or python -W / PYTHONWARNINGS (sys.warnoptions) show them
+    monkeypatch.setenv("NEMO_DEBUG", "1")
+    assert "nemo: warning: dependency deprecation" in run_cli("info", tmp_path)[2]
+    monkeypatch.delenv("NEMO_DEBUG")
+    monkeypatch.setattr("sys.warnoptions", ["default"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # what python -W default installed at start-up
+        err = run_cli("info", tmp_path)[2]
+    assert "nemo: warning: dependency deprecation" in err and "nemo: warning: a nemo warning" in err

@@ -331,7 +331,7 @@ def test_mask_from_a_probability_map(segmentation):
     shape = labels.shape[1:]
     np.testing.assert_array_equal(read_mask(d / "prob.tif", 0, 0, shape), labels[0] == 3)  # default 0.5
     np.testing.assert_array_equal(read_mask(d / "prob.tif", 0, 0, shape, threshold=0.1), np.ones(shape, bool))
-    with pytest.raises(NemoError, match="selects nothing .*above the threshold 0.9"):
+    with pytest.raises(NemoError, match="is empty: no voxel is above the threshold 0.9"):
         read_mask(d / "prob.tif", 0, 0, shape, threshold=0.9)
     with pytest.raises(NemoError, match="floating-point values, not labels"):
         read_mask(d / "prob.tif", 0, 0, shape, labels=[1])

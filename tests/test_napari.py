@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ import trimesh
 from nemo.errors import NemoError
 from nemo.napari._reader import get_reader
 from nemo.napari._sample import write_demo_results
-from nemo.napari.layers import layer_data, set_surface_field, to_napari
+from nemo.napari.layers import layer_data, lift, set_surface_field, to_napari
 from nemo.render import robust_limits
 
 MANIFEST = Path(__file__).resolve().parents[1] / "nemo" / "napari" / "napari.yaml"
@@ -82,19 +83,47 @@ def test_layer_data_builds_every_layer(demo):
     np.testing.assert_array_equal(vec[:, 1, 0], 0)  # vectors stay in their time point
 
 
-def test_defects_land_on_the_surface_in_napari_coordinates(demo):
+def _lifted_off(points: np.ndarray, mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """The surface points under lifted markers (closest points on ``mesh``) and their heights."""
+    foot, dist, _ = trimesh.proximity.closest_point(mesh, points)
+    return foot, dist
+
+
+def test_defects_sit_on_the_surface_in_napari_coordinates(demo):
     layers = _by_name(layer_data(demo["dataset_dir"]))
-    pts = layers["defects (a)"][0]
+    pts, kw, _ = layers["defects (a)"]
     surf = layers["surface inner"][0]
+    lift = kw["metadata"]["nemo"]["lift"]
+    assert lift == pytest.approx(0.6 * kw["size"])  # more than the marker radius
+    centre = demo["centre"][::-1]
     for t, truth in enumerate(demo["frames"]):
         mine = pts[pts[:, 0] == t][:, 1:]
-        np.testing.assert_allclose(mine, truth["defects"][:, ::-1])  # (z, y, x)
         mesh = _frame_mesh(surf, t)
-        _, dist, _ = trimesh.proximity.closest_point(mesh, mine)
-        assert dist.max() < 1e-4 * demo["radius"]
+        foot, height = _lifted_off(mine, mesh)
+        np.testing.assert_allclose(foot, truth["defects"][:, ::-1], atol=0.01 * demo["radius"])  # (z, y, x)
+        feats = kw["features"]
+        np.testing.assert_allclose(np.column_stack([feats[k] for k in "xyz"])[pts[:, 0] == t], truth["defects"])
+        np.testing.assert_allclose(height, lift, rtol=0.05)
+        # outward: the marker is farther from the centre than the surface point under it
+        out = np.linalg.norm(mine - centre, axis=1) - np.linalg.norm(foot - centre, axis=1)
+        np.testing.assert_allclose(out, lift, rtol=0.05)
         # control: the same points left in (x, y, z) order are far off the surface
         _, wrong, _ = trimesh.proximity.closest_point(mesh, truth["defects"])
         assert wrong.max() > 1.0
+
+
+def test_lift_moves_points_along_the_outward_normal():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=10.0)
+    on = sphere.vertices[[0, 50, 400]]  # on the surface, at vertices
+    between = trimesh.sample.sample_surface_even(sphere, 5, seed=1)[0]  # inside faces
+    for xyz in (on, between):
+        up = lift(sphere, xyz, 0.5)
+        np.testing.assert_allclose(np.linalg.norm(up, axis=1), np.linalg.norm(xyz, axis=1) + 0.5, atol=2e-3)
+        radial = xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
+        np.testing.assert_allclose(np.einsum("ij,ij->i", up - xyz, radial), 0.5, atol=2e-3)
+    flipped = trimesh.Trimesh(sphere.vertices, sphere.faces[:, ::-1], process=False)  # inward normals
+    assert (np.linalg.norm(lift(flipped, on, 0.5), axis=1) < 10.0).all()  # follows the mesh normals
+    assert lift(sphere, np.empty((0, 3)), 0.5).shape == (0, 3)
 
 
 def test_directors_are_tangent_and_centred(demo):
@@ -137,7 +166,8 @@ def test_one_time_point_and_errors(demo):
     assert layers["surface inner"][0][0].shape == (demo["n_vertices"], 3)
     assert layers["surface inner"][1]["metadata"]["nemo_field"] == "intensity (b)"
     assert layers["defects (b)"][1]["visible"] and not layers["defects (a)"][1]["visible"]
-    np.testing.assert_allclose(layers["defects (b)"][0], demo["frames"][2]["defects"][:, ::-1])
+    foot, _ = _lifted_off(layers["defects (b)"][0], _frame_mesh(layers["surface inner"][0], None))
+    np.testing.assert_allclose(foot, demo["frames"][2]["defects"][:, ::-1], atol=0.01 * demo["radius"])
     with pytest.raises(NemoError, match="time point t=7"):
         layer_data(demo["dataset_dir"], t=7)
     with pytest.raises(NemoError, match="channel c=3"):
@@ -152,7 +182,8 @@ def test_nemo_run_folder_and_missing_image(tmp_path):
         layers = _by_name(layer_data(tmp_path / "run"))
     assert "image c0" not in layers
     assert set(layers) >= {"surface inner", "surface mesh", "defects (layer)", "averaged directors (layer)"}
-    np.testing.assert_allclose(layers["defects (layer)"][0], truth["frames"][0]["defects"][:, ::-1])
+    foot, _ = _lifted_off(layers["defects (layer)"][0], _frame_mesh(layers["surface inner"][0], None))
+    np.testing.assert_allclose(foot, truth["frames"][0]["defects"][:, ::-1], atol=0.01 * truth["radius"])
 
 
 def test_nan_field_is_displayable(demo):
@@ -202,11 +233,21 @@ def test_manifest_is_valid():
 
 _XVFB: dict = {}
 
+#: Started in a subprocess before any viewer: Qt aborts its process (no Python exception) when
+#: its platform plugin cannot load, e.g. Xvfb installed without Qt's xcb libraries.
+_QT_PROBE = """\
+from PyQt6.QtWidgets import QApplication
+from PyQt6.QtOpenGLWidgets import QOpenGLWidget
+app = QApplication([])
+w = QOpenGLWidget()
+w.show()
+app.processEvents()
+w.close()
+"""
 
-def _start_xvfb() -> str:
-    """Start Xvfb once per process on a free display; return ':N'."""
-    if "display" in _XVFB:
-        return _XVFB["display"]
+
+def _start_xvfb() -> tuple[subprocess.Popen, str]:
+    """Start an Xvfb on a free display; return the process and ':N'."""
     r, w = os.pipe()
     proc = subprocess.Popen(
         # -terminate: the server exits when its last client (this process's Qt) disconnects
@@ -218,12 +259,40 @@ def _start_xvfb() -> str:
         number = f.readline().strip()
     if not number:
         proc.kill()
+        proc.wait()
         pytest.skip("Xvfb did not start")
-    _XVFB["proc"] = proc
-    # Xvfb outlives the tests (Qt keeps its connection until exit) and ends with -terminate;
-    # mark it reaped so Popen.__del__ does not warn at interpreter exit
-    proc.returncode = 0
-    _XVFB["display"] = f":{number}"
+    return proc, f":{number}"
+
+
+def _qt_error(platform: str = "xcb", timeout: float = 120.0) -> str | None:
+    """Why Qt cannot open a window under Xvfb (None: it can), tried in a subprocess.
+
+    The probe has an Xvfb of its own: with ``-terminate`` a server ends when its first client
+    leaves, so the viewer tests get a fresh one.
+    """
+    proc, display = _start_xvfb()
+    env = {**os.environ, "DISPLAY": display, "QT_QPA_PLATFORM": platform}
+    try:
+        done = subprocess.run([sys.executable, "-c", _QT_PROBE], env=env, capture_output=True, text=True,
+                              timeout=timeout, check=False)
+    except subprocess.TimeoutExpired:
+        return f"Qt did not start within {timeout:.0f} s"
+    finally:
+        proc.kill()
+        proc.wait()
+    if done.returncode == 0:
+        return None
+    lines = [line for line in done.stderr.splitlines() if line.strip()] or ["no message"]
+    return f"exit status {done.returncode}: {lines[0][:200]}"
+
+
+def _display() -> str:
+    """The Xvfb display of the viewer tests, started once per process."""
+    if "display" not in _XVFB:
+        proc, _XVFB["display"] = _start_xvfb()
+        # Xvfb outlives the tests (Qt keeps its connection until exit) and ends with -terminate;
+        # mark it reaped so Popen.__del__ does not warn at interpreter exit
+        proc.returncode = 0
     return _XVFB["display"]
 
 
@@ -233,8 +302,13 @@ def viewer_env():
     pytest.importorskip("PyQt6")
     if shutil.which("Xvfb") is None:
         pytest.skip("Xvfb not installed (Debian: apt-get install xvfb xauth)")
+    if "qt_error" not in _XVFB:
+        _XVFB["qt_error"] = _qt_error()
+    if _XVFB["qt_error"]:
+        pytest.skip(f"Qt cannot open a window under Xvfb ({_XVFB['qt_error']}); missing system "
+                    "libraries? see the README's list (Debian: libxcb-cursor0 libxkbcommon-x11-0 ...)")
     old = {k: os.environ.get(k) for k in ("DISPLAY", "QT_QPA_PLATFORM")}
-    os.environ["DISPLAY"] = _start_xvfb()
+    os.environ["DISPLAY"] = _display()
     os.environ["QT_QPA_PLATFORM"] = "xcb"
     yield
     for k, v in old.items():
@@ -242,6 +316,15 @@ def viewer_env():
             os.environ.pop(k, None)
         else:
             os.environ[k] = v
+
+
+def test_qt_probe_reports_a_broken_qt():
+    """The probe says why Qt cannot start (here: an unknown platform plugin) instead of aborting."""
+    pytest.importorskip("PyQt6")
+    if shutil.which("Xvfb") is None:
+        pytest.skip("Xvfb not installed")
+    error = _qt_error(platform="nonexistent")
+    assert error is not None and "nonexistent" in error
 
 
 def _not_blank(img: np.ndarray) -> None:
@@ -270,11 +353,12 @@ def test_viewer_layers_screenshot_and_time(viewer_env, demo):
         assert vmin <= lo < hi <= vmax and surf.colormap.name == "gray"
         pts = viewer.layers["defects (a)"]
         assert pts.face_colormap.name == "bwr" and tuple(pts.face_contrast_limits) == (-1, 1)
-        # the points layer in world coordinates lands on the surface layer
+        # the points layer in world coordinates sits on the surface layer (lifted by its radius+)
         mesh = _frame_mesh((surf.data[0], surf.data[1]), 0)
         world = np.array([pts.data_to_world(p) for p in pts.data[pts.data[:, 0] == 0]])[:, 1:]
-        _, dist, _ = trimesh.proximity.closest_point(mesh, world)
-        assert dist.max() < 1e-3
+        _, dist = _lifted_off(world, mesh)
+        np.testing.assert_allclose(dist, pts.metadata["nemo"]["lift"], rtol=0.05)
+        assert (dist > 0.5 * pts.size[0]).all()
         shot0 = viewer.screenshot(canvas_only=True)
         _not_blank(shot0)
         viewer.dims.set_current_step(0, 2)
@@ -319,7 +403,7 @@ def test_plugin_reader_and_sample(viewer_env, demo):
 
 def test_cli_view_screenshot(viewer_env, demo, run_cli, tmp_path):
     out = tmp_path / "view.png"
-    code, stdout, err = run_cli("view", demo["dataset_dir"], "--t", "1", "--layer", "b", "--screenshot", out)
+    code, _, err = run_cli("view", demo["dataset_dir"], "--t", "1", "--layer", "b", "--screenshot", out)
     assert code == 0, err
     from matplotlib.image import imread
 

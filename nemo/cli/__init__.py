@@ -9,7 +9,9 @@ Each subcommand lives in its own module ``nemo/cli/<name>.py`` exposing
 
 User errors are raised as :class:`nemo.errors.NemoError` and printed as one line
 ``nemo <command>: error: <message>`` with exit status 2; warnings are printed as
-``nemo: warning: <message>``.
+``nemo: warning: <message>``. Only NEMO's own warnings are shown (:class:`NemoWarning` and
+warnings raised from NEMO's modules); the dependencies' (e.g. pydantic deprecations under
+napari) are shown when ``NEMO_DEBUG`` is set or Python's ``-W`` / ``PYTHONWARNINGS`` asks.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib
+import os
 import re
 import sys
 import warnings
@@ -57,6 +60,21 @@ def as_flags(message: str, command: str | None = None) -> str:
 
 def _show_warning(message, category, filename, lineno, file=None, line=None, command=None):  # noqa: ARG001
     print(f"nemo: warning: {as_flags(message, command)}", file=sys.stderr)
+
+
+def _filter_warnings() -> None:
+    """Warning filters for a command (call inside ``warnings.catch_warnings()``).
+
+    NEMO's own warnings are always shown. The dependencies' warnings are hidden, unless
+    ``NEMO_DEBUG`` is set (all shown once per place) or the user gave filters with ``python -W``
+    or ``PYTHONWARNINGS`` (those apply as given).
+    """
+    if os.environ.get("NEMO_DEBUG"):
+        warnings.simplefilter("default")
+    elif not sys.warnoptions:
+        warnings.simplefilter("ignore")
+        warnings.filterwarnings("default", module=r"nemo(\.|$)")
+    warnings.simplefilter("always", NemoWarning)
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -104,8 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_outputs_are_not_inputs(args)
         with warnings.catch_warnings():
-            warnings.simplefilter("default")
-            warnings.simplefilter("always", NemoWarning)
+            _filter_warnings()
             warnings.showwarning = functools.partial(_show_warning, command=args._command)  # restored on exit
             return int(args._run(args) or 0)
     except NemoError as exc:

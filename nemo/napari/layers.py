@@ -37,6 +37,10 @@ from nemo.render import (
 #: Default number of director glyphs per layer and frame.
 MAX_VECTORS = 2000
 
+#: Defect markers are lifted off the surface by this fraction of their size (diameter):
+#: a little more than the radius, so that no part of the marker is hidden by the surface.
+LIFT = 0.6
+
 
 def to_napari(xyz: np.ndarray, t: int | None = None) -> np.ndarray:
     """Physical ``(x, y, z)`` -> napari ``(z, y, x)`` (with a leading ``t`` when given).
@@ -207,13 +211,54 @@ def _vector_layers(frames: list[Frame], stacked: bool, max_vectors: int, layer: 
     return out
 
 
+def lift(mesh, xyz: np.ndarray, height: float) -> np.ndarray:
+    """Points moved ``height`` outward, along the surface normal under them.
+
+    napari draws a 3D point as a disc facing the camera, centred on the point: a defect marker
+    placed on the surface sinks half into it (and its label with it). Lifted by at least the
+    marker radius, the whole disc stays above the tangent plane from any viewing angle.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The surface (outward normals, as NEMO's meshes).
+    xyz : ndarray, shape (M, 3)
+        Points on the surface, physical ``(x, y, z)``.
+    height : float
+        Distance to move them, in the mesh's unit.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        The moved points; the normal is the mean vertex normal within ``height`` of the point
+        (the nearest vertex's when none is that close), so mesh roughness does not tilt it.
+    """
+    from scipy.spatial import cKDTree
+
+    from nemo.mesh import vertex_normals
+
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if not len(xyz):
+        return xyz
+    normals = np.nan_to_num(vertex_normals(mesh))
+    tree = cKDTree(np.asarray(mesh.vertices, dtype=np.float64))
+    _, nearest = tree.query(xyz)
+    out = xyz.copy()
+    for k, (p, near) in enumerate(zip(xyz, tree.query_ball_point(xyz, height), strict=True)):
+        n = normals[near].sum(axis=0) if near else normals[nearest[k]]
+        norm = np.linalg.norm(n)
+        if norm > 0:
+            out[k] = p + height * n / norm
+    return out
+
+
 def _points_layers(frames: list[Frame], stacked: bool, layer: str | None) -> list[tuple]:
     out = []
     names = []
     for f in frames:
         names += [n for n in f.layers if n not in names]
     for name in names:
-        pts, charge, label, size = [], [], [], None
+        pts, where, charge, label, size = [], [], [], [], None
         for i, f in enumerate(frames):
             lay = f.layers.get(name)
             if lay is None or lay.defects is None or not len(lay.defects):
@@ -223,7 +268,9 @@ def _points_layers(frames: list[Frame], stacked: bool, layer: str | None) -> lis
                 continue
             mesh = f.surfaces[lay.surface].mesh
             size = 0.05 * float(np.linalg.norm(np.ptp(np.asarray(mesh.vertices), axis=0)))
-            pts.append(to_napari(d[["x", "y", "z"]].to_numpy(np.float64), i if stacked else None))
+            xyz = d[["x", "y", "z"]].to_numpy(np.float64)
+            where.append(xyz)
+            pts.append(to_napari(lift(mesh, xyz, LIFT * size), i if stacked else None))
             q = d["charge"].to_numpy(np.float64)
             charge.append(q)
             rounded = d["charge_rounded"].to_numpy(np.float64) if "charge_rounded" in d else q
@@ -231,11 +278,13 @@ def _points_layers(frames: list[Frame], stacked: bool, layer: str | None) -> lis
         if not pts:
             continue
         kwargs = {"name": f"defects ({name})",
-                  "features": {"charge": np.concatenate(charge), "label": np.asarray(label, dtype=object)},
+                  "features": {"charge": np.concatenate(charge), "label": np.asarray(label, dtype=object),
+                               **dict(zip("xyz", np.concatenate(where).T, strict=True))},  # on the surface
                   "face_color": "charge", "face_colormap": "bwr", "face_contrast_limits": (-1.0, 1.0),
                   "border_color": "black", "size": size, "visible": name == layer,
-                  "text": {"string": "{label}", "size": 14, "color": "yellow", "anchor": "upper_left"},
-                  "metadata": {"nemo": {"kind": "defects", "layer": name}}}
+                  # in 3D napari centres the text on its point: dark text on the light bwr colours
+                  "text": {"string": "{label}", "size": 12, "color": "black", "anchor": "center"},
+                  "metadata": {"nemo": {"kind": "defects", "layer": name, "lift": LIFT * size}}}
         out.append((np.concatenate(pts), kwargs, "points"))
     return out
 
@@ -277,7 +326,10 @@ def layer_data(
     list of (data, kwargs, layer_type)
         Image (``scale = spacing``), one surface per mesh (fields in ``metadata``),
         director vectors, averaged director vectors, defect points -- all in napari
-        ``(z, y, x)`` (or ``(t, z, y, x)``) world coordinates in µm.
+        ``(z, y, x)`` (or ``(t, z, y, x)``) world coordinates in µm. The defect markers are
+        lifted off the surface by :data:`LIFT` times their size along the normal (see
+        :func:`lift`; the distance in ``metadata['nemo']['lift']``); their features ``x, y, z``
+        keep the defect positions on the surface.
 
     Raises
     ------
@@ -330,6 +382,13 @@ def set_surface_field(surface_layer, name: str) -> None:
     surface_layer.metadata["nemo_field"] = name
 
 
+def _scale_bar(viewer):
+    """The viewer's scale bar overlay (``viewer.canvas.overlays`` since napari 0.9)."""
+    canvas = getattr(viewer, "canvas", None)
+    overlays = getattr(canvas, "overlays", None)
+    return overlays.scale_bar if overlays is not None and hasattr(overlays, "scale_bar") else viewer.scale_bar
+
+
 def add_nemo_layers(viewer, results: str | os.PathLike, **kwargs) -> dict:
     """Add the layers of a NEMO results folder to an existing napari viewer.
 
@@ -357,7 +416,7 @@ def add_nemo_layers(viewer, results: str | os.PathLike, **kwargs) -> dict:
     labels = ("t", "z", "y", "x")[-ndim:] if ndim <= 4 else None
     if labels:
         viewer.dims.axis_labels = labels
-    viewer.scale_bar.visible = True
+    _scale_bar(viewer).visible = True
     return added
 
 
