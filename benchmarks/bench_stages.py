@@ -194,7 +194,7 @@ def director_loop(mesh, intensity, centres, patch_radius, pixel, sigma, half):
     from scipy.interpolate import griddata
     from scipy.spatial import cKDTree
 
-    from nemo.frames import tangent_frames
+    from nemo.geometry import tangent_frames
 
     v = np.asarray(mesh.vertices)
     tree = cKDTree(v)

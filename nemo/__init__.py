@@ -7,7 +7,7 @@ The library is a set of plain functions on numpy arrays and trimesh meshes:
 * :mod:`nemo.surface` -- surface reconstruction from a volume;
 * :mod:`nemo.synthetic` -- the paper's synthetic nematic vesicle;
 * :mod:`nemo.morphology` -- curvature, thickness, area, volume;
-* :mod:`nemo.peel`, :mod:`nemo.frames`, :mod:`nemo.directors`, :mod:`nemo.order` --
+* :mod:`nemo.peel`, :mod:`nemo.geometry`, :mod:`nemo.directors`, :mod:`nemo.order` --
   layers, tangent frames, directors, tangential Q-tensor average, inter-layer alignment;
 * :mod:`nemo.defects` -- defect localisation and curvature-corrected charge;
 * :mod:`nemo.tables` -- the Parquet tables that connect the steps.

@@ -1,6 +1,7 @@
 """Topological defects of a tangential nematic field: localisation and curvature-corrected charge.
 
-Method note §7 and the paper's "Defect detection and topological charge".
+Method note §7 and the paper's "Defect detection and topological charge". The mesh-edge
+graph, geodesic balls, boundary loops and tangent bases it uses are in :mod:`nemo.geometry`.
 
 Localisation
 ------------
@@ -42,8 +43,8 @@ per-vertex ``curvature`` array it is Σ K·A (barycentric vertex areas); without
 integrated Gaussian curvature (angle defects, ``mesh.vertex_defects``, for which discrete
 Gauss–Bonnet is exact) after three conservative smoothing passes (:func:`smooth_conserving`:
 the total is unchanged, the vertex-to-vertex noise that the contour's half-weighted band would
-pick up is averaged out -- on the paper's vesicle it moved one charge from 0.483 to 0.504). Charge = winding + curvature term (``curvature_correction=False`` drops
-the second), ``charge_rounded`` = nearest multiple of ½.
+pick up is averaged out). Charge = winding + curvature term (``curvature_correction=False``
+drops the second), ``charge_rounded`` = nearest multiple of ½.
 
 Rejection of spurious defects (documented S logic, scaled with the sampling)
 -----------------------------------------------------------------------------
@@ -55,10 +56,9 @@ sqrt(π/4N) plus ``NOISE_Z`` = 3 standard errors of the contour's median, sqrt((
 sqrt(M), with ``N`` the raw directors per averaging disc (median over the contour; the order
 table's ``count``, else counted in the directors table) and ``M`` = contour length / averaging
 diameter the independent discs the median pools; capped midway between the isotropic mean
-and perfect order, so that few directors can still pass when they are ordered. (The old floor
-3·sqrt(π/4N) reached 1 at N ≈ 7: a field of one director per 6-10 µm grid point could not
-pass.) It must also have a resolved, non-zero charge: every step of the winding below
-:func:`step_limit_deg` (2.5 × the mean step π/k of a ½ defect on k steps, within 60-80°) and
+and perfect order, so that few directors can still pass when they are ordered. It must also
+have a resolved, non-zero charge: every step of the winding below :func:`step_limit_deg`
+(2.5 × the mean step π/k of a ½ defect on k steps, within 60-80°) and
 ``|charge − charge_rounded| ≤ charge_tolerance``, ``charge_rounded ≠ 0`` (with
 ``curvature_correction=False`` the raw winding is biased by design, so the tolerance test is
 skipped). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged; every
@@ -93,20 +93,15 @@ Euler check
 On a closed surface the charges add up to the Euler characteristic χ (Poincaré–Hopf). The check
 (Σ charge, Σ charge_rounded, χ, closed) is logged and stored in ``df.attrs["euler_check"]``.
 
-Accuracy (measured, see tests and benchmarks/bench_defects.py)
---------------------------------------------------------------
-Analytic director fields (5° noise): positions within 0.2–1 µm (below the vertex spacing),
-charges within 0.02; the analytic field sampled at the measured directors' positions on the
-paper's vesicle: 0.43 µm (of which 0.4 µm is the reconstructed surface lying 0.4 µm inside R).
-The paper's synthetic vesicle through ``nemo run`` (finer micro-image pixel and dense
-refinement directors, see nemo.pipeline): every +½ defect within 0.5–1.5 µm (the paper: 3.58
-µm; the minimum-S vertex alone: 1–5 µm), charges within 0.015 of ½. The remaining error is
-mostly a displacement of ≈ 1.2 µm along the comet axis towards the tail: the gradient structure
+Accuracy
+--------
+The measured accuracy is in ``docs/benchmarks.md`` (``benchmarks/bench_defects.py``, the
+benchmark protocol of :mod:`nemo.benchmark`). On measured directors the remaining error of a +½
+core is mostly a displacement along the comet axis towards the tail: the gradient structure
 tensor weights orientations by fibre "ink", which is uneven around a comet of streamlines
 (denser on the head side), so the measured field's core moves towards the tail by an amount
-that grows with the gradient and integration scales (see nemo.pipeline). The fit's first
-harmonic term (``fit_harmonic``) does not separate it from a true shift (errors 2–6 µm) and is
-off by default.
+that grows with the gradient and integration scales. The fit's first harmonic term
+(``fit_harmonic``) does not separate it from a true shift and is off by default.
 """
 
 from __future__ import annotations
@@ -118,12 +113,18 @@ import numpy as np
 import pandas as pd
 import trimesh
 from scipy import optimize, sparse
-from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from nemo._log import logger
 from nemo.errors import NemoError
-from nemo.frames import axis_frames
+from nemo.geometry import (
+    boundary_loop,
+    edge_graph,
+    geodesic_ball,
+    project_tangent,
+    smooth_conserving,
+    tangent_basis,
+)
 from nemo.mesh import vertex_areas, vertex_normals
 from nemo.order import lift_q, tangential_eig
 
@@ -142,7 +143,7 @@ CANDIDATE_COLUMNS = (
 
 
 # ----------------------------------------------------------------------------------------------
-# geometry helpers
+# constants and contour helpers (the mesh-graph helpers are in nemo.geometry)
 
 
 #: Two accepted defects whose refined cores lie closer than this (in averaging radii) are one
@@ -154,127 +155,6 @@ MAX_RADIUS_PER_SIZE = 2.0
 
 #: Default contour radius in averaging radii (the suppression radius default is one averaging radius).
 CONTOUR_PER_AVERAGING = 1.5
-
-def edge_graph(mesh: trimesh.Trimesh) -> sparse.csr_matrix:
-    """Symmetric sparse graph of the mesh edges weighted by their length, shape (N, N).
-
-    Distances on it (scipy Dijkstra with a limit, from one source per defect) are the paper's
-    "shortest path along the mesh edges": a few % longer than true geodesics. potpourri3d's
-    heat method is not used here because it solves on the whole mesh for every source, while a
-    limited Dijkstra touches only the ball around the defect.
-    """
-    edges = np.asarray(mesh.edges_unique)
-    length = np.asarray(mesh.edges_unique_length, dtype=np.float64)
-    n = len(mesh.vertices)
-    g = sparse.coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(n, n))
-    return (g + g.T).tocsr()
-
-
-def geodesic_ball(graph: sparse.csr_matrix, source: int, limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices within edge-path distance ``limit`` of ``source`` and their distances.
-
-    Returns
-    -------
-    idx : ndarray of int, shape (M,)
-    dist : ndarray of float, shape (M,)
-    """
-    # the graph is symmetric: directed=True gives the same distances without a transposed copy
-    d = dijkstra(graph, directed=True, indices=int(source), limit=float(limit))
-    idx = np.flatnonzero(np.isfinite(d))
-    return idx, d[idx]
-
-
-def smooth_conserving(values: np.ndarray, graph: sparse.csr_matrix, iterations: int) -> np.ndarray:
-    """Spread each vertex's value equally over itself and its edge neighbours, ``iterations`` times.
-
-    The operator is column-stochastic, so the sum over the mesh is preserved exactly (discrete
-    Gauss–Bonnet still holds) while the vertex-to-vertex noise of angle defects, which would
-    otherwise enter the curvature term through the contour's boundary band, is averaged out.
-    """
-    n = graph.shape[0]
-    adj = (graph != 0).astype(np.float64) + sparse.identity(n, format="csr")
-    deg = np.asarray(adj.sum(axis=0)).ravel()
-    op = (adj @ sparse.diags(1.0 / deg)).tocsr()
-    out = np.asarray(values, dtype=np.float64)
-    for _ in range(iterations):
-        out = op @ out
-    return out
-
-
-def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Tangent basis (t1, t2), t1 × t2 = normal, for one normal (3,): :func:`nemo.frames.axis_frames`.
-
-    The same construction as every other NEMO angle (directors, synthetic truth, morphology).
-    """
-    t1, t2 = axis_frames(np.asarray(normal, dtype=np.float64)[None])
-    return t1[0], t2[0]
-
-
-def _project_tangent(vec: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Project (M, 3) vectors onto the tangent planes of (M, 3) unit normals and normalise."""
-    v = vec - np.einsum("ij,ij->i", vec, normals)[:, None] * normals
-    norm = np.linalg.norm(v, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return v / norm
-
-
-def boundary_loop(faces: np.ndarray, inside: np.ndarray,
-                  candidates: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
-    """Outer boundary loop of the faces whose three vertices are ``inside``.
-
-    Parameters
-    ----------
-    faces : ndarray, shape (F, 3)
-        Outward-wound faces.
-    inside : ndarray of bool, shape (N,)
-    candidates : ndarray of int, optional
-        Indices of the faces that may be inside (e.g. those touching the ball), for speed.
-
-    Returns
-    -------
-    loop : ndarray of int, shape (L,) or None
-        Vertices of the longest boundary loop, in the faces' winding order, i.e.
-        counter-clockwise seen from the outward normal. None when the boundary is not a set of
-        simple loops (non-manifold) or there is no face inside.
-    region_vertices : ndarray of int
-        Vertices of the selected faces.
-    """
-    if candidates is not None:
-        faces = faces[candidates]
-    sel = faces[inside[faces].all(axis=1)]
-    if len(sel) == 0:
-        return None, np.zeros(0, dtype=np.int64)
-    a = sel.ravel()
-    b = sel[:, [1, 2, 0]].ravel()
-    n = int(max(a.max(), b.max())) + 1
-    key = a.astype(np.int64) * n + b
-    rkey = b.astype(np.int64) * n + a
-    border = ~np.isin(key, rkey)
-    a, b = a[border], b[border]
-    region = np.unique(sel)
-    if len(a) == 0:
-        return None, region  # the ball covers a closed surface
-    if len(np.unique(a)) != len(a):
-        return None, region  # pinched (non-manifold) boundary: caller falls back
-    nxt = dict(zip(a.tolist(), b.tolist()))
-    loops = []
-    seen: set[int] = set()
-    for start in a.tolist():  # loop over boundary vertices of one ball (a few hundred), not the mesh
-        if start in seen:
-            continue
-        loop = [start]
-        seen.add(start)
-        cur = nxt.get(start)
-        while cur is not None and cur != start and cur not in seen:
-            loop.append(cur)
-            seen.add(cur)
-            cur = nxt.get(cur)
-        if cur != start:
-            return None, region
-        loops.append(loop)
-    longest = max(loops, key=len)
-    return np.asarray(longest, dtype=np.int64), region
-
 
 def angle_sorted_contour(vertices: np.ndarray, centre: np.ndarray, normal: np.ndarray,
                          idx: np.ndarray, dist: np.ndarray, radius: float, width: float) -> np.ndarray:
@@ -529,7 +409,7 @@ def _director_fields(mesh: trimesh.Trimesh, directors_df: pd.DataFrame | None, t
     ok = np.all(np.isfinite(dpos), axis=1) & np.all(np.isfinite(ddir), axis=1)
     dnrm = vertex_normals(mesh)[np.asarray(dv, dtype=np.int64)[ok]]
     dpos, ddir, dcoh = dpos[ok], ddir[ok], np.nan_to_num(dcoh[ok], nan=0.0)
-    ddir = _project_tangent(ddir, dnrm)
+    ddir = project_tangent(ddir, dnrm)
     good = np.all(np.isfinite(ddir), axis=1)
     dpos, ddir, dcoh, dnrm = dpos[good], ddir[good], dcoh[good], dnrm[good]
     if not len(dpos):
@@ -1045,7 +925,7 @@ def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir:
     ``s_pts``: (L,) S on the contour; ``n_dir``: directors per averaging disc (None: unknown);
     ``enclosed``: ∫K dA inside the contour.
     """
-    dirs = _project_tangent(dirs, nrm)
+    dirs = project_tangent(dirs, nrm)
     if len(dirs) < 8 or not np.all(np.isfinite(dirs)):
         return None
     steps = winding_steps(dirs, nrm, exact=st.exact)

@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import tangent_frames
+from nemo.geometry import tangent_frames
 from nemo.mesh import mean_edge_length, object_radius
 
 #: Default patch density: patches per patch area (the paper's 12 000 patches of 20 µm on a
@@ -310,7 +310,7 @@ def directors(
     sigma : float, optional
         Structure-tensor integration scale in pixels; default half the patch radius.
     frames : {"axis", "smooth"}
-        Tangent frames (see :func:`nemo.frames.tangent_frames`); the directors in 3D do not
+        Tangent frames (see :func:`nemo.geometry.tangent_frames`); the directors in 3D do not
         depend on this choice.
     rng : Generator or int, optional
         Random source for the centres.
@@ -326,6 +326,37 @@ def directors(
     """
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     n_vert = len(vertices)
+    intensity = _check_intensity(intensity, n_vert)
+    if patch_radius is not None and patch_k is not None:
+        raise NemoError("give either a patch radius or a patch size k, not both")
+    edge = mean_edge_length(mesh)
+    area = float(mesh.area)
+    spacing_v = np.sqrt(area / n_vert)  # typical distance between vertices
+    patch_radius, patch_k, nominal = _patch_size(mesh, patch_radius, patch_k, n_vert)
+    pixel = _check_pixel(pixel, edge, nominal)
+
+    rng = np.random.default_rng(rng)
+    centres = _centres(rng, centres, n_patches, area, nominal, n_vert)
+    n_c = len(centres)
+    tree = cKDTree(vertices)
+    radii, grid_radius, half = _patch_radii(tree, vertices, centres, patch_radius, patch_k, nominal, pixel, edge)
+    sigma = SIGMA_PX if sigma is None else float(sigma)
+    if not sigma > 0:
+        raise NemoError(f"sigma must be > 0 pixels, got {sigma}")
+    smooth = max(0.5, 0.6 * spacing_v / pixel)
+
+    with step(f"frames ({frames}) for {n_c} patch centres"):
+        t1, t2 = tangent_frames(mesh, frames, vertices=centres)
+
+    size = 2 * half + 1
+    with step(f"directors: {n_c} patches (r ≈ {grid_radius:.3g}, {size}×{size} px of {pixel:.3g})"):
+        theta, coherency = _patch_angles(tree, vertices, intensity, centres, (t1, t2), radii, grid_radius,
+                                         half, pixel, sigma, smooth, spacing_v)
+    return _director_table(vertices, centres, theta, coherency, t1, t2)
+
+
+def _check_intensity(intensity: np.ndarray, n_vert: int) -> np.ndarray:
+    """The layer as float64 (N,), refused when it does not fit the mesh or is NaN everywhere."""
     intensity = np.asarray(intensity, dtype=np.float64)
     if intensity.shape != (n_vert,):
         raise NemoError(
@@ -334,11 +365,12 @@ def directors(
         )
     if not np.isfinite(intensity).any():
         raise NemoError("the layer intensity is NaN everywhere: the peel range lies outside the image")
-    if patch_radius is not None and patch_k is not None:
-        raise NemoError("give either a patch radius or a patch size k, not both")
-    edge = mean_edge_length(mesh)
-    area = float(mesh.area)
-    spacing_v = np.sqrt(area / n_vert)  # typical distance between vertices
+    return intensity
+
+
+def _patch_size(mesh: trimesh.Trimesh, patch_radius: float | None, patch_k: int | None,
+                n_vert: int) -> tuple[float | None, int | None, float]:
+    """Checked ``patch_radius`` (default filled in) or ``patch_k``, and the nominal patch radius."""
     if patch_k is not None:
         patch_k = int(patch_k)
         if patch_k < MIN_PATCH_VERTICES or patch_k > n_vert:
@@ -350,6 +382,11 @@ def directors(
             raise NemoError(f"patch radius must be > 0 µm, got {patch_radius}")
         nominal = patch_radius
     check_patch_size(nominal, object_radius(mesh), "patch_radius" if patch_k is None else "patch_k")
+    return patch_radius, patch_k, nominal
+
+
+def _check_pixel(pixel: float | None, edge: float, nominal: float) -> float:
+    """The micro-image pixel (default :func:`default_pixel`), refused when too fine or too coarse."""
     if pixel is None:  # finer than the mesh, but at most MAX_HALF_WIDTH_PX across the radius
         pixel = default_pixel(edge, nominal)
     pixel = float(pixel)
@@ -366,23 +403,35 @@ def directors(
             f"the patch (radius ≈ {nominal:.3g}) is smaller than 2 micro-image pixels "
             f"({pixel:.3g}): use a larger patch or a smaller `pixel`"
         )
+    return pixel
 
-    rng = np.random.default_rng(rng)
+
+def _centres(rng: np.random.Generator, centres: np.ndarray | None, n_patches: int | None, area: float,
+             nominal: float, n_vert: int) -> np.ndarray:
+    """The given centre vertices (checked), else ``n_patches`` (default from the area) drawn at random."""
     if centres is None:
         n = default_n_patches(area, nominal, n_vert) if n_patches is None else int(n_patches)
         if n < 1:
             raise NemoError(f"number of patches must be >= 1, got {n}")
         if n > n_vert:
             warnings.warn(f"{n} patches requested but the mesh has {n_vert} vertices; using all",
-                          NemoWarning, stacklevel=2)
+                          NemoWarning, stacklevel=3)
             n = n_vert
-        centres = np.sort(rng.choice(n_vert, size=n, replace=False))
-    else:
-        centres = np.asarray(centres, dtype=np.int64)
-        if centres.size and (centres.min() < 0 or centres.max() >= n_vert):
-            raise NemoError("centre vertices out of range of the mesh")
+        return np.sort(rng.choice(n_vert, size=n, replace=False))
+    centres = np.asarray(centres, dtype=np.int64)
+    if centres.size and (centres.min() < 0 or centres.max() >= n_vert):
+        raise NemoError("centre vertices out of range of the mesh")
+    return centres
+
+
+def _patch_radii(tree: cKDTree, vertices: np.ndarray, centres: np.ndarray, patch_radius: float | None,
+                 patch_k: int | None, nominal: float, pixel: float, edge: float) -> tuple[np.ndarray, float, int]:
+    """Radius of each patch, the common grid radius and the micro-images' half-width (pixels).
+
+    The grid covers the 99th percentile of the radii (``patch_k`` patches vary); larger patches
+    are clipped to it. Refused when the micro-image would exceed ``MAX_HALF_WIDTH_LIMIT``.
+    """
     n_c = len(centres)
-    tree = cKDTree(vertices)
     if patch_k is not None:
         dist_k, _ = tree.query(vertices[centres], k=patch_k, workers=-1)
         radii = dist_k[:, -1]
@@ -398,51 +447,62 @@ def directors(
             f"`pixel` {default_pixel(edge, grid_radius):.3g} (the default) or "
             f"at least {grid_radius / (MAX_HALF_WIDTH_LIMIT - _MARGIN_PX):.3g}, or a smaller patch"
         )
+    return radii, grid_radius, half
+
+
+def _patch_angles(tree: cKDTree, vertices: np.ndarray, intensity: np.ndarray, centres: np.ndarray,
+                  frames: tuple[np.ndarray, np.ndarray], radii: np.ndarray, grid_radius: float, half: int,
+                  pixel: float, sigma: float, smooth: float, spacing_v: float) -> tuple[np.ndarray, np.ndarray]:
+    """Fibre angle θ (from ``t1`` towards ``t2``) and coherency of every patch, in chunks of centres.
+
+    Each chunk: the (centre, vertex) pairs within the grid radius plus the margin, their tangent
+    coordinates, the micro-images, the structure tensor at the centre pixel (inside the patch
+    only) and its fibre angle. NaN for patches with too few vertices or a flat image.
+    """
+    t1, t2 = frames
+    n_c = len(centres)
     size = 2 * half + 1
-    sigma = SIGMA_PX if sigma is None else float(sigma)
-    if not sigma > 0:
-        raise NemoError(f"sigma must be > 0 pixels, got {sigma}")
-    smooth = max(0.5, 0.6 * spacing_v / pixel)
     margin = _MARGIN_PX * pixel
-
-    with step(f"frames ({frames}) for {n_c} patch centres"):
-        t1, t2 = tangent_frames(mesh, frames, vertices=centres)
-
     pairs_per_patch = np.pi * (grid_radius + margin) ** 2 / spacing_v**2
     chunk = int(max(1, min(n_c, _CHUNK_ELEMENTS // max(4 * pairs_per_patch, size * size * 4))))
     theta = np.full(n_c, np.nan)
     coherency = np.full(n_c, np.nan)
     rho2 = ((np.arange(size) - half)[:, None] ** 2 + (np.arange(size) - half)[None, :] ** 2) * pixel**2
-    with step(f"directors: {n_c} patches (r ≈ {grid_radius:.3g}, {size}×{size} px of {pixel:.3g})"):
-        for start in range(0, n_c, chunk):
-            sl = slice(start, min(n_c, start + chunk))
-            cen = centres[sl]
-            ctree = cKDTree(vertices[cen])
-            pairs = ctree.sparse_distance_matrix(tree, grid_radius + margin, output_type="ndarray")
-            pi, vj = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-            keep = pairs["v"] <= radii[sl][pi] + margin
-            pi, vj = pi[keep], vj[keep]
-            d = vertices[vj] - vertices[cen][pi]
-            u = np.einsum("ij,ij->i", d, t1[sl][pi])
-            w = np.einsum("ij,ij->i", d, t2[sl][pi])
-            in_patch = pairs["v"][keep] <= radii[sl][pi]
-            count = np.bincount(pi[in_patch & np.isfinite(intensity[vj])], minlength=len(cen))
-            images, density = micro_images(u, w, intensity[vj], pi, len(cen), half, pixel, smooth)
-            mask = (rho2[None] <= radii[sl][:, None, None] ** 2) & (density > 0)
-            tensor = structure_tensor_centre(images, sigma, mask)
-            th, coh = fibre_angle(tensor)
-            good = (count >= MIN_PATCH_VERTICES) & (tensor[:, 0] + tensor[:, 2] > 0)
-            theta[sl] = np.where(good, th, np.nan)
-            coherency[sl] = np.where(good, coh, np.nan)
-            logger.debug("directors chunk %d-%d: %d pairs", sl.start, sl.stop, len(vj))
+    for start in range(0, n_c, chunk):
+        sl = slice(start, min(n_c, start + chunk))
+        cen = centres[sl]
+        ctree = cKDTree(vertices[cen])
+        pairs = ctree.sparse_distance_matrix(tree, grid_radius + margin, output_type="ndarray")
+        pi, vj = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        keep = pairs["v"] <= radii[sl][pi] + margin
+        pi, vj = pi[keep], vj[keep]
+        d = vertices[vj] - vertices[cen][pi]
+        u = np.einsum("ij,ij->i", d, t1[sl][pi])
+        w = np.einsum("ij,ij->i", d, t2[sl][pi])
+        in_patch = pairs["v"][keep] <= radii[sl][pi]
+        count = np.bincount(pi[in_patch & np.isfinite(intensity[vj])], minlength=len(cen))
+        images, density = micro_images(u, w, intensity[vj], pi, len(cen), half, pixel, smooth)
+        mask = (rho2[None] <= radii[sl][:, None, None] ** 2) & (density > 0)
+        tensor = structure_tensor_centre(images, sigma, mask)
+        th, coh = fibre_angle(tensor)
+        good = (count >= MIN_PATCH_VERTICES) & (tensor[:, 0] + tensor[:, 2] > 0)
+        theta[sl] = np.where(good, th, np.nan)
+        coherency[sl] = np.where(good, coh, np.nan)
+        logger.debug("directors chunk %d-%d: %d pairs", sl.start, sl.stop, len(vj))
+    return theta, coherency
 
+
+def _director_table(vertices: np.ndarray, centres: np.ndarray, theta: np.ndarray, coherency: np.ndarray,
+                    t1: np.ndarray, t2: np.ndarray) -> pd.DataFrame:
+    """The directors table: θ lifted to 3D, patches without a director dropped (with a warning)."""
+    n_c = len(centres)
     n3 = np.cos(theta)[:, None] * t1 + np.sin(theta)[:, None] * t2
     ok = np.isfinite(theta)
     if not ok.all():
         warnings.warn(
             f"{int((~ok).sum())} of {n_c} patches gave no director (fewer than "
             f"{MIN_PATCH_VERTICES} vertices with intensity, or a flat patch)",
-            NemoWarning, stacklevel=2,
+            NemoWarning, stacklevel=3,
         )
     pos = vertices[centres]
     return pd.DataFrame({

@@ -11,7 +11,7 @@ director there, given either
 * as an ``angle`` in a tangent basis ``(e1, e2 = N × e1)`` (N the outward normal, so the angle
   runs counter-clockwise seen from outside): ``n = cos θ e1 + sin θ e2``, with ``e1`` the
   projection of a fixed axis (``basis="axis"``), a per-point reference ``e1x, e1y, e1z``
-  (``"local"``), or NEMO's own tangent frames :func:`nemo.frames.axis_frames` (``"frames"``).
+  (``"local"``), or NEMO's own tangent frames :func:`nemo.geometry.axis_frames` (``"frames"``).
 
 Points farther than ``max_distance`` from the surface are refused (most of them far: an error,
 the points are in another unit or frame); vectors (or reference directions) nearly normal to
@@ -33,7 +33,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames
 from nemo.mesh import mean_edge_length, vertex_normals
 
 #: Default largest distance of a point from the surface, in mean edge lengths of the mesh.
@@ -430,7 +430,7 @@ def nematic_mean(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Weighted nematic (Q-tensor) mean of the directors that fall on each vertex.
 
-    Each director is an angle ``φ`` in the vertex's tangent frame (:func:`nemo.frames.axis_frames`);
+    Each director is an angle ``φ`` in the vertex's tangent frame (:func:`nemo.geometry.axis_frames`);
     the mean of ``w (cos 2φ, sin 2φ)`` gives the mean director ``φ̄`` and its agreement
     ``S = |mean|`` (1 when all agree), so ``φ`` and ``φ + π`` are the same director.
 

@@ -31,23 +31,12 @@ bias the curvature upward by ~r²/4R² (r: fitting radius, R: radius of curvatur
 * ``"auto"`` (default) takes quartic when the median sample has at least
   :data:`AUTO_QUARTIC_NEIGHBOURS` neighbours within the radius, else quadratic.
 
-Measured on marching-cubes meshes of the ellipsoid (30, 22, 16) µm (median relative error of
-H / K at every vertex against the analytic values; ``tests/test_morphology.py``):
-
-=================  ===========  ===========  ===========  ===========
-1 µm voxels        r = 3 µm     r = 4 µm     r = 6 µm     r = 8 µm
-=================  ===========  ===========  ===========  ===========
-quadric (paper)    1.8 / 4.4 %  1.5 / 3.2 %  2.4 / 4.4 %  4.2 / 7.5 %
-quadratic          0.9 / 1.8 %  1.3 / 2.5 %  3.0 / 5.6 %  5.5 / 10 %
-quartic            1.9 / 4.4 %  0.7 / 1.5 %  0.3 / 0.6 %  0.5 / 0.9 %
-dz = 2 dx: quadric 5.1 / 12 %   3.6 / 7.4 %  2.8 / 5.5 %  3.6 / 7.0 %
-dz = 2 dx: quadr.  2.7 / 5.3 %  1.7 / 3.2 %  2.8 / 5.3 %  5.0 / 9.6 %
-dz = 2 dx: quartic 4.8 / 9.6 %  5.7 / 11 %   1.4 / 2.6 %  0.9 / 1.4 %
-=================  ===========  ===========  ===========  ===========
-
-On noisy meshes (staircase left by a thresholded, little-blurred volume) every fit needs a
-larger radius, and the quartic fit at the largest radius the shape allows remains the most
-accurate.
+Without the bias, the quartic fit can use a larger radius and so average over more vertices:
+it is the most accurate at the radii the default picks, the quadratic one at radii too small
+for a quartic. On noisy meshes (staircase left by a thresholded, little-blurred volume) every
+fit needs a larger radius, and the quartic fit at the largest radius the shape allows is the
+most accurate. The errors against analytic shapes are measured in ``tests/test_morphology.py``
+and ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
@@ -65,7 +54,7 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames, project_tangent, unit_vectors
 from nemo.mesh import (
     check_mesh,
     face_normals_areas,
@@ -101,17 +90,6 @@ FitKind = Literal["auto", "quadric", "quadratic", "quartic"]
 
 def _as_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
     return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return v / n
-
-
-#: Tangent basis (t1, t2) with t1 × t2 = N: NEMO's one axis construction
-#: (:func:`nemo.frames.axis_frames`), kept under its old name.
-tangent_basis = axis_frames
 
 
 def _unit_name(mesh: trimesh.Trimesh) -> str:
@@ -219,7 +197,7 @@ def _fit_chunk(
     n = len(centres)
     p0 = vertices[centres]
     n0 = normals[centres]
-    t1, t2 = tangent_basis(n0)
+    t1, t2 = axis_frames(n0)
     i, j = _neighbour_pairs(tree, p0, radius)
     # Euclidean balls can reach across a thin structure: keep neighbours on the same side
     keep = np.einsum("ij,ij->i", normals[j], n0[i]) > 0.0
@@ -272,8 +250,8 @@ def _fit_chunk(
     x[umbilic] = (1.0, 0.0)
     e1 = t1 + gx[:, None] * n0  # tangent vectors of the fitted graph
     e2 = t2 + gy[:, None] * n0
-    dir1 = _unit(x[:, :1] * e1 + x[:, 1:] * e2)
-    nrm = _unit(np.cross(e1, e2))
+    dir1 = unit_vectors(x[:, :1] * e1 + x[:, 1:] * e2)
+    nrm = unit_vectors(np.cross(e1, e2))
     dir2 = np.cross(nrm, dir1)
     return H, K, k1, k2, dir1, dir2, count
 
@@ -335,6 +313,33 @@ def curvature(
         Radius not positive, both ``n_samples`` and ``fraction``, out-of-range values.
     """
     check_mesh(mesh)
+    radius, k_interp = _check_curvature_args(radius, n_samples, fraction, fit, k_interp)
+    rng = _as_rng(rng)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    n_vert = len(vertices)
+    n = _sample_count(mesh, n_vert, radius, n_samples, fraction)
+    normals = vertex_normals(mesh)
+    samples = _draw_samples(normals, n, rng)
+    n = len(samples)
+
+    tree = cKDTree(vertices)
+    fit, per_sample, chunk = _plan_fits(tree, vertices, samples, radius, fit, rng)
+    unit = _pretty_unit(_unit_name(mesh))
+    with step(f"curvature: {fit} fits at {n} of {n_vert} vertices (radius {radius:g} {unit}, "
+              f"~{per_sample:.0f} neighbours each)"):
+        out, d1, d2 = _fit_samples(vertices, normals, tree, samples, radius, fit, chunk)
+    _warn_fit_problems(mesh, out, radius, vertices, unit, fit)
+
+    with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
+        H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
+    df = _curvature_table(H, K, idx, out, d1, d2, samples, normals)
+    df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp))
+    return df
+
+
+def _check_curvature_args(radius: float, n_samples: int | None, fraction: float | None, fit: str,
+                          k_interp: int) -> tuple[float, int]:
+    """The radius and ``k_interp`` as numbers, refused when out of range or contradictory."""
     radius = float(radius)
     if not (math.isfinite(radius) and radius > 0):
         raise NemoError(f"curvature radius must be a positive length in µm, got {radius}")
@@ -345,47 +350,77 @@ def curvature(
     k_interp = int(k_interp)
     if k_interp < 1:
         raise NemoError(f"k_interp must be at least 1, got {k_interp}")
-    rng = _as_rng(rng)
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    n_vert = len(vertices)
+    return radius, k_interp
+
+
+def _sample_count(mesh: trimesh.Trimesh, n_vert: int, radius: float, n_samples: int | None,
+                  fraction: float | None) -> int:
+    """Number of sampled vertices: from ``fraction``, ``n_samples`` or :func:`default_n_samples`."""
     if fraction is not None:
         if not (0 < fraction <= 1):
             raise NemoError(f"sample fraction must be in (0, 1], got {fraction}")
-        n = max(1, int(round(fraction * n_vert)))
-    elif n_samples is not None:
+        return max(1, int(round(fraction * n_vert)))
+    if n_samples is not None:
         if int(n_samples) < 1:
             raise NemoError(f"number of samples must be at least 1, got {n_samples}")
-        n = min(int(n_samples), n_vert)
-    else:
-        n = default_n_samples(n_vert, float(mesh.area), radius)
-    normals = vertex_normals(mesh)
+        return min(int(n_samples), n_vert)
+    return default_n_samples(n_vert, float(mesh.area), radius)
+
+
+def _draw_samples(normals: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Sorted sample vertices: ``n`` drawn among those with a usable normal (all of them if fewer)."""
     usable = np.flatnonzero(np.isfinite(normals[:, 0]))
     if len(usable) == 0:
         raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
     n = min(n, len(usable))
-    samples = np.sort(usable if n == len(usable) else rng.choice(usable, n, replace=False))
+    return np.sort(usable if n == len(usable) else rng.choice(usable, n, replace=False))
 
-    tree = cKDTree(vertices)
-    # chunk the samples so that the (sample, neighbour) pairs stay within memory bounds
+
+def _plan_fits(tree: cKDTree, vertices: np.ndarray, samples: np.ndarray, radius: float, fit: str,
+               rng: np.random.Generator) -> tuple[str, float, int]:
+    """The fit (``"auto"`` resolved), mean neighbours per sample and the samples per chunk.
+
+    Both come from the neighbour counts of up to 256 probe samples; the chunks keep the
+    (sample, neighbour) pairs within memory bounds.
+    """
     probe = samples[rng.choice(len(samples), min(len(samples), 256), replace=False)]
     probe_counts = tree.query_ball_point(vertices[probe], radius, return_length=True)
     per_sample = max(1.0, float(np.mean(probe_counts)))
     chunk = max(1, int(_PAIRS_PER_CHUNK // per_sample))
     if fit == "auto":
         fit = "quartic" if np.median(probe_counts) - 1 >= AUTO_QUARTIC_NEIGHBOURS else "quadratic"
-    unit = _pretty_unit(_unit_name(mesh))
+    return fit, per_sample, chunk
+
+
+def _fit_samples(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, samples: np.ndarray,
+                 radius: float, fit: str, chunk: int) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Fits at every sample, ``chunk`` samples at a time (:func:`_fit_chunk`).
+
+    Returns
+    -------
+    out : dict of ndarray, shape (S,)
+        ``H``, ``K``, ``k1``, ``k2`` and the neighbour ``count`` of each sample.
+    d1, d2 : ndarray, shape (S, 3)
+        Principal directions.
+    """
+    n = len(samples)
     out = {k: np.empty(n) for k in ("H", "K", "k1", "k2", "count")}
     d1 = np.empty((n, 3))
     d2 = np.empty((n, 3))
-    with step(f"curvature: {fit} fits at {n} of {n_vert} vertices (radius {radius:g} {unit}, "
-              f"~{per_sample:.0f} neighbours each)"):
-        for s in range(0, n, chunk):
-            sl = slice(s, s + chunk)
-            H, K, k1, k2, a1, a2, cnt = _fit_chunk(vertices, normals, tree, samples[sl], radius, fit)
-            out["H"][sl], out["K"][sl], out["k1"][sl], out["k2"][sl], out["count"][sl] = H, K, k1, k2, cnt
-            d1[sl], d2[sl] = a1, a2
+    for s in range(0, n, chunk):
+        sl = slice(s, s + chunk)
+        H, K, k1, k2, a1, a2, cnt = _fit_chunk(vertices, normals, tree, samples[sl], radius, fit)
+        out["H"][sl], out["K"][sl], out["k1"][sl], out["k2"][sl], out["count"][sl] = H, K, k1, k2, cnt
+        d1[sl], d2[sl] = a1, a2
+    return out, d1, d2
 
+
+def _warn_fit_problems(mesh: trimesh.Trimesh, out: dict, radius: float, vertices: np.ndarray, unit: str,
+                       fit: str) -> None:
+    """Warn (at the caller of :func:`curvature`) about too few neighbours, a radius too large
+    for the surface, and degenerate fits."""
     few = out["count"] < MIN_NEIGHBOURS
+    n = len(out["count"])
     if few.any():
         edge = mean_edge_length(mesh)
         warnings.warn(
@@ -394,7 +429,7 @@ def curvature(
             f"use a larger radius (the mean edge length is {edge:.3g} {unit}, try at least "
             f"{3 * edge:.2g} {unit})",
             NemoWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
     _warn_large_radius(radius, out["k1"], out["k2"], vertices, unit,
                        LARGE_RADIUS_RK * (2.0 if fit == "quartic" else 1.0))
@@ -404,23 +439,30 @@ def curvature(
             f"curvature: the fit was degenerate (neighbours nearly collinear) at {int(bad_fit.sum())} "
             f"sampled vertices; their H and K are NaN",
             NemoWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
 
-    with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
-        H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
+
+def _curvature_table(H: np.ndarray, K: np.ndarray, idx: np.ndarray, out: dict, d1: np.ndarray,
+                     d2: np.ndarray, samples: np.ndarray, normals: np.ndarray) -> pd.DataFrame:
+    """The curvature table: interpolated H, K and principal values/directions at every vertex.
+
+    A vertex takes the direction of its nearest sample projected onto its tangent plane;
+    sampled vertices keep their own fitted principal values and directions.
+    """
+    n_vert = len(normals)
     disc = np.sqrt(np.maximum(H * H - K, 0.0))
     k1, k2 = H + disc, H - disc
     # direction from the nearest sample, projected onto the vertex's tangent plane
     dir1 = d1[idx[:, 0]]
-    dir1 = _unit(dir1 - np.einsum("ij,ij->i", dir1, normals)[:, None] * normals)
+    dir1 = project_tangent(dir1, normals)
     dir2 = np.cross(normals, dir1)
     # sampled vertices keep their own fitted principal values and directions
     k1[samples], k2[samples] = out["k1"], out["k2"]
     dir1[samples], dir2[samples] = d1, d2
     sampled = np.zeros(n_vert, dtype=bool)
     sampled[samples] = True
-    df = pd.DataFrame(
+    return pd.DataFrame(
         {
             "vertex": np.arange(n_vert, dtype=np.int64),
             "H": H,
@@ -432,8 +474,6 @@ def curvature(
             "sampled": sampled,
         }
     )
-    df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp))
-    return df
 
 
 def _warn_large_radius(
@@ -452,7 +492,7 @@ def _warn_large_radius(
             f"{rk:.2g}, bounding-box diagonal {diag:.4g} {unit}): the fits span regions of changing "
             f"curvature and H, K are biased; use a radius of about {better:.2g} {unit} or less",
             NemoWarning,
-            stacklevel=3,
+            stacklevel=4,  # curvature -> _warn_fit_problems -> here
         )
 
 
@@ -520,7 +560,7 @@ def _ray_distance(
     miss = np.flatnonzero(tri < 0)
     if len(miss):
         # rays through an edge or vertex can slip between triangles: retry once, nudged sideways
-        t1, _ = tangent_basis(directions[miss])
+        t1, _ = axis_frames(directions[miss])
         retry = np.asarray(target.ray.intersects_first(start[miss] + 10 * eps * t1, directions[miss]), dtype=np.int64)
         tri[miss] = retry
     hit = tri >= 0

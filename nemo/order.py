@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames, project_tangent, unit_vectors
 from nemo.mesh import vertex_normals
 
 #: Upper bound on (target, director) pairs held at once.
@@ -33,12 +33,6 @@ _CHUNK_PAIRS = 4_000_000
 
 #: Index pairs of the 6 independent components of a symmetric 3 × 3 tensor.
 _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return v / norm
 
 
 def lift_q(n: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -111,7 +105,7 @@ def _director_arrays(mesh: trimesh.Trimesh | None, df: pd.DataFrame, name: str):
     if missing:
         raise NemoError(f"{name} lacks column(s) {', '.join(missing)}: is it a directors table?")
     pos = df[["x", "y", "z"]].to_numpy(dtype=np.float64)
-    n = _unit(df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64))
+    n = unit_vectors(df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64))
     ok = np.isfinite(pos).all(axis=1) & np.isfinite(n).all(axis=1)
     normals = None
     if mesh is not None:
@@ -290,9 +284,9 @@ def alignment(
         _check_overlap(dist, pos_a[ok_a])
     na, nb = n_a[ok_a], n_b[j]
     if normals is not None:
-        nrm = _unit(normals[ok_a])
-        na = _unit(na - np.einsum("ij,ij->i", na, nrm)[:, None] * nrm)
-        nb = _unit(nb - np.einsum("ij,ij->i", nb, nrm)[:, None] * nrm)
+        nrm = unit_vectors(normals[ok_a])
+        na = project_tangent(na, nrm)
+        nb = project_tangent(nb, nrm)
     dot = np.einsum("ij,ij->i", na, nb)
     c = np.clip(2.0 * dot**2 - 1.0, -1.0, 1.0)
     if max_distance is not None:

@@ -25,6 +25,7 @@ from scipy import ndimage
 
 from nemo._log import logger
 from nemo.errors import NemoError, NemoWarning
+from nemo.geometry import unit_vectors
 from nemo.io import check_spacing
 
 #: Sample points interpolated per chunk (bounds the temporary memory to ~100 MB).
@@ -198,6 +199,38 @@ def peel(
         Bad shapes, options or range; more than :data:`MAX_OUTSIDE_FRACTION` of the vertices
         outside the image box ``[0, (n − 1) d]`` (a mesh from another image or spacing).
     """
+    volume, spacing, vertices, normals, shift = _check_peel_args(
+        volume, spacing, vertices, normals, d_min, d_max, n_samples, reduce, interp, shift)
+    n = len(vertices)
+    upper = np.array(volume.shape, dtype=np.float64) - 1.0
+    _check_inside(vertices, upper[::-1] * spacing[::-1], spacing)
+
+    unit = unit_vectors(normals)  # a zero or NaN normal: NaN
+    no_normal = ~np.isfinite(unit).all(axis=1)
+    depths = sample_depths(d_min, d_max, n_samples)
+    offset = np.zeros(3)
+    if interp == "cubic":
+        order = 3
+        data, offset = _cubic_coefficients(volume, vertices, depths, shift, spacing)
+    else:
+        order = 1
+        data = volume
+    intensity, profile, n_outside, n_nan_voxel = _sample_segments(
+        data, order, offset, upper, spacing, vertices, unit, no_normal, depths, shift, reduce, return_profile)
+    _report_nan(intensity, n_outside, n_nan_voxel, shift, no_normal)
+    logger.debug("peeled %d vertices x %d depths", n, len(depths))
+    if return_profile:
+        return intensity, profile, depths
+    return intensity
+
+
+def _check_peel_args(volume, spacing, vertices, normals, d_min, d_max, n_samples, reduce, interp, shift):
+    """The arrays of :func:`peel` as float64 (volume as given), refused when shapes or options are bad.
+
+    Returns
+    -------
+    volume, spacing, vertices, normals, shift
+    """
     volume = np.asarray(volume)
     if volume.ndim != 3:
         raise NemoError(f"peel needs a 3-D (Z, Y, X) volume, got shape {volume.shape}")
@@ -227,21 +260,24 @@ def peel(
         shift = np.asarray(shift, dtype=np.float64)
         if shift.shape != (n,):
             raise NemoError(f"shift must have one value per vertex ({n}), got shape {shift.shape}")
-    upper = np.array(volume.shape, dtype=np.float64) - 1.0
-    _check_inside(vertices, upper[::-1] * spacing[::-1], spacing)
+    return volume, spacing, vertices, normals, shift
 
-    norm = np.linalg.norm(normals, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        unit = normals / np.where(norm > 0, norm, np.nan)
-    no_normal = ~np.isfinite(unit).all(axis=1)
-    depths = sample_depths(d_min, d_max, n_samples)
-    offset = np.zeros(3)
-    if interp == "cubic":
-        order = 3
-        data, offset = _cubic_coefficients(volume, vertices, depths, shift, spacing)
-    else:
-        order = 1
-        data = volume
+
+def _sample_segments(data, order, offset, upper, spacing, vertices, unit, no_normal, depths, shift, reduce,
+                     return_profile):
+    """Interpolate ``data`` along every vertex's segment, in chunks of vertices, and reduce.
+
+    ``data`` is the volume (linear) or the cubic coefficients of its part starting at voxel
+    ``offset``; ``upper`` is the last voxel index (z, y, x) of the whole volume.
+
+    Returns
+    -------
+    intensity : ndarray, shape (N,)
+    profile : ndarray, shape (N, n_samples) or None
+    n_outside, n_nan_voxel : int
+        Vertices with a segment leaving the image, or on NaN voxels (for the warning).
+    """
+    n = len(vertices)
     crop_upper = np.array(data.shape, dtype=np.float64) - 1.0
     intensity = np.empty(n, dtype=np.float64)
     profile = np.empty((n, len(depths)), dtype=np.float64) if return_profile else None
@@ -268,6 +304,14 @@ def peel(
             intensity[start:stop] = vals.mean(axis=1) if reduce == "mean" else vals.max(axis=1)
         if profile is not None:
             profile[start:stop] = vals
+    return intensity, profile, n_outside, n_nan_voxel
+
+
+def _report_nan(intensity: np.ndarray, n_outside: int, n_nan_voxel: int, shift: np.ndarray | None,
+                no_normal: np.ndarray) -> None:
+    """Refuse a layer that is NaN everywhere; warn (at the caller of :func:`peel`) with the causes
+    of the NaN vertices otherwise."""
+    n = len(intensity)
     n_nan = int(np.isnan(intensity).sum())
     if n_nan == n:
         raise NemoError(
@@ -283,12 +327,8 @@ def peel(
         warnings.warn(
             f"{n_nan} of {n} vertices ({100 * n_nan / n:.1f} %) have a NaN intensity: "
             + ", ".join(parts),
-            NemoWarning, stacklevel=2,
+            NemoWarning, stacklevel=3,
         )
-    logger.debug("peeled %d vertices x %d depths", n, len(depths))
-    if return_profile:
-        return intensity, profile, depths
-    return intensity
 
 
 def _check_inside(vertices: np.ndarray, box: np.ndarray, spacing: np.ndarray) -> None:

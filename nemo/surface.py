@@ -47,7 +47,8 @@ from scipy import ndimage as ndi
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from nemo._log import logger, step as log_step
+from nemo._log import logger
+from nemo._log import step as log_step
 from nemo.errors import NemoError, NemoWarning
 from nemo.io import check_spacing
 from nemo.mesh import (
@@ -59,8 +60,17 @@ from nemo.mesh import (
 )
 
 __all__ = [
-    "reconstruct", "split_mesh", "fit_sphere", "keep_components", "submesh", "face_components",
-    "default_sigma", "parse_threshold", "find_objects", "one_object", "OBJECT_MIN_AREA",
+    "OBJECT_MIN_AREA",
+    "default_sigma",
+    "face_components",
+    "find_objects",
+    "fit_sphere",
+    "keep_components",
+    "one_object",
+    "parse_threshold",
+    "reconstruct",
+    "split_mesh",
+    "submesh",
 ]
 
 _MAX_THRESHOLD_SAMPLES = 4_000_000
@@ -571,6 +581,51 @@ def reconstruct(
         Bad shapes or parameters; a constant (e.g. all-dark) image; a threshold or mask that
         selects no voxel or every voxel.
     """
+    (dz, dy, dx), step, sigma = _check_reconstruct_args(spacing, sigma, keep, edge, step, smooth_iter, pass_band)
+    source, shape, scale, mask = _source(volume, mask)
+
+    sig_vox = (sigma / dz, sigma / dy, sigma / dx)
+    with log_step(f"blurring {shape[0]}x{shape[1]}x{shape[2]} voxels (sigma {sigma:g} {unit})"):
+        field = _blur_sampled(source.view(np.uint8) if source.dtype == bool else source, sig_vox, step)
+    # marching cubes now runs at step 1 on the sampled grid (spacing x step): identical to
+    # scikit-image's step_size=step on the full blurred volume, at a fraction of the cost
+    sampled_shape = field.shape
+    padded = _pad_with_minimum(field)
+    del field
+    inner = padded[_PAD:-_PAD, _PAD:-_PAD, _PAD:-_PAD]
+    vmin, vmax = float(inner.min()), float(inner.max())
+    level, thr, how = _iso_level(inner, vmin, vmax, mask is not None, threshold, edge, scale)
+    logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
+    del inner
+
+    box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
+    vertices, faces = _marching_cubes(padded, level, (dz, dy, dx), step, box)
+    del padded
+    mesh = make_mesh(vertices, faces, unit=unit, orient_outward=False)
+    if signed_volume(mesh.vertices, mesh.faces) < 0:  # padded => closed => the solid has volume > 0
+        mesh.faces = mesh.faces[:, ::-1]
+    logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
+    mesh = keep_components(mesh, keep)
+    if smooth_iter > 0:
+        with log_step(f"Taubin smoothing ({smooth_iter} iterations, {len(mesh.vertices)} vertices)"):
+            mesh.vertices = np.clip(_taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band), 0.0, box)
+    mesh.metadata["nemo_surface"] = {
+        "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
+        "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
+        "spacing": [dz, dy, dx],
+    }
+    mesh.metadata.pop("parent_faces", None)
+    mesh.metadata.pop("parent_vertices", None)
+    mesh.metadata["spacing"] = (dz, dy, dx)  # saved in the PLY header: peel checks the image
+    return mesh
+
+
+#: Samples of padding (the blurred volume's minimum) around the sampled grid: closed surfaces.
+_PAD = 1
+
+
+def _check_reconstruct_args(spacing, sigma, keep, edge, step, smooth_iter, pass_band):
+    """Checked spacing ``(dz, dy, dx)``, step (int) and σ (default :func:`default_sigma`)."""
     dz, dy, dx = check_spacing(spacing)
     if keep not in ("largest", "all"):
         raise NemoError(f"keep must be 'largest' or 'all', got {keep!r}")
@@ -588,7 +643,20 @@ def reconstruct(
     sigma = float(sigma)
     if not np.isfinite(sigma) or sigma < 0:
         raise NemoError(f"sigma must be a length >= 0 (µm), got {sigma!r}")
+    return (dz, dy, dx), step, sigma
 
+
+def _source(volume: np.ndarray | None, mask: np.ndarray | None):
+    """What is blurred: the mask (bool) when given, else the image made float32-safe.
+
+    Returns
+    -------
+    source : ndarray, shape (Z, Y, X)
+    shape : tuple
+    scale : float
+        The factor the image was divided by (:func:`_float32_safe`; 1 for a mask).
+    mask : ndarray of bool or None
+    """
     if volume is not None:
         volume = np.asarray(volume)
         if volume.ndim != 3:
@@ -615,61 +683,78 @@ def reconstruct(
         shape = volume.shape
     if min(shape) < 2:
         raise NemoError(f"the stack {shape} is too thin for a surface: every axis needs at least 2 voxels")
+    return source, shape, scale, mask
 
-    sig_vox = (sigma / dz, sigma / dy, sigma / dx)
-    with log_step(f"blurring {shape[0]}x{shape[1]}x{shape[2]} voxels (sigma {sigma:g} {unit})"):
-        field = _blur_sampled(source.view(np.uint8) if source.dtype == bool else source, sig_vox, step)
-    # marching cubes now runs at step 1 on the sampled grid (spacing x step): identical to
-    # scikit-image's step_size=step on the full blurred volume, at a fraction of the cost
-    sampled_shape = field.shape
-    pad = 1
+
+def _pad_with_minimum(field: np.ndarray) -> np.ndarray:
+    """``field`` padded by :data:`_PAD` samples of its minimum (float32): objects touching the
+    border give closed surfaces."""
+    pad = _PAD
     padded = np.empty(tuple(s + 2 * pad for s in field.shape), dtype=np.float32)
     inner = padded[pad:-pad, pad:-pad, pad:-pad]
     inner[...] = field
-    del field
-    vmin, vmax = float(inner.min()), float(inner.max())
-
-    if mask is not None:
-        level, thr, how = 0.5, 0.5, "mask"
-        if not vmin < level < vmax:  # blur wider than the object
-            level = 0.5 * (vmin + vmax)
-    else:
-        how = parse_threshold(threshold)
-        if vmin == vmax:
-            raise NemoError(
-                f"the image is constant (every voxel = {vmin * scale:g}, e.g. an all-dark stack): no object to "
-                "threshold; check the time point/channel and the file, or give a `mask`"
-            )
-        if isinstance(how, str):
-            thr, level = _auto_level(inner, how, edge)
-        else:
-            thr = level = how / scale  # the volume was divided by scale (_float32_safe)
-        rng = f"blurred intensities {vmin * scale:.4g} to {vmax * scale:.4g}"
-        if level >= vmax:
-            raise NemoError(
-                f"threshold {threshold!r} (level {level * scale:.4g}) selects no voxel ({rng}): the object is "
-                "empty; lower `threshold`, use 'yen'/'otsu', or check the time point/channel"
-            )
-        if level <= vmin:
-            raise NemoError(
-                f"threshold {threshold!r} (level {level * scale:.4g}) selects every voxel ({rng}): there is no "
-                "boundary; raise `threshold` or use 'yen'/'otsu'"
-            )
-    logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
-    pad_value = vmin
+    pad_value = float(inner.min())
     padded[:pad] = pad_value
     padded[-pad:] = pad_value
     padded[:, :pad] = pad_value
     padded[:, -pad:] = pad_value
     padded[:, :, :pad] = pad_value
     padded[:, :, -pad:] = pad_value
+    return padded
 
+
+def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, threshold, edge: str,
+               scale: float) -> tuple[float, float, str | float]:
+    """Iso-level of the blurred (scaled) field, the threshold it came from and how it was found.
+
+    A mask is cut at 0.5 (mid-range when the blur is wider than the object); an automatic
+    threshold goes through :func:`_auto_level`; a number is used as given (divided by
+    ``scale``). Refused when the level selects no voxel or every voxel.
+    """
+    if from_mask:
+        level, thr, how = 0.5, 0.5, "mask"
+        if not vmin < level < vmax:  # blur wider than the object
+            level = 0.5 * (vmin + vmax)
+        return level, thr, how
+    how = parse_threshold(threshold)
+    if vmin == vmax:
+        raise NemoError(
+            f"the image is constant (every voxel = {vmin * scale:g}, e.g. an all-dark stack): no object to "
+            "threshold; check the time point/channel and the file, or give a `mask`"
+        )
+    if isinstance(how, str):
+        thr, level = _auto_level(inner, how, edge)
+    else:
+        thr = level = how / scale  # the volume was divided by scale (_float32_safe)
+    rng = f"blurred intensities {vmin * scale:.4g} to {vmax * scale:.4g}"
+    if level >= vmax:
+        raise NemoError(
+            f"threshold {threshold!r} (level {level * scale:.4g}) selects no voxel ({rng}): the object is "
+            "empty; lower `threshold`, use 'yen'/'otsu', or check the time point/channel"
+        )
+    if level <= vmin:
+        raise NemoError(
+            f"threshold {threshold!r} (level {level * scale:.4g}) selects every voxel ({rng}): there is no "
+            "boundary; raise `threshold` or use 'yen'/'otsu'"
+        )
+    return level, thr, how
+
+
+def _marching_cubes(padded: np.ndarray, level: float, spacing: tuple[float, float, float], step: int,
+                    box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes of the padded field: clean vertices (N, 3) in x, y, z and outward faces (F, 3).
+
+    Coincident vertices are merged, cancelling faces and non-manifold vertices repaired, unused
+    vertices dropped; the padding is removed from the coordinates and caps on the border are put
+    on the image's extent ``box``.
+    """
     from skimage import measure
 
+    dz, dy, dx = spacing
+    pad = _PAD
     with log_step(f"marching cubes (step {step} voxels)"):
         verts_zyx, faces, _, _ = measure.marching_cubes(padded, level, spacing=(dz * step, dy * step, dx * step),
                                                         allow_degenerate=False)
-    del padded, inner
     # Where the level equals a voxel value, marching cubes puts several vertices on the same
     # point (zero-area faces, zero normals): merge them and drop the faces that collapse and
     # the vertices no face uses any more.
@@ -684,28 +769,11 @@ def reconstruct(
     vertices = verts_zyx[:, ::-1] - pad * step * np.array([dx, dy, dz])
     # caps of objects cut by the border lie between the last sample and the pad: put them on
     # the border plane (the image's extent), also after smoothing
-    box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
     np.clip(vertices, 0.0, box, out=vertices)
     # swapping z and x is a reflection, which reverses the winding; re-reverse it so normals
     # point down the intensity gradient (out of the object).
     faces = np.ascontiguousarray(faces[:, ::-1], dtype=np.int64)
-    mesh = make_mesh(vertices, faces, unit=unit, orient_outward=False)
-    if signed_volume(mesh.vertices, mesh.faces) < 0:  # padded => closed => the solid has volume > 0
-        mesh.faces = mesh.faces[:, ::-1]
-    logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
-    mesh = keep_components(mesh, keep)
-    if smooth_iter > 0:
-        with log_step(f"Taubin smoothing ({smooth_iter} iterations, {len(mesh.vertices)} vertices)"):
-            mesh.vertices = np.clip(_taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band), 0.0, box)
-    mesh.metadata["nemo_surface"] = {
-        "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
-        "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
-        "spacing": [dz, dy, dx],
-    }
-    mesh.metadata.pop("parent_faces", None)
-    mesh.metadata.pop("parent_vertices", None)
-    mesh.metadata["spacing"] = (dz, dy, dx)  # saved in the PLY header: peel checks the image
-    return mesh
+    return vertices, faces
 
 
 # --------------------------------------------------------------------------- split

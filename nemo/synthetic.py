@@ -49,29 +49,29 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy import ndimage
-from scipy.special import erf
 from scipy.spatial.transform import Rotation
+from scipy.special import erf
 
 from nemo import atomic
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames
 from nemo.io import check_spacing
 
 __all__ = [
     "PRESETS",
-    "preset_defects",
-    "parse_defects",
     "check_defects",
-    "projection_pole",
     "director_field",
     "nematic_angle",
+    "parse_defects",
+    "preset_defects",
+    "projection_pole",
+    "read_truth",
     "trace_fibres",
+    "truth_directors",
+    "truth_path",
     "vesicle",
     "write_vesicle",
-    "truth_path",
-    "read_truth",
-    "truth_directors",
 ]
 
 _S3 = 1.0 / np.sqrt(3.0)
@@ -341,7 +341,7 @@ def nematic_angle(
     defect_dirs, charges, pole, phase
         As in :func:`director_field`.
     t1, t2 : array_like, shape (N, 3), optional
-        Tangent basis at each point. Default: :func:`nemo.frames.axis_frames` of the outward
+        Tangent basis at each point. Default: :func:`nemo.geometry.axis_frames` of the outward
         normal ``N`` (``t1 = N x x^``, ``N x y^`` when ``N`` is nearly parallel to ``x^``), the
         frames NEMO measures angles in, so that angles compare directly.
 
@@ -676,6 +676,42 @@ def vesicle(
         not fit in the requested volume.
     """
     params = {k: v for k, v in locals().items()}
+    R, fibre_length, sp, frames = _check_vesicle_numbers(
+        radius, spacing, fibre_spacing, fibre_length, shell_thickness, background, fibre_intensity, blur,
+        noise, frames)
+    d0, m0, g = _defect_set(defects, charges, rotate)
+    specs = _layer_specs(layers, layer_depth, second_layer_depth, second_layer_rotation,
+                         second_layer_channel, second_layer_defects, second_layer_charges, phase)
+    _place_layer_defects(specs, d0, m0, g)
+    channels = _check_channels(specs, channels)
+    shape, centre_zyx, margin = _volume_shape(R, specs, shell_thickness, blur, sp, margin, size)
+    _check_memory(shape, frames, channels)
+    centre = centre_zyx[::-1].copy()  # physical (x, y, z)
+
+    step_um = min(0.5, min(sp) / 2) if step_size is None else float(step_size)
+    if not step_um > 0:
+        raise NemoError(f"step_size must be > 0 µm, got {step_size!r}")
+    frame_rot = [_rotation_matrix(frame_axis, t * frame_rotation) for t in range(frames)]
+    root = np.random.SeedSequence(seed)
+    fibre_ss, noise_ss = root.spawn(2)
+    layer_rngs = [np.random.default_rng(s) for s in fibre_ss.spawn(len(specs))]
+    traced = _trace_layers(specs, R, fibre_spacing, fibre_length, step_um, layer_rngs)
+
+    shell_prof = _shell_profile(shape, sp, R, shell_thickness, blur, background)
+    noise_rngs = [np.random.default_rng(s) for s in noise_ss.spawn(frames * channels)]
+    data = _rasterise(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um, blur,
+                      fibre_intensity, noise, shell_prof, noise_rngs)
+
+    params.update(fibre_length=fibre_length, step_size=step_um, margin=margin, size=list(shape),
+                  channels=channels, frames=frames)
+    truth = _make_truth(R, centre, sp, shape, frames, channels, specs, frame_rot, g,
+                        shell_thickness, params)
+    return data, truth
+
+
+def _check_vesicle_numbers(radius, spacing, fibre_spacing, fibre_length, shell_thickness, background,
+                           fibre_intensity, blur, noise, frames):
+    """Checked radius R, fibre length (default R / 2), spacing and number of frames."""
     R = float(radius)
     if not np.isfinite(R) or R <= 0:
         raise NemoError(f"radius must be a positive number of µm, got {radius!r}")
@@ -691,9 +727,12 @@ def vesicle(
             raise NemoError(f"{name} must be >= 0, got {val!r}")
     if int(frames) != frames or frames < 1:
         raise NemoError(f"frames must be an integer >= 1, got {frames!r}")
-    frames = int(frames)
+    return R, fibre_length, sp, int(frames)
 
-    # defect set of the first layer
+
+def _defect_set(defects, charges, rotate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first layer's defect directions (K, 3) and charges (K,), and the rotation ``g`` (3, 3)
+    applied to every layer's defect set."""
     if defects is None or isinstance(defects, str):
         if charges is not None and defects is None:
             raise NemoError("charges given without defect positions: pass defects=(K, 3) too")
@@ -710,9 +749,12 @@ def vesicle(
         g = np.asarray(rotate, float)
         if g.shape != (3, 3) or not np.allclose(g @ g.T, np.eye(3), atol=1e-6) or np.linalg.det(g) < 0:
             raise NemoError("rotate must be a 3 x 3 rotation matrix or an integer seed")
+    return d0, m0, g
 
-    specs = _layer_specs(layers, layer_depth, second_layer_depth, second_layer_rotation,
-                         second_layer_channel, second_layer_defects, second_layer_charges, phase)
+
+def _place_layer_defects(specs: list[dict], d0: np.ndarray, m0: np.ndarray, g: np.ndarray) -> None:
+    """Give every layer spec its rotated defect directions ``dirs``, ``charges_`` and projection ``pole``
+    (its own defects, a preset, or the first layer's ``d0, m0``)."""
     for spec in specs:
         if spec["defects"] is None:
             d, m = d0, m0
@@ -725,6 +767,10 @@ def vesicle(
         spec["dirs"] = d @ g.T
         spec["charges_"] = m
         spec["pole"] = projection_pole(spec["dirs"])
+
+
+def _check_channels(specs: list[dict], channels: int | None) -> int:
+    """Number of channels: enough for the layers' channels by default, refused when too few."""
     n_ch = max(s["channel"] for s in specs) + 1
     if channels is None:
         channels = n_ch
@@ -736,14 +782,21 @@ def vesicle(
             f"a layer is assigned to channel {n_ch - 1} but the image has {channels} channel(s): "
             "raise channels or change the layer's channel"
         )
+    return channels
 
+
+def _volume_shape(R, specs, shell_thickness, blur, sp, margin, size):
+    """Volume shape (Z, Y, X), centre (z, y, x, µm) and margin; refused when the vesicle does not fit.
+
+    Warns (at the caller of :func:`vesicle`) about layers outside the background shell.
+    """
     deepest = max(s["depth"] for s in specs)
     outer = R + max(shell_thickness, deepest)
     for s in specs:
         if s["depth"] > shell_thickness:
             warnings.warn(
                 f"a fibre layer at depth {s['depth']:g} µm lies outside the {shell_thickness:g} µm "
-                "background shell", NemoWarning, stacklevel=2)
+                "background shell", NemoWarning, stacklevel=3)
     if margin is None:
         margin = max(0.075 * R, 4 * blur + 3 * max(sp))
     if size is None:
@@ -761,6 +814,11 @@ def vesicle(
             f"+ blur) needs {need:.1f} µm from the centre but the volume {shape[::-1]} (X, Y, Z) "
             f"voxels of {sp[::-1]} µm gives only {half:.1f} µm: increase size or decrease radius"
         )
+    return shape, centre_zyx, margin
+
+
+def _check_memory(shape: tuple[int, int, int], frames: int, channels: int) -> None:
+    """Refuse an image that would not fit in the available memory."""
     n_vox = int(np.prod(shape)) * frames * channels
     need = n_vox + 8 * int(np.prod(shape))  # uint8 result + the float32 working volume (+ filter)
     avail = _available_memory()
@@ -770,17 +828,13 @@ def vesicle(
             f"{channels} channel(s)) needs about {need / 1e9:.3g} GB of memory but {avail / 1e9:.3g} GB "
             "are available: reduce the size (`size`, `spacing`, `radius`), frames or channels"
         )
-    centre = centre_zyx[::-1].copy()  # physical (x, y, z)
 
-    step_um = min(0.5, min(sp) / 2) if step_size is None else float(step_size)
-    if not step_um > 0:
-        raise NemoError(f"step_size must be > 0 µm, got {step_size!r}")
-    frame_rot = [_rotation_matrix(frame_axis, t * frame_rotation) for t in range(frames)]
-    root = np.random.SeedSequence(seed)
-    fibre_ss, noise_ss = root.spawn(2)
-    layer_rngs = [np.random.default_rng(s) for s in fibre_ss.spawn(len(specs))]
 
-    # trace every layer once (frame 0); frames rotate the traced fibres rigidly
+def _trace_layers(specs, R, fibre_spacing, fibre_length, step_um, layer_rngs) -> list[np.ndarray]:
+    """Fibre points (µm, about the centre) of every layer, traced once for frame 0.
+
+    Frames rotate the traced fibres rigidly. Sets ``spec["n_fibres"]``.
+    """
     traced = []
     for i, spec in enumerate(specs):
         rl = R + spec["depth"]
@@ -793,26 +847,43 @@ def vesicle(
             )
         traced.append(pts * rl)
         spec["n_fibres"] = n_seeds
+    return traced
 
+
+#: Radial grid step (µm) of the tabulated shell profile; linear-interpolation error < 1e-6.
+_SHELL_DR = 0.005
+
+
+def _shell_profile(shape, sp, R, shell_thickness, blur, background) -> np.ndarray:
+    """Blurred background shell (0-255, float32) on a radial grid of :data:`_SHELL_DR` µm.
+
+    The exact blurred-ball formula, tabulated out to the volume's diagonal and interpolated
+    linearly by :func:`_rasterise`.
+    """
+    r_max = float(np.linalg.norm(np.array(shape) * np.array(sp))) + 1.0
+    dr = _SHELL_DR
+    r_grid = np.arange(0.0, r_max + 2 * dr, dr)
+    shell_prof = (_ball_blur(r_grid, R + shell_thickness, blur) - _ball_blur(r_grid, R, blur))
+    return (255.0 * background * shell_prof).astype(np.float32)
+
+
+def _rasterise(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um, blur,
+               fibre_intensity, noise, shell_prof, noise_rngs) -> np.ndarray:
+    """The uint8 image (T, Z, C, Y, X): per frame and channel, the channel's fibres splatted and
+    blurred, plus the shell profile and noise, slab by slab."""
+    frames = len(frame_rot)
     data = np.zeros((frames, shape[0], channels, shape[1], shape[2]), np.uint8)
     # trilinear splatting already spreads a fibre by a hat kernel of variance d^2/6 per axis:
     # blur by the rest so that the total is the requested isotropic physical sigma
     sigma_vox = tuple(np.sqrt(max(blur**2 - d * d / 6.0, 0.0)) / d for d in sp)
     norm = 2 * np.pi * blur**2 if blur > 0 else float(np.prod(sp)) ** (2.0 / 3.0)
     weight = step_um / float(np.prod(sp))  # fibre length per voxel volume (µm / µm³)
-    # analytic blurred-shell profile on a fine radial grid (exact formula, interpolated)
-    r_max = float(np.linalg.norm(np.array(shape) * np.array(sp))) + 1.0
-    dr = 0.005  # radial grid step (µm) of the tabulated profile; linear-interpolation error < 1e-6
-    inv_dr = np.float32(1.0 / dr)
-    r_grid = np.arange(0.0, r_max + 2 * dr, dr)
-    shell_prof = (_ball_blur(r_grid, R + shell_thickness, blur) - _ball_blur(r_grid, R, blur))
-    shell_prof = (255.0 * background * shell_prof).astype(np.float32)
+    inv_dr = np.float32(1.0 / _SHELL_DR)
     zz = np.arange(shape[0]) * sp[0] - centre_zyx[0]
     yy = (np.arange(shape[1]) * sp[1] - centre_zyx[1])[:, None]
     xx = (np.arange(shape[2]) * sp[2] - centre_zyx[2])[None, :]
     rho2 = (yy**2 + xx**2).astype(np.float32)
     scale = np.float32(255.0 * fibre_intensity * norm)
-    noise_rngs = [np.random.default_rng(s) for s in noise_ss.spawn(frames * channels)]
     vol = np.zeros(shape, np.float32) if any(s["channel"] < channels for s in specs) else None
     for t in range(frames):
         for c in range(channels):
@@ -838,12 +909,7 @@ def vesicle(
                         img += np.float32(noise) * nrng.standard_normal(img.shape, dtype=np.float32)
                     np.clip(img, 0.0, 255.0, out=img)
                     data[t, z, c] = np.rint(img).astype(np.uint8)
-
-    params.update(fibre_length=fibre_length, step_size=step_um, margin=margin, size=list(shape),
-                  channels=channels, frames=frames)
-    truth = _make_truth(R, centre, sp, shape, frames, channels, specs, frame_rot, g,
-                        shell_thickness, params)
-    return data, truth
+    return data
 
 
 def _jsonable(v):

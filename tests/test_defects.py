@@ -22,17 +22,14 @@ from sparse_fields import stereo_field
 
 from nemo.defects import (
     CANDIDATE_COLUMNS,
-    boundary_loop,
     candidate_table,
-    edge_graph,
     find_defects,
-    geodesic_ball,
     noise_floor,
     step_limit_deg,
-    tangent_basis,
     winding_steps,
 )
 from nemo.errors import NemoError
+from nemo.geometry import edge_graph, geodesic_ball
 
 TETRA = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / math.sqrt(3)
 OCTA = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0, 0, -1]], float)
@@ -153,26 +150,6 @@ def test_winding_exact_vs_small_angle(m):
     # head-tail symmetry: flipping random directors changes nothing
     flip = np.where(np.random.default_rng(0).random(n_pts) < 0.5, -1.0, 1.0)[:, None]
     assert winding_steps(dirs * flip, normals).sum() / (2 * np.pi) == pytest.approx(m, abs=1e-12)
-
-
-def test_boundary_loop_is_ccw_ring_of_edges():
-    mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
-    graph = edge_graph(mesh)
-    v = 17
-    idx, dist = geodesic_ball(graph, v, 30.0)
-    inside = np.zeros(len(mesh.vertices), bool)
-    inside[idx[dist < 20.0]] = True
-    loop, _ = boundary_loop(np.asarray(mesh.faces), inside)
-    assert loop is not None and len(loop) > 20
-    edges = {tuple(sorted(e)) for e in mesh.edges_unique.tolist()}
-    assert all(tuple(sorted((a, b))) in edges for a, b in zip(loop, np.roll(loop, -1)))
-    t1, t2 = tangent_basis(mesh.vertex_normals[v])
-    rel = mesh.vertices[loop] - mesh.vertices[v]
-    ang = np.unwrap(np.arctan2(rel @ t2, rel @ t1))
-    assert ang[-1] - ang[0] > 1.8 * np.pi  # counter-clockwise seen from the outward normal
-    # geodesic distances along edges: the contour lies just inside the radius
-    d = dict(zip(idx.tolist(), dist.tolist()))
-    assert all(15.0 < d[i] < 20.0 for i in loop)
 
 
 # ------------------------------------------------------------------------------------------------

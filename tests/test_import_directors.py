@@ -15,7 +15,7 @@ import trimesh
 
 from nemo import config
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames
 from nemo.import_directors import import_directors, nematic_mean, read_points
 from nemo.mesh import make_mesh, mean_edge_length, save_mesh, vertex_normals
 from nemo.tables import SCHEMAS, read_provenance, read_table

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames
 from nemo.mesh import make_mesh, save_mesh, vertex_normals
 from nemo.order import alignment, lift_q, order, tangential_eig
 from nemo.tables import read_table, write_table

@@ -5,7 +5,7 @@
 4. marching cubes at a level equal to voxel values gives no zero-area faces, zero normals,
    fake S = 0 or NaN layers;
 6. NaN voxels give a clear error (mesh) or are counted apart (peel);
-7. one tangent-frame construction (nemo.frames.axis_frames) everywhere;
+7. one tangent-frame construction (nemo.geometry.axis_frames) everywhere;
 and the quality items with a testable behaviour (9, 10, 12, 15).
 """
 
@@ -19,7 +19,7 @@ import trimesh
 
 from nemo.cli import main as nemo_main
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames
 from nemo.io import write_hyperstack
 from nemo.mesh import load_mesh, make_mesh, save_mesh, vertex_normals
 from nemo.tables import read_provenance, read_table, write_table
@@ -242,7 +242,7 @@ def test_peel_counts_nan_voxels_apart_from_outside(shell):
 
 # ---------------------------------------------------------------------------------- item 7
 def test_one_axis_frame_construction():
-    from nemo.morphology import tangent_basis
+    from nemo.geometry import axis_frames as tangent_basis
     from nemo.synthetic import nematic_angle, preset_defects
 
     normals = np.array([[0.93, 0.3, 0.21], [1.0, 0, 0], [0, 0, 1.0], [-0.2, 0.97, 0.1]])

@@ -10,7 +10,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from nemo.errors import NemoError, NemoWarning
-from nemo.frames import axis_frames
+from nemo.geometry import axis_frames
 from nemo.io import read_info, read_stack
 from nemo.synthetic import (
     PRESETS,
@@ -191,7 +191,7 @@ def test_nematic_angle_basis(rng):
     rebuilt = np.cos(th)[:, None] * t1 + np.sin(th)[:, None] * t2
     assert np.all(np.abs(np.einsum("ij,ij->i", rebuilt, n)) > 1 - 1e-12)
     assert th.min() >= 0 and th.max() < np.pi
-    # the documented default basis is NEMO's one axis construction, nemo.frames.axis_frames,
+    # the documented default basis is NEMO's one axis construction, nemo.geometry.axis_frames,
     # including near N ∥ x^ where the x^/y^ switch happens (N = (0.93, 0.3, 0.21): once 123° vs 86°)
     p = np.vstack([p, [[0.93, 0.3, 0.21]], [[1.0, 0.0, 0.0]], [[-0.95, 0.0, 0.31]]])
     p /= np.linalg.norm(p, axis=1, keepdims=True)

@@ -104,7 +104,7 @@ def _add_import_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("points", help="director field at points (.csv, .tsv, .parquet, .npy, .npz)")
     parser.add_argument("--basis", choices=("axis", "local", "frames"),
                         help="tangent basis of an angle column: axis (e1 = the projection of --axis), local "
-                             "(e1 = columns e1x, e1y, e1z), frames (NEMO's own: e1 = N × x̂, nemo.frames)")
+                             "(e1 = columns e1x, e1y, e1z), frames (NEMO's own: e1 = N × x̂, nemo.geometry)")
     parser.add_argument("--axis", type=number, nargs=3, metavar=("X", "Y", "Z"),
                         help="the fixed axis of --basis axis (e.g. 1 0 0)")
     parser.add_argument("--angle-unit", choices=("degrees", "radians"), help="unit of an angle column")
