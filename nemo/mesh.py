@@ -30,6 +30,7 @@ from nemo.errors import NemoError, NemoWarning
 
 _UNIT_COMMENT = re.compile(rb"comment nemo unit (\S+)")
 _SPACING_COMMENT = re.compile(rb"comment nemo spacing (\S+) (\S+) (\S+)")
+_PARAMS_COMMENT = re.compile(rb"\ncomment nemo params ([^\n]*)")
 _XYZ = ("x", "y", "z")
 _PLY_SKIP = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha"}
 
@@ -234,7 +235,13 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
     if match:
         mesh.metadata["spacing"] = tuple(float(v) for v in match.groups())
     # written by nemo's mesh step (outward normals by construction: no orientation check needed)
-    mesh.metadata["nemo_surface"] = b"\ncomment nemo params " in header
+    match = _PARAMS_COMMENT.search(header)
+    mesh.metadata["nemo_surface"] = match is not None
+    if match:
+        try:
+            mesh.metadata["nemo_params"] = json.loads(match.group(1).decode())
+        except (ValueError, UnicodeDecodeError):  # provenance only: an edited comment is no error
+            pass
     ply_raw = loaded.metadata.get("_ply_raw", {})
     vertex_data = ply_raw.get("vertex", {}).get("data")
     if isinstance(vertex_data, dict):  # ASCII PLY: trimesh returns a dict of arrays

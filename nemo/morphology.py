@@ -774,6 +774,12 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
     }
 
 
+def _image_quality(mesh: trimesh.Trimesh) -> dict:
+    """What NEMO's mesh step found in the image (None for meshes from elsewhere)."""
+    params = mesh.metadata.get("nemo_params") or {}
+    return {key: params.get(key) for key in ("n_objects", "snr", "noise")}
+
+
 def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> dict:
     """Global morphology of a surface.
 
@@ -796,7 +802,8 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         ``gauss_bonnet_ratio`` ((∫K dA + ∫k_g ds) / 2πχ; None when χ = 0), ``mean_H``
         (area-weighted, from the dihedral angles: ∫H dA = ½ Σ_edges ℓ θ), ``mean_K``, and with
         ``curvature_df``: ``integral_K_fit``, ``gauss_bonnet_ratio_fit``, ``mean_H_fit``,
-        ``mean_K_fit``; ``notes`` (list of str). Coincident vertices are merged (and the faces
+        ``mean_K_fit``; ``n_objects``, ``snr`` and ``noise`` of the image the mesh was made
+        from (NEMO's mesh step; None otherwise); ``notes`` (list of str). Coincident vertices are merged (and the faces
         they collapse ignored) for the topology and the angles.
     """
     check_mesh(mesh, manifold=False)  # a diagnostic: it reports a non-manifold surface in its notes
@@ -855,6 +862,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         "gauss_bonnet_ratio": gb,
         "mean_H": mean_h,
         "mean_K": integral_k / area if area > 0 else None,
+        **_image_quality(mesh),
     }
     if curvature_df is not None:
         if len(curvature_df) != n_vertices_in or "K" not in curvature_df or "H" not in curvature_df:

@@ -83,14 +83,17 @@ def mesh(
     meshes : dict
         ``whole`` and, when split, ``inner`` and ``outer`` (trimesh.Trimesh, physical x, y, z).
     resolved : dict
-        The section with ``step`` and ``sigma`` as numbers and the iso-level used.
+        The section with ``step`` and ``sigma`` as numbers, the iso-level used, the image's
+        ``noise`` and ``snr`` (:func:`nemo.surface.image_noise`; None with a mask) and
+        ``n_objects`` (:func:`nemo.surface.find_objects`).
 
     Raises
     ------
     NemoError
         Bad parameters or image (:func:`nemo.surface.reconstruct`); several objects with a split.
     """
-    from nemo.surface import default_sigma, face_components, one_object, reconstruct, split_mesh, submesh
+    from nemo.surface import (default_sigma, face_components, image_noise, one_object, reconstruct, split_mesh,
+                              submesh)
 
     p = nconfig.section("mesh", params)
     shape = (volume if volume is not None else mask).shape
@@ -103,7 +106,9 @@ def mesh(
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit)
     whole.metadata["nemo_surface"]["keep"] = p["keep"]
     p["level"] = float(whole.metadata["nemo_surface"]["level"])
+    p.update(image_noise(volume, p["level"]) if volume is not None and mask is None else {"noise": None, "snr": None})
     whole = one_object(whole, split, p["keep"])  # several objects: an error (split) or the largest
+    p["n_objects"] = int(whole.metadata["n_objects"])
     meshes = {"whole": whole}
     if split:
         inner, outer = split_mesh(whole, by=p["split"], axis=p["axis"], centre=centre, keep=p["keep"])

@@ -4,7 +4,7 @@ The workflow writes one folder per time point and channel (``results/{dataset}/t
 these functions collect the per-frame tables into ``results/{dataset}/summary/``:
 
 * :func:`frame_summary` -> ``frames.parquet``: one row per (t, c, layer) with the surface's
-  area, volume, Euler characteristic, mean H and K, mean thickness, mean layer intensity,
+  objects found and signal-to-noise ratio of the image, area, volume, Euler characteristic, mean H and K, mean thickness, mean layer intensity,
   director count and coherency, mean S, number of defects, their total charge and the frame's
   quality control (``qc_pass``, ``qc_flags``);
 * :func:`collect_defects` -> the defects of all frames with ``t``, ``c``, ``layer`` columns
@@ -30,7 +30,8 @@ from nemo.tables import read_table
 
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
-    "t", "c", "layer", "surface", "area", "volume", "euler_characteristic", "H_mean", "K_mean",
+    "t", "c", "layer", "surface", "n_objects", "snr", "area", "volume", "euler_characteristic", "H_mean",
+    "K_mean",
     "H_fit_mean", "K_fit_mean", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
     "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
@@ -51,6 +52,9 @@ QC_MAX_NAN_FRACTION = 0.05
 #: Lowest median director coherency that passes: below it the layer's micro-images show
 #: hardly any orientation (noise, or no fibres at that depth).
 QC_MIN_COHERENCY = 0.2
+#: Lowest signal-to-noise ratio of the segmented channel that passes (the issue's realistic
+#: range is 3-10; below 3 the surface itself is uncertain).
+QC_MIN_SNR = 3.0
 #: Columns of defects.parquet before tracking (``nemo track`` appends ``track_id``).
 DEFECT_COLUMNS = ("t", "c", "layer", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
                   "charge_winding", "charge_curvature")
@@ -122,7 +126,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         ``order_nan_fraction``, ``coherency_median`` where computed).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
-        ``n_boundary_loops``).
+        ``n_boundary_loops``, ``n_objects``).
 
     Returns
     -------
@@ -133,6 +137,11 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     flags = []
     chi = row.get("euler_characteristic", math.nan)
     closed = not measure.get("n_boundary_loops")
+    if (measure.get("n_objects") or 1) > 1:
+        flags.append(f"{measure['n_objects']} objects in the image (see the mesh step's warning)")
+    snr = row.get("snr", math.nan)
+    if np.isfinite(snr) and snr < QC_MIN_SNR:
+        flags.append(f"low signal-to-noise ratio {snr:.1f} in the segmented channel")
     if (measure.get("n_components") or 1) > 1:
         flags.append(f"surface has {measure['n_components']} pieces")
     if closed and np.isfinite(chi) and chi < QC_MIN_EULER:
@@ -183,6 +192,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
                "surface": str(r["surface"]), "area": _num(m.get("area")),
                "volume": _num(m.get("volume")),
                "euler_characteristic": _num(m.get("euler_characteristic")),
+               "n_objects": m.get("n_objects"), "snr": _num(m.get("snr")),
                "H_mean": _num(m.get("mean_H")), "K_mean": _num(m.get("mean_K"))}
         if r.get("curvature"):
             cur = read_table(r["curvature"], "curvature")

@@ -256,6 +256,41 @@ def _describe_objects(objects: list[dict], unit: str) -> str:
         f"({o['centre'][0]:.4g}, {o['centre'][1]:.4g}, {o['centre'][2]:.4g})" for o in objects)
 
 
+#: Most voxels :func:`image_noise` looks at (a strided sample; robust statistics need no more).
+NOISE_SAMPLE_VOXELS = 4_000_000
+#: MAD to standard deviation for Gaussian noise.
+MAD_TO_SIGMA = 1.4826
+
+
+def image_noise(volume: np.ndarray, level: float) -> dict:
+    """Background noise and signal-to-noise ratio of a stack, split at the surface's iso-level.
+
+    Parameters
+    ----------
+    volume : ndarray, shape (Z, Y, X)
+        The raw (unblurred) segmented channel.
+    level : float
+        The iso-level of the surface (in ``volume``'s intensity units).
+
+    Returns
+    -------
+    dict
+        ``noise``: the background's robust spread, 1.4826 × median absolute deviation of the
+        voxels below ``level``; ``snr``: (median of the voxels at or above ``level`` − median
+        background) / ``noise``. None where undefined (no noise, or too few voxels on a side).
+    """
+    step = max(1, int(np.ceil((volume.size / NOISE_SAMPLE_VOXELS) ** (1 / 3))))
+    sample = np.asarray(volume[::step, ::step, ::step], dtype=np.float64).ravel()
+    sample = sample[np.isfinite(sample)]
+    background, foreground = sample[sample < level], sample[sample >= level]
+    if background.size < 10 or foreground.size < 10:
+        return {"noise": None, "snr": None}
+    centre = float(np.median(background))
+    noise = MAD_TO_SIGMA * float(np.median(np.abs(background - centre)))
+    snr = (float(np.median(foreground)) - centre) / noise if noise > 0 else None
+    return {"noise": noise, "snr": snr}
+
+
 def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all"] = "largest",
                min_fraction: float = OBJECT_MIN_AREA) -> trimesh.Trimesh:
     """Check that a reconstructed surface holds one object (:func:`find_objects`) before analysis.
@@ -276,7 +311,8 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
     Returns
     -------
     trimesh.Trimesh
-        The surface to analyse, with ``mesh``'s metadata.
+        The surface to analyse, with ``mesh``'s metadata and ``metadata["n_objects"]``, the
+        number of objects found (also recorded in ``mesh.metadata``).
 
     Raises
     ------
@@ -284,6 +320,7 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
         ``split`` with ``keep="all"`` and several objects.
     """
     objects = find_objects(mesh, min_fraction)
+    mesh.metadata["n_objects"] = len(objects)  # carried to the result (quality control)
     unit = getattr(mesh, "units", None) or "um"
     if len(objects) < 2 or keep == "all":
         if len(objects) > 1 and split:

@@ -111,13 +111,37 @@ def _balls(shape, spheres, sigma=1.0):
 TWO_SHELLS = [(20, 20, 20, 9, 14), (56, 20, 20, 9, 14)]
 
 
+@pytest.mark.parametrize("sigma_noise", [5.0, 20.0])
+def test_mesh_step_measures_the_noise_and_snr_it_meshes_through(sigma_noise, tmp_path):
+    """A shell of contrast 200 in Gaussian noise σ: noise ≈ σ and SNR ≈ 200/σ (the median
+    object voxel is the shell's plateau), recorded with the mesh and reported by measure."""
+    from nemo.mesh import load_mesh, save_mesh
+    from nemo.morphology import measure
+
+    rng = np.random.default_rng(4)
+    clean = _balls((40, 40, 40), [(20, 20, 20, 8, 14)], sigma=0.5)
+    vol = 100 + clean + rng.normal(0, sigma_noise, clean.shape)
+    meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "none"})
+    assert params["n_objects"] == 1
+    assert params["noise"] == pytest.approx(sigma_noise, rel=0.1)
+    assert params["snr"] == pytest.approx(200 / sigma_noise, rel=0.15)
+    meshes["whole"].metadata["nemo_params"] = params
+    save_mesh(meshes["whole"], tmp_path / "m.ply")
+    m = measure(load_mesh(tmp_path / "m.ply"))
+    assert m["n_objects"] == 1 and m["snr"] == pytest.approx(params["snr"])
+    _, masked = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none"}, mask=clean > 100)
+    assert masked["snr"] is None and masked["n_objects"] == 1
+
+
 def test_mesh_split_of_two_objects_keeps_the_largest_or_refuses_to_mix_them():
     from nemo.errors import NemoWarning
     from nemo.morphology import measure
 
     vol = _balls((40, 40, 76), [(20, 20, 20, 10, 14), (56, 20, 20, 7, 10)])  # two hollow shells
     with pytest.warns(NemoWarning, match=r"2 objects: analysing the largest .*centred at \(56, 20, 20\)"):
-        meshes, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})  # keep: largest (default)
+        meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})  # keep: largest (default)
+    assert params["n_objects"] == 2
+    assert params["noise"] == 0 and params["snr"] is None  # a noise-free image: no ratio
     for wall, radius in (("inner", 10), ("outer", 14)):  # the larger shell's walls, nothing of the other
         assert measure(meshes[wall])["euler_characteristic"] == 2
         assert stages.object_radius(meshes[wall]) == pytest.approx(radius, abs=0.6)

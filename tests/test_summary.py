@@ -123,6 +123,9 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"order_nan_fraction": 0.5}, CLOSED,
      ["50 % of vertices have no order value (no tangent plane or director in reach)"]),
     ({"coherency_median": 0.12}, CLOSED, ["median director coherency 0.12: hardly any orientation"]),
+    ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
+    ({"snr": 3.0}, {**CLOSED, "n_objects": 1}, []),
+    ({}, {**CLOSED, "n_objects": 3}, ["3 objects in the image (see the mesh step's warning)"]),
 ])
 def test_quality_flags_name_each_reason(change, measure, expected):
     assert quality_flags({**GOOD, **change}, measure) == expected
