@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 import warnings
 
 import numpy as np
@@ -69,6 +71,28 @@ def _png(path):
 
 def _colour_labels(fig) -> set[str]:
     return {ax.get_ylabel() for ax in fig.axes} | {ax.get_xlabel() for ax in fig.axes}
+
+
+# ------------------------------------------------------------------------------ package layout
+
+
+def test_package_reexports_and_imports_stay_light():
+    """``nemo.render`` re-exports its modules' names and the discovery of ``nemo.layout``;
+    importing it loads no plotting library, importing ``nemo.layout`` (the workflow does) no
+    numerical one."""
+    import nemo.layout
+    import nemo.render
+
+    assert nemo.render.discover_frame is nemo.layout.discover_frame
+    assert nemo.render.find_frames is nemo.layout.find_frames
+    assert nemo.render.FrameFiles is nemo.layout.FrameFiles
+    assert all(hasattr(nemo.render, name) for name in nemo.render.__all__)
+    code = ("import json, sys; import nemo.layout; a = sorted(sys.modules); import nemo.render; "
+            "print(json.dumps([a, sorted(sys.modules)]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    after_layout, after_render = ({m.split(".")[0] for m in mods} for mods in json.loads(out))
+    assert not after_layout & {"numpy", "pandas", "scipy", "pyarrow", "trimesh"}
+    assert not after_render & {"matplotlib", "pyvista", "vtk", "vtkmodules"}
 
 
 # ------------------------------------------------------------------------------ discovery

@@ -48,12 +48,8 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from nemo.errors import NemoError
-    from nemo.render import (
-        discover_frame,
-        planned_figures,
-        render_frame,
-        render_summary,
-    )
+    from nemo.layout import discover_frame
+    from nemo.render import planned_figures, render_frame, render_summary
 
     if args.summary:
         if args.list:

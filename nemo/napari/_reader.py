@@ -18,7 +18,7 @@ def get_reader(path):
     p = _one_path(path)
     if p is None or not Path(p).is_dir():
         return None
-    from nemo.render import find_frames
+    from nemo.layout import find_frames
 
     try:
         find_frames(p)

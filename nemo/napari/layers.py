@@ -22,12 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from nemo.errors import NemoError, NemoWarning
+from nemo.layout import discover_frame, find_frames
 from nemo.render import (
     FIELD_CMAPS,
     Frame,
     charge_text,
-    discover_frame,
-    find_frames,
     glyph_spacing,
     load_frame,
     robust_limits,
