@@ -80,7 +80,8 @@ class ImageInfo:
         return d
 
 
-def _unit_scale(unit: str | None) -> float | None:
+def unit_scale(unit: str | None) -> float | None:
+    """Micrometres per ``unit`` (None for an unknown unit or None)."""
     if unit is None:
         return None
     return _UNIT_TO_UM.get(unit.strip().lower().replace("\\u00b5", "µ"))
@@ -128,7 +129,7 @@ def _calibration(vals: list[float | None], units: list[str | None]) -> tuple[tup
     dz = vals[0] if vals[0] is not None else vals[2]
     if not any(units):
         return (float(dz), float(vals[1]), float(vals[2])), "pixel", False
-    scales = [_unit_scale(u) if u else None for u in units]
+    scales = [unit_scale(u) if u else None for u in units]
     if all(s is not None for s, v in zip(scales, vals) if v is not None):
         dz = vals[0] * scales[0] if vals[0] is not None else vals[2] * scales[2]
         return (dz, vals[1] * scales[1], vals[2] * scales[2]), "um", True
@@ -174,7 +175,7 @@ def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, floa
             NemoWarning, stacklevel=3,
         )
     dz = float(dz) if dz is not None else dx
-    scale = _unit_scale(unit)
+    scale = unit_scale(unit)
     if scale is None:
         return (dz, dy, dx), (unit or "pixel"), unit is not None
     return (dz * scale, dy * scale, dx * scale), "um", True

@@ -231,6 +231,7 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
     mesh = trimesh.Trimesh(vertices=loaded.vertices, faces=loaded.faces, process=False)
     match = _UNIT_COMMENT.search(header)
     mesh.units = match.group(1).decode() if match else "um"
+    mesh.metadata["unit_in_file"] = match is not None
     match = _SPACING_COMMENT.search(header)
     if match:
         mesh.metadata["spacing"] = tuple(float(v) for v in match.groups())
@@ -257,13 +258,29 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
     return mesh
 
 
+def _load_other(path: Path, kind: str) -> trimesh.Trimesh:
+    """An OBJ or STL surface (no unit in the file: ``units`` "um", ``unit_in_file`` False)."""
+    try:
+        loaded = trimesh.load(path, file_type=kind, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types on corrupt files
+        raise NemoError(f"{path} is a corrupt {kind.upper()} file ({exc}); re-export it") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise NemoError(f"{path} holds no triangles; NEMO needs a triangle mesh")
+    mesh = trimesh.Trimesh(vertices=loaded.vertices, faces=loaded.faces, process=False)
+    if kind == "stl":  # STL stores every triangle's corners apart: weld them into one surface
+        mesh.merge_vertices()
+    mesh.units = "um"
+    mesh.metadata["unit_in_file"] = False
+    return mesh
+
+
 def load_mesh(path: str | os.PathLike, unit: str | None = None, manifold: bool = True) -> trimesh.Trimesh:
     """Read a PLY or OBJ surface and check it is usable.
 
     Parameters
     ----------
     path : path-like
-        ``.ply`` (NEMO's or any other program's) or ``.obj``.
+        ``.ply`` (NEMO's or any other program's), ``.obj`` or ``.stl``.
     unit : str, optional
         Unit to assume when the file does not say (default ``"um"``).
     manifold : bool
@@ -274,7 +291,8 @@ def load_mesh(path: str | os.PathLike, unit: str | None = None, manifold: bool =
     Returns
     -------
     trimesh.Trimesh
-        With ``units`` and any per-vertex fields found in the file.
+        With ``units`` and any per-vertex fields found in the file; ``metadata["unit_in_file"]``
+        says whether the file named its unit (NEMO's PLY comment) or ``units`` is the default.
 
     Raises
     ------
@@ -288,17 +306,10 @@ def load_mesh(path: str | os.PathLike, unit: str | None = None, manifold: bool =
     suffix = path.suffix.lower()
     if suffix == ".ply":
         mesh = _load_ply(path)
-    elif suffix == ".obj":
-        try:
-            loaded = trimesh.load(path, file_type="obj", process=False, force="mesh")
-        except Exception as exc:
-            raise NemoError(f"{path} is a corrupt OBJ file ({exc}); re-export it") from None
-        if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-            raise NemoError(f"{path} holds no triangles; NEMO needs a triangle mesh")
-        mesh = trimesh.Trimesh(vertices=loaded.vertices, faces=loaded.faces, process=False)
-        mesh.units = "um"
+    elif suffix in (".obj", ".stl"):
+        mesh = _load_other(path, suffix[1:])
     else:
-        raise NemoError(f"cannot read mesh {path}: NEMO reads .ply and .obj meshes")
+        raise NemoError(f"cannot read mesh {path}: NEMO reads .ply, .obj and .stl meshes")
     if unit is not None:
         mesh.units = unit
     trusted = mesh.metadata.get("nemo_surface") is True  # written by NEMO's mesh step: manifold

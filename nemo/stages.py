@@ -27,6 +27,7 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 
 from __future__ import annotations
 
+import os
 
 import numpy as np
 import pandas as pd
@@ -92,8 +93,7 @@ def mesh(
     NemoError
         Bad parameters or image (:func:`nemo.surface.reconstruct`); several objects with a split.
     """
-    from nemo.surface import (default_sigma, face_components, image_noise, one_object, reconstruct, split_mesh,
-                              submesh)
+    from nemo.surface import default_sigma, image_noise, one_object, reconstruct
 
     p = nconfig.section("mesh", params)
     shape = (volume if volume is not None else mask).shape
@@ -101,16 +101,22 @@ def mesh(
         p["step"] = 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
     if p["sigma"] is None:
         p["sigma"] = default_sigma(spacing, p["step"])
-    split = p["split"] != "none"
     whole = reconstruct(volume, spacing, sigma=float(p["sigma"]), threshold=p["threshold"], mask=mask,
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit)
     whole.metadata["nemo_surface"]["keep"] = p["keep"]
     p["level"] = float(whole.metadata["nemo_surface"]["level"])
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None else {"noise": None, "snr": None})
-    whole = one_object(whole, split, p["keep"])  # several objects: an error (split) or the largest
+    whole = one_object(whole, p["split"] != "none", p["keep"])  # several objects: error (split) or largest
     p["n_objects"] = int(whole.metadata["n_objects"])
+    return _walls(whole, p, centre), p
+
+
+def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[str, trimesh.Trimesh]:
+    """``whole`` and, with a split, its ``inner`` and ``outer`` walls (the mesh section ``p``)."""
+    from nemo.surface import face_components, split_mesh, submesh
+
     meshes = {"whole": whole}
-    if split:
+    if p["split"] != "none":
         inner, outer = split_mesh(whole, by=p["split"], axis=p["axis"], centre=centre, keep=p["keep"])
         if p["keep"] == "largest":  # the whole = the components the kept halves came from
             labels = face_components(whole.faces, len(whole.vertices))
@@ -119,7 +125,99 @@ def mesh(
             if len(used) < labels.max() + 1:
                 meshes["whole"] = submesh(whole, np.isin(labels, used))
         meshes.update(inner=inner, outer=outer)
-    return meshes, p
+    return meshes
+
+
+#: Mesh units (besides those of :mod:`nemo.io`) a user mesh may be in: voxel indices.
+PIXEL_UNITS = ("pixel", "voxel", "px")
+
+
+def import_mesh(path: str | os.PathLike, volume: np.ndarray | None, spacing: tuple[float, float, float],
+                params: dict | None = None, unit: str = "um", mesh_unit: str | None = None,
+                centre: np.ndarray | None = None) -> tuple[dict[str, trimesh.Trimesh], dict]:
+    """A surface made elsewhere (MeshLab, Blender, ilastik, napari) used instead of meshing.
+
+    The mesh is read (PLY, OBJ or STL; refused if not a manifold surface; turned outward if
+    wound inward), converted from ``mesh_unit`` to the image's unit, checked against the image
+    (its extent must match the bright object's within ×1.6, :func:`nemo.peel.mesh_object_extent_ratio`)
+    and split into walls like a reconstructed surface. Never silently rescaled: a file that
+    does not name its unit needs ``mesh_unit``.
+
+    Parameters
+    ----------
+    path : path-like
+        The surface, vertices in physical x, y, z (x = column, y = row, z = plane) of ``mesh_unit``.
+    volume : ndarray, shape (Z, Y, X), optional
+        The frame's image (None: no extent check).
+    spacing : (dz, dy, dx)
+        Voxel size in ``unit``.
+    params : dict, optional
+        The ``mesh`` section (``split``, ``axis``, ``keep``; the meshing keys are unused).
+    unit : str
+        The image's unit.
+    mesh_unit : str, optional
+        The mesh's unit (``um``, ``nm``, ``mm`` ..., or ``pixel`` for voxel indices); default:
+        the unit the file names (NEMO's PLY).
+
+    Returns
+    -------
+    meshes : dict
+        ``whole`` and, when split, ``inner`` and ``outer``.
+    resolved : dict
+        The section with ``source``, ``mesh_unit``, ``scale`` (per axis x, y, z), ``extent_ratio``
+        and ``n_objects``.
+
+    Raises
+    ------
+    NemoError
+        Unreadable or non-manifold mesh, unknown or missing unit, a mesh that does not cover the
+        image's object.
+    """
+    from nemo.mesh import load_mesh
+    from nemo.surface import find_objects
+
+    p = nconfig.section("mesh", params)
+    mesh = load_mesh(path)
+    given = mesh_unit or (mesh.units if mesh.metadata.get("unit_in_file") else None)
+    if given is None:
+        raise NemoError(f"{path} does not say in which unit its coordinates are: give it (`mesh_unit`: um, nm, "
+                        "mm ..., or pixel for voxel indices x = column, y = row, z = plane)")
+    scale = _mesh_scale(given, unit, spacing)
+    mesh.vertices = np.asarray(mesh.vertices, dtype=np.float64) * scale
+    mesh.units = unit
+    ratio = _check_extent(mesh, volume, spacing, path, given) if volume is not None else None
+    mesh.metadata["nemo_surface"] = {"method": "imported", "source": str(path)}
+    p.update(source=str(path), mesh_unit=given, scale=scale.tolist(), extent_ratio=ratio,
+             n_objects=len(find_objects(mesh)), noise=None, snr=None)
+    return _walls(mesh, p, centre), p
+
+
+def _mesh_scale(mesh_unit: str, unit: str, spacing) -> np.ndarray:
+    """Per-axis (x, y, z) factor from ``mesh_unit`` to ``unit``."""
+    from nemo.io import unit_scale
+
+    if mesh_unit.lower() in PIXEL_UNITS:
+        return np.asarray(spacing, dtype=np.float64)[::-1]
+    if mesh_unit == unit:
+        return np.ones(3)
+    have, want = unit_scale(mesh_unit), unit_scale(unit)
+    if have is None or want is None:
+        raise NemoError(f"cannot convert the mesh's unit {mesh_unit!r} to the image's unit {unit!r}: give "
+                        "`mesh_unit` as um, nm, mm or pixel, or the image's own unit")
+    return np.full(3, have / want)
+
+
+def _check_extent(mesh: trimesh.Trimesh, volume: np.ndarray, spacing, path, mesh_unit: str) -> float:
+    """The mesh's extent over the image object's; outside [1/1.6, 1.6] is an error."""
+    from nemo.peel import MAX_EXTENT_RATIO, mesh_object_extent_ratio
+
+    ratio = mesh_object_extent_ratio(mesh, volume, spacing)
+    if np.isfinite(ratio) and not 1 / MAX_EXTENT_RATIO <= ratio <= MAX_EXTENT_RATIO:
+        raise NemoError(
+            f"{path} (read in {mesh_unit}) spans {ratio:.3g} × the extent of the image's bright object: it is "
+            "in another unit, scaled or placed elsewhere. Give its unit (`mesh_unit`) and keep its coordinates "
+            "in the image's frame (x = column, y = row, z = plane, from the first voxel's centre)")
+    return float(ratio) if np.isfinite(ratio) else None
 
 
 # ----------------------------------------------------------------------------- morphology

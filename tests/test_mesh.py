@@ -1,4 +1,5 @@
-"""The mesh container: PLY/OBJ round trips, foreign files, corrupt files (nemo.mesh)."""
+"""The mesh container: PLY/OBJ round trips, foreign, inward-wound and corrupt files, vertex normals
+and areas, coincident vertices (nemo.mesh)."""
 
 from __future__ import annotations
 
@@ -8,22 +9,30 @@ import numpy as np
 import pytest
 import trimesh
 
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.mesh import (
     check_mesh,
     load_mesh,
     make_mesh,
     mean_edge_length,
+    merge_coincident_vertices,
     nonmanifold_problem,
     save_mesh,
     signed_volume,
     split_nonmanifold_vertices,
+    vertex_areas,
+    vertex_normals,
 )
 
 
 def _sphere(radius=50.0, centre=(120.0, 80.0, 60.0), subdivisions=3):
     ico = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     return np.asarray(ico.vertices) + np.asarray(centre), np.asarray(ico.faces)
+
+
+def _sphere_mesh(radius=10.0, subdivisions=3):
+    """An icosphere about the origin, as a NEMO mesh."""
+    return make_mesh(*_sphere(radius, (0.0, 0.0, 0.0), subdivisions))
 
 
 def test_make_mesh_orients_inverted_sphere_outward():
@@ -33,6 +42,18 @@ def test_make_mesh_orients_inverted_sphere_outward():
     outward = np.einsum("ij,ij->i", mesh.vertex_normals, mesh.vertices - v.mean(axis=0))
     assert (outward > 0).all()
     assert mesh.units == "um"
+
+
+def test_inward_wound_ply_is_flipped_with_a_warning(tmp_path):
+    mesh = _sphere_mesh()
+    inward = trimesh.Trimesh(mesh.vertices, mesh.faces[:, ::-1], process=False)
+    path = tmp_path / "inward.ply"
+    save_mesh(inward, path)
+    with pytest.warns(NemoWarning, match="wound inward"):
+        back = load_mesh(path)
+    assert signed_volume(back.vertices, back.faces) > 0
+    centred = back.vertices - back.vertices.mean(axis=0)
+    assert np.all(np.einsum("ij,ij->i", vertex_normals(back), centred) > 0)
 
 
 def test_ply_round_trip_keeps_vertices_faces_units_fields(tmp_path, rng):
@@ -49,6 +70,13 @@ def test_ply_round_trip_keeps_vertices_faces_units_fields(tmp_path, rng):
     # orientation survives: same face normals
     np.testing.assert_allclose(back.face_normals, mesh.face_normals, atol=1e-5)
     assert not list(tmp_path.glob(".*tmp*"))  # atomic write left no temporary file
+
+
+def test_spacing_comment_round_trip(tmp_path):
+    mesh = _sphere_mesh()
+    mesh.metadata["spacing"] = (2.0, 0.5, 0.25)
+    save_mesh(mesh, tmp_path / "m.ply")
+    assert load_mesh(tmp_path / "m.ply").metadata["spacing"] == (2.0, 0.5, 0.25)
 
 
 def test_obj_round_trip(tmp_path):
@@ -134,8 +162,11 @@ def test_corrupt_and_wrong_files(tmp_path):
     with pytest.raises(NemoError, match="not found"):
         load_mesh(tmp_path / "missing.ply")
     (tmp_path / "m.stl").write_text("solid x\nendsolid x\n")
-    with pytest.raises(NemoError, match=r"\.ply and \.obj"):
+    with pytest.raises(NemoError, match="no triangles"):
         load_mesh(tmp_path / "m.stl")
+    (tmp_path / "m.off").write_text("OFF\n")
+    with pytest.raises(NemoError, match=r"\.ply, \.obj and \.stl"):
+        load_mesh(tmp_path / "m.off")
     with pytest.raises(NemoError, match=r"\.ply or \.obj"):
         save_mesh(make_mesh(v, f), tmp_path / "m.stl")
 
@@ -161,6 +192,26 @@ def test_mean_edge_length_of_a_regular_mesh():
     n_unit = 2 * n * (n + 1)
     expected = (n_unit + n * n * np.sqrt(2)) / (n_unit + n * n)
     assert mean_edge_length(mesh) == pytest.approx(expected)
+
+
+def test_vertex_areas_sum_to_area_and_sphere_is_close_to_analytic():
+    mesh = _sphere_mesh(radius=7.0, subdivisions=5)
+    areas = vertex_areas(mesh)
+    assert areas.shape == (len(mesh.vertices),)
+    assert np.isclose(areas.sum(), mesh.area)
+    assert abs(areas.sum() / (4 * np.pi * 49) - 1) < 2e-3
+
+
+def test_coincident_vertices_merged_and_degenerate_normals_taken_from_twin():
+    mesh = _sphere_mesh()
+    v = np.vstack([mesh.vertices, mesh.vertices[:1]])  # a duplicate of vertex 0
+    f = np.vstack([mesh.faces, [[0, len(v) - 1, 1]]])  # a zero-area face on it
+    dup = trimesh.Trimesh(v, f, process=False)
+    n = vertex_normals(dup)
+    assert np.allclose(n[-1], n[0])
+    mv, mf, index = merge_coincident_vertices(v, f)
+    assert len(mv) == len(mesh.vertices) and len(mf) == len(mesh.faces)
+    assert index[-1] == index[0]
 
 
 def test_split_inner_surface_survives_a_ply_round_trip(tmp_path):

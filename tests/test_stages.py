@@ -199,3 +199,87 @@ def test_cli_run_on_two_objects_is_a_clean_error(tmp_path, capsys):
     assert "nemo run: error:" in err and "2 objects" in err and "Traceback" not in err
     assert "mesh.keep: largest" in err and "--keep" not in err  # nemo run is configured by keys, not flags
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------ user meshes
+@pytest.fixture
+def ball_image():
+    """A blurred solid ball of radius 12 µm at (20, 22, 18) µm in 1 µm voxels (x = column)."""
+    return _balls((40, 44, 40), [(20, 22, 18, 0, 12)]), (1.0, 1.0, 1.0)
+
+
+def _sphere(radius: float, centre, subdivisions: int = 3):
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    m.apply_translation(centre)
+    return m
+
+
+def test_import_mesh_converts_the_unit_and_checks_the_extent(ball_image, tmp_path):
+    from nemo.morphology import measure
+
+    volume, spacing = ball_image
+    _sphere(12_000.0, (20_000, 22_000, 18_000)).export(tmp_path / "nm.stl")  # nanometres, no unit in file
+    meshes, params = stages.import_mesh(tmp_path / "nm.stl", volume, spacing, {"split": "none"}, mesh_unit="nm")
+    whole = meshes["whole"]
+    np.testing.assert_allclose(whole.vertices.mean(axis=0), (20, 22, 18), atol=0.05)
+    assert measure(whole)["euler_characteristic"] == 2 and whole.units == "um"
+    assert params["scale"] == pytest.approx([1e-3] * 3) and params["n_objects"] == 1
+    assert params["extent_ratio"] == pytest.approx(1.0, abs=0.25)  # Otsu sees a slightly smaller ball
+    with pytest.raises(NemoError, match="does not say in which unit"):
+        stages.import_mesh(tmp_path / "nm.stl", volume, spacing, {"split": "none"})
+    with pytest.raises(NemoError, match=r"spans 1e\+03 × the extent"):
+        stages.import_mesh(tmp_path / "nm.stl", volume, spacing, {"split": "none"}, mesh_unit="um")
+    with pytest.raises(NemoError, match="cannot convert the mesh's unit 'furlong'"):
+        stages.import_mesh(tmp_path / "nm.stl", volume, spacing, {"split": "none"}, mesh_unit="furlong")
+
+
+def test_import_mesh_in_voxel_indices_on_anisotropic_voxels(tmp_path):
+    """x = column, y = row, z = plane: pixel coordinates scale by (dx, dy, dz)."""
+    volume = _balls((20, 44, 40), [(20, 22, 9, 0, 12)])  # a ball 12 voxels in x, y; squashed in z
+    spacing = (2.0, 1.0, 1.0)
+    sphere = _sphere(12.0, (20, 22, 9))
+    sphere.vertices[:, 2] = 9 + (sphere.vertices[:, 2] - 9) / 2  # 6 planes tall: 12 µm at dz = 2
+    sphere.export(tmp_path / "px.obj")
+    meshes, params = stages.import_mesh(tmp_path / "px.obj", volume, spacing, {"split": "none"},
+                                        mesh_unit="pixel")
+    assert params["scale"] == [1.0, 1.0, 2.0]
+    np.testing.assert_allclose(np.ptp(meshes["whole"].vertices, axis=0), [24, 24, 24], rtol=0.01)
+
+
+def test_import_mesh_splits_a_shell_and_keeps_nemo_units(tmp_path):
+    """A NEMO PLY names its unit (no mesh_unit needed); a two-wall shell splits into walls."""
+    import trimesh
+
+    from nemo.mesh import save_mesh
+
+    volume = _balls((44, 44, 44), [(22, 22, 22, 9, 14)])
+    outer, inner = _sphere(14.0, (22, 22, 22)), _sphere(9.0, (22, 22, 22))
+    inner.invert()  # the lumen's wall faces into the lumen
+    shell = trimesh.util.concatenate([outer, inner])
+    shell.units = "um"
+    save_mesh(shell, tmp_path / "shell.ply")
+    meshes, params = stages.import_mesh(tmp_path / "shell.ply", volume, (1.0, 1.0, 1.0), {"split": "centre"})
+    assert params["mesh_unit"] == "um" and params["n_objects"] == 1
+    assert stages.object_radius(meshes["inner"]) == pytest.approx(9, rel=0.02)
+    assert stages.object_radius(meshes["outer"]) == pytest.approx(14, rel=0.02)
+
+
+def test_cli_mesh_from_mesh(ball_image, tmp_path, run_cli):
+    from nemo.io import write_hyperstack
+    from nemo.mesh import load_mesh
+
+    volume, spacing = ball_image
+    write_hyperstack(tmp_path / "img.tif", volume, spacing, axes="ZYX")
+    _sphere(12.0, (20, 22, 18)).export(tmp_path / "s.stl")
+    code, _, err = run_cli("mesh", tmp_path / "img.tif", "--from-mesh", tmp_path / "s.stl", "--split", "none",
+                           "-o", tmp_path / "m.ply")
+    assert code == 2 and "does not say in which unit" in err and "--mesh-unit" in err
+    code, _, err = run_cli("mesh", tmp_path / "img.tif", "--from-mesh", tmp_path / "s.stl", "--mesh-unit", "um",
+                           "--split", "none", "-o", tmp_path / "m.ply")
+    assert code == 0, err
+    m = load_mesh(tmp_path / "m.ply")
+    assert m.metadata["nemo_params"]["source"].endswith("s.stl") and len(m.vertices) == 642
+    code, _, err = run_cli("mesh", tmp_path / "img.tif", "--mesh-unit", "um", "-o", tmp_path / "x.ply")
+    assert code == 2 and "give the surface too" in err

@@ -31,7 +31,8 @@ examples:
   nemo mesh embryo.tif --t 3 --c 1 -o embryo.ply --sigma 2 --threshold otsu --step 1
   nemo mesh stack.tif --mask mask.tif -o mesh.ply --keep all
   nemo mesh organoid.zarr --mask cellpose_labels.tif --mask-labels 3 -o organoid.ply
-  nemo mesh embryo.zarr/1 --mask probabilities.tif --mask-threshold 0.6 -o embryo.ply   # level 1"""
+  nemo mesh embryo.zarr/1 --mask probabilities.tif --mask-threshold 0.6 -o embryo.ply   # level 1
+  nemo mesh embryo.tif --from-mesh blender_surface.obj --mesh-unit um -o embryo.ply"""
 
 
 def _threshold(text: str):
@@ -73,6 +74,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mask-threshold", type=number, metavar="P",
                         help="object where the --mask value exceeds P (default 0.5 for a floating-point "
                              "probability map, else nonzero)")
+    parser.add_argument("--from-mesh", metavar="SURFACE",
+                        help="use this surface (PLY, OBJ or STL made in MeshLab, Blender, ilastik ...) instead "
+                             "of meshing the image: it is checked against the image (unit, extent, manifold) "
+                             "and split and written like a reconstructed one")
+    parser.add_argument("--mesh-unit", metavar="UNIT",
+                        help="unit of the --from-mesh coordinates: um, nm, mm ... or pixel (voxel indices x = "
+                             "column, y = row, z = plane); needed unless the file names it (NEMO's PLY)")
     parser.add_argument("--step", type=positive(int), default=None, metavar="N",
                         help="marching-cubes step in voxels (default 1; 2 for stacks above 64 M voxels)")
     parser.add_argument("--smooth", type=_nonneg_int, default=None, metavar="ITER",
@@ -117,8 +125,16 @@ def run(args) -> int:
         raise NemoError("--mask-labels and --mask-threshold select from a --mask: give the mask file")
     mask = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
                      threshold=args.mask_threshold) if args.mask else None
-    meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
-                                 unit=info.unit, centre=args.centre)
+    if args.from_mesh:
+        if mask is not None:
+            raise NemoError("--from-mesh replaces the meshing of the image: drop --mask")
+        meshes, params = stages.import_mesh(args.from_mesh, volume, info.spacing, section_params(args, "mesh"),
+                                            unit=info.unit, mesh_unit=args.mesh_unit, centre=args.centre)
+    else:
+        if args.mesh_unit:
+            raise NemoError("--mesh-unit is the unit of a --from-mesh surface: give the surface too")
+        meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
+                                     unit=info.unit, centre=args.centre)
     del volume, mask
     spheres = {}
     for name, mesh in meshes.items():
