@@ -154,6 +154,9 @@ def run(args) -> int:
         sidecar = out.with_name(f"{out.stem}.sphere.json")
         atomic.write_json(sidecar, spheres)
         print(f"sphere fit -> {sidecar}")
-    print(f"step {params['step']} voxels, sigma {params['sigma']:.4g}, iso-level {params['level']:.4g}; "
-          f"done in {time.perf_counter() - start:.2f} s")
+    if args.from_mesh:
+        how = f"from {args.from_mesh} ({params['mesh_unit']}, extent ratio {params['extent_ratio'] or float('nan'):.3g})"
+    else:
+        how = f"step {params['step']} voxels, sigma {params['sigma']:.4g}, iso-level {params['level']:.4g}"
+    print(f"{how}; done in {time.perf_counter() - start:.2f} s")
     return 0
