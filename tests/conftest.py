@@ -37,3 +37,56 @@ def wide_scale():
         return {"pixel": pixel, "sigma": radius / pixel / 2}
 
     return scale
+
+
+@pytest.fixture
+def cli_error():
+    """Check a failed ``nemo`` run: exit status 2 and, progress lines ("nemo: ...") aside, exactly
+    one ``nemo CMD: error: ...`` line, no traceback, naming each of ``words`` (case-insensitive).
+    Returns that line."""
+
+    def check(code: int, err: str, *words: str) -> str:
+        assert code == 2, err
+        lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("nemo: ")]
+        assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in err, err
+        for word in words:
+            assert word.lower() in lines[0].lower(), (word, lines[0])
+        return lines[0]
+
+    return check
+
+
+SHELL_N = 40  # the shell image is SHELL_N³ voxels of 1 µm
+SHELL_R_IN, SHELL_R_OUT = 10.0, 14.0  # its wall, µm from SHELL_CENTRE
+SHELL_CENTRE = (19.3, 19.6, 19.8)  # (x, y, z), off the voxel grid
+
+
+def _shell_image() -> np.ndarray:
+    z, y, x = (np.arange(SHELL_N, dtype=float),) * 3
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    cx, cy, cz = SHELL_CENTRE
+    r = np.sqrt((xx - cx) ** 2 + (yy - cy) ** 2 + (zz - cz) ** 2)
+    wall = 0.5 * (np.tanh((r - SHELL_R_IN) / 0.8) - np.tanh((r - SHELL_R_OUT) / 0.8))
+    return (200 * wall).astype(np.uint8)
+
+
+@pytest.fixture
+def shell_image():
+    """A smooth hollow shell SHELL_R_IN < r < SHELL_R_OUT in a SHELL_N³ ZYX grid of 1 µm voxels
+    (uint8: 0 outside, 200 inside the wall); a fresh array each time, free to modify."""
+    return _shell_image()
+
+
+@pytest.fixture(scope="session")
+def meshed_shell(tmp_path_factory):
+    """A folder with ``shell.tif`` (:func:`shell_image`, 1 µm voxels, calibrated) and ``m.ply``,
+    ``m.inner.ply``, ``m.outer.ply`` from ``nemo mesh --split centre --step 1``.
+
+    Shared by the whole session: read it, write outputs to the test's own ``tmp_path``."""
+    from nemo.io import write_hyperstack
+
+    d = tmp_path_factory.mktemp("shell")
+    write_hyperstack(d / "shell.tif", _shell_image(), (1.0, 1.0, 1.0), axes="ZYX")
+    args = ["mesh", str(d / "shell.tif"), "-o", str(d / "m.ply"), "--split", "centre", "--step", "1"]
+    assert nemo_main(args) == 0
+    return d

@@ -19,7 +19,7 @@ from nemo.directors import (
     structure_tensor_centre,
 )
 from nemo.errors import NemoError
-from nemo.mesh import make_mesh, mean_edge_length, save_mesh, vertex_normals
+from nemo.mesh import load_mesh, make_mesh, mean_edge_length, save_mesh, vertex_normals
 from nemo.tables import read_provenance, read_table, write_table
 
 WAVELENGTH = 6.0  # stripe period (µm); meshes have ~1 µm edges
@@ -301,3 +301,39 @@ def test_patch_wider_than_the_object_is_refused(tmp_path, run_cli):
                 n_vertices=len(intensity))
     code, _, err = run_cli("directors", mpath, lpath, "--patch-radius", "1e6", "-o", tmp_path / "d.parquet")
     assert code == 2 and "--patch-radius" in err and "larger than the object" in err
+
+
+def test_micro_image_pixel_and_size_are_bounded(meshed_shell):
+    mesh = load_mesh(meshed_shell / "m.inner.ply")
+    intensity = np.ones(len(mesh.vertices))
+    with pytest.raises(NemoError, match="`pixel`"):
+        directors(mesh, intensity, patch_radius=6.0, pixel=0.01)
+    # inner wall: object radius 9.94, mean edge 0.92 (pixel ≥ 0.092): 9.5 / 0.095 = 100 px + margin
+    with pytest.raises(NemoError, match="micro-images of"):
+        directors(mesh, intensity, patch_radius=9.5, pixel=0.095)
+    with pytest.raises(NemoError, match="larger than the object"):
+        directors(mesh, intensity, patch_radius=20.0, pixel=0.1)
+
+
+def test_cli_directors_refuses_a_layer_from_another_mesh(meshed_shell, tmp_path, run_cli, cli_error):
+    shell = meshed_shell
+    code, _, err = run_cli("peel", shell / "shell.tif", shell / "m.inner.ply", "-o", tmp_path / "layer_inner.parquet",
+                           "--range", "0", "2")
+    assert code == 0, err
+    prov = read_provenance(tmp_path / "layer_inner.parquet")
+    assert prov["n_vertices"] == len(load_mesh(shell / "m.inner.ply").vertices)
+    # the layer peeled on the inner half given with the whole mesh: refused for its provenance
+    code, _, err = run_cli("directors", shell / "m.ply", tmp_path / "layer_inner.parquet", "-o",
+                           tmp_path / "d.parquet", "--patch-radius", "3")
+    cli_error(code, err, "vertices", "mesh")
+    # the same table without provenance (made by another tool): refused for its row count
+    layer = read_table(tmp_path / "layer_inner.parquet")
+    write_table(layer, tmp_path / "bare.parquet")
+    code, _, err = run_cli("directors", shell / "m.ply", tmp_path / "bare.parquet", "-o", tmp_path / "d.parquet",
+                           "--patch-radius", "3")
+    cli_error(code, err, "rows", "another mesh")
+    # and the right pair works
+    code, _, err = run_cli("directors", shell / "m.inner.ply", tmp_path / "layer_inner.parquet", "-o",
+                           tmp_path / "d_inner.parquet", "--patch-radius", "3", "--n-patches", "100")
+    assert code == 0, err
+    assert read_provenance(tmp_path / "d_inner.parquet")["n_vertices"] == len(layer)

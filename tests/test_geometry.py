@@ -111,6 +111,22 @@ def test_tangent_basis_is_one_row_of_axis_frames():
     np.testing.assert_array_equal(t2, a2[0])
 
 
+def test_one_frame_construction_for_measured_and_analytic_angles():
+    """tangent_basis and the synthetic data's analytic angles use the same axis frames as the
+    measurements, so angles compare directly."""
+    from nemo.synthetic import nematic_angle, preset_defects
+
+    normals = np.array([[0.93, 0.3, 0.21], [1.0, 0, 0], [0, 0, 1.0], [-0.2, 0.97, 0.1]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    t1, t2 = axis_frames(normals)
+    for i, normal in enumerate(normals):
+        for a, b in zip(tangent_basis(normal), (t1[i], t2[i])):
+            np.testing.assert_array_equal(a, b)
+    d, m = preset_defects("tetrahedron")
+    th = nematic_angle(normals, d, m)
+    np.testing.assert_allclose(th, nematic_angle(normals, d, m, t1, t2))
+
+
 def test_frames_from_vectors_falls_back_to_axis_frames():
     normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     t1, t2 = frames_from_vectors(normals, np.array([[0.0, 2.0, 1.0], [0.0, 0.0, 1.0]]))

@@ -120,11 +120,33 @@ def test_spacing_override_beats_file_calibration(tmp_path, rng):
             read_stack(tmp_path / "s.tif", spacing=bad)
 
 
-def test_missing_dz_falls_back_to_dx(tmp_path, rng):
-    tifffile.imwrite(tmp_path / "nodz.tif", _data((3, 5, 5), rng), imagej=True, resolution=(2.0, 2.0),
+def test_imagej_pixel_unit_is_uncalibrated_and_spacing_override_sets_um(tmp_path):
+    data = np.zeros((4, 5, 6), np.uint8)
+    tifffile.imwrite(tmp_path / "px.tif", data, imagej=True, metadata={"axes": "ZYX", "unit": "pixel"})
+    with pytest.warns(NemoWarning, match="no spatial calibration"):
+        _, info = read_stack(tmp_path / "px.tif")
+    assert info.unit == "pixel" and not info.calibrated
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, info = read_stack(tmp_path / "px.tif", spacing=(2, 0.5, 0.5))
+    assert info.unit == "um" and info.spacing == (2.0, 0.5, 0.5)
+
+
+def test_missing_dz_falls_back_to_dx_with_a_warning(tmp_path, rng):
+    data = _data((3, 5, 5), rng)
+    tifffile.imwrite(tmp_path / "nodz.tif", data, imagej=True, resolution=(2.0, 2.0),
                      metadata={"axes": "ZYX", "unit": "micron"})
-    info = read_info(tmp_path / "nodz.tif")
+    with pytest.warns(NemoWarning, match="no z spacing"):
+        info = read_info(tmp_path / "nodz.tif")
     assert info.spacing == pytest.approx((0.5, 0.5, 0.5))
+    with pytest.warns(NemoWarning, match="no z spacing"):
+        _, info = read_stack(tmp_path / "nodz.tif")
+    assert info.spacing == (0.5, 0.5, 0.5)
+    # with a z spacing, no warning
+    write_hyperstack(tmp_path / "ok.tif", data, (1.0, 0.5, 0.5), axes="ZYX")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_stack(tmp_path / "ok.tif")
 
 
 # ----------------------------------------------------------------------------- errors

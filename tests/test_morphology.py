@@ -1,9 +1,10 @@
 """Curvature, thickness and global measures against analytic shapes.
 
-Every test mesh is reconstructed from a volume: marching cubes (scikit-image) on an analytic
+Test meshes are reconstructed from a volume: marching cubes (scikit-image) on an analytic
 signed-distance (sphere, torus) or first-order distance (ellipsoid) field sampled on a voxel
 grid, possibly anisotropic, scaled to physical units and turned into a NEMO mesh by
-``nemo.mesh.make_mesh``. Ground truth is analytic (closest point on the ellipsoid, exact ray
+``nemo.mesh.make_mesh`` (or by ``nemo mesh`` on the shell image of conftest.py; one icosphere
+checks the too-large-radius warning). Ground truth is analytic (closest point on the ellipsoid, exact ray
 intersections with spheres and ellipsoids).
 """
 
@@ -13,10 +14,11 @@ import json
 
 import numpy as np
 import pytest
+import trimesh
 from skimage.measure import marching_cubes
 
 from nemo.errors import NemoError, NemoWarning
-from nemo.mesh import make_mesh, save_mesh
+from nemo.mesh import load_mesh, make_mesh, save_mesh
 from nemo.morphology import curvature, measure, thickness, vertex_areas
 from nemo.tables import read_provenance, read_table
 
@@ -255,6 +257,13 @@ def test_radius_too_small_gives_nan_and_warning(sphere15):
         df = curvature(sphere15, radius=0.4, rng=0)
     assert df["H"].isna().all() and df["K"].isna().all()
     assert len(df) == len(sphere15.vertices)
+
+
+def test_curvature_radius_too_large_warns():
+    ico = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
+    mesh = make_mesh(ico.vertices, ico.faces)
+    with pytest.warns(NemoWarning, match="large for this surface"):
+        curvature(mesh, 1000.0, rng=0)
 
 
 def test_partly_too_small_radius_only_local_nan():
@@ -523,3 +532,19 @@ def test_cli_errors(tmp_path, run_cli):
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nend_header\n\x00")
     code, out, err = run_cli("measure", tmp_path / "bad.ply")
     assert code == 2 and "Traceback" not in err
+
+
+def test_cli_thickness_and_curvature_record_their_mesh_and_measure_refuses_another(meshed_shell, tmp_path,
+                                                                                   run_cli, cli_error):
+    shell = meshed_shell
+    n_inner = len(load_mesh(shell / "m.inner.ply").vertices)
+    code, _, err = run_cli("thickness", shell / "m.inner.ply", shell / "m.outer.ply", "-o", tmp_path / "th.parquet")
+    assert code == 0, err
+    prov = read_provenance(tmp_path / "th.parquet")
+    assert prov["mesh"] == str(shell / "m.inner.ply") and prov["n_vertices"] == n_inner
+    code, _, err = run_cli("curvature", shell / "m.inner.ply", "-o", tmp_path / "k.parquet", "--radius", "3")
+    assert code == 0, err
+    assert read_provenance(tmp_path / "k.parquet")["n_vertices"] == n_inner
+    # the inner half's curvature measured on the outer half
+    code, _, err = run_cli("measure", shell / "m.outer.ply", "--curvature", tmp_path / "k.parquet")
+    cli_error(code, err, "k.parquet", "vertices")

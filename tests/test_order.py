@@ -9,9 +9,9 @@ import trimesh
 
 from nemo.errors import NemoError, NemoWarning
 from nemo.geometry import axis_frames
-from nemo.mesh import make_mesh, save_mesh, vertex_normals
+from nemo.mesh import load_mesh, make_mesh, save_mesh, vertex_normals
 from nemo.order import alignment, lift_q, order, tangential_eig
-from nemo.tables import read_table, write_table
+from nemo.tables import read_provenance, read_table, write_table
 
 R = 30.0
 
@@ -69,6 +69,13 @@ def test_lift_q_is_tangential_traceless_and_frame_free(rng):
     s_val, n_avg = tangential_eig(q6, normals)
     np.testing.assert_allclose(s_val, 1.0, atol=1e-12)
     assert nematic_angle_deg(n_avg, n).max() < 1e-5
+
+
+def test_tangential_eig_is_nan_without_a_tangent_plane():
+    n = np.array([[1.0, 0, 0], [1.0, 0, 0]])
+    normals = np.array([[0, 0, 1.0], [0, 0, 0.0]])
+    s, director = tangential_eig(lift_q(n, np.array([[0, 0, 1.0], [0, 0, 1.0]])), normals)
+    assert s[0] == pytest.approx(1.0) and np.isnan(s[1]) and np.isnan(director[1]).all()
 
 
 @pytest.mark.parametrize("spread_deg", [0.0, 20.0, 45.0, 80.0])
@@ -188,6 +195,20 @@ def test_alignment_parallel_orthogonal_and_45(rng):
         np.testing.assert_allclose(alignment(a, flipped, mesh_a=mesh)["c"], expect, atol=1e-9)
 
 
+def test_alignment_checks_normals_and_max_distance():
+    def table(x):
+        return pd.DataFrame({"vertex": np.arange(len(x)), "x": x, "y": 0.0, "z": 0.0,
+                             "nx": 1.0, "ny": 0.0, "nz": 0.0, "coherency": 1.0})
+
+    # two of A's three directors have B's one within max_distance; the median match (0.5) is well
+    # inside A's extent, so the tables overlap
+    a, b = table(np.array([0.0, 0.4, 10.0])), table(np.array([0.5]))
+    with pytest.raises(NemoError, match="normals_a"):
+        alignment(a, b, normals_a=np.zeros((5, 3)))  # not one normal per director of A
+    c = alignment(a, b, max_distance=2.0)["c"].to_numpy()
+    assert c[:2] == pytest.approx([1.0, 1.0]) and np.isnan(c[2])
+
+
 def _two_layer_vesicle(rotation):
     from nemo.peel import peel
     from nemo.surface import reconstruct, split_mesh
@@ -277,3 +298,23 @@ def test_alignment_refuses_tables_that_do_not_overlap(tmp_path, run_cli):
     code, _, err = run_cli("align", pa, pb, "-o", tmp_path / "al.parquet")
     assert code == 2 and "nemo align: error: the two director tables do not overlap" in err
 
+
+def test_cli_order_refuses_directors_from_another_mesh(meshed_shell, tmp_path, run_cli, cli_error):
+    """Directors of the inner half averaged on the whole mesh."""
+    shell = meshed_shell
+    n_inner = len(load_mesh(shell / "m.inner.ply").vertices)
+    code, _, err = run_cli("peel", shell / "shell.tif", shell / "m.inner.ply", "-o", tmp_path / "layer.parquet",
+                           "--range", "0", "2")
+    assert code == 0, err
+    code, _, err = run_cli("directors", shell / "m.inner.ply", tmp_path / "layer.parquet", "-o",
+                           tmp_path / "d_inner.parquet", "--patch-radius", "3", "--n-patches", "100")
+    assert code == 0, err
+    assert read_provenance(tmp_path / "d_inner.parquet")["n_vertices"] == n_inner
+    code, _, err = run_cli("order", shell / "m.ply", tmp_path / "d_inner.parquet", "-o", tmp_path / "o.parquet",
+                           "--radius", "5")
+    cli_error(code, err, "vertices")
+    assert not (tmp_path / "o.parquet").exists()
+    # and on its own mesh the same table is accepted
+    code, _, err = run_cli("order", shell / "m.inner.ply", tmp_path / "d_inner.parquet", "-o",
+                           tmp_path / "o.parquet", "--radius", "5")
+    assert code == 0, err

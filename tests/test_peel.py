@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+import tifffile
 import trimesh
 
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.io import write_hyperstack
-from nemo.mesh import make_mesh, save_mesh, vertex_normals
+from nemo.mesh import load_mesh, make_mesh, save_mesh, vertex_normals
 from nemo.peel import peel, sample_depths
 from nemo.tables import read_table, write_table
 
@@ -214,3 +215,68 @@ def test_a_foreign_mesh_at_the_wrong_scale_is_warned_about(tmp_path, run_cli):
         code, _, err = run_cli("peel", img, tmp_path / name, "-o", tmp_path / f"{name}.parquet", "--range", "0", "4")
         assert code == 0, err
         assert ("× the extent of the image's bright object" in err) == warned, err
+
+
+# ------------------------------------------------------------------ on the meshed shell (conftest)
+def test_peel_counts_nan_voxels_apart_from_outside(meshed_shell, shell_image):
+    mesh = load_mesh(meshed_shell / "m.inner.ply")
+    vol = shell_image.astype(np.float32)
+    half = len(vol) // 2
+    vol[:half] = np.nan  # the lower half of the volume holds no data
+    with pytest.warns(NemoWarning) as record:
+        out = peel(vol, (1.0, 1.0, 1.0), mesh.vertices, vertex_normals(mesh), 0, 2, 5)
+    message = " ".join(str(w.message) for w in record)
+    low = mesh.vertices[:, 2] < half - 3
+    assert np.isnan(out[low]).all() and np.isfinite(out[mesh.vertices[:, 2] > half + 1]).all()
+    assert "sample NaN voxels" in message and "outside the image" not in message
+
+
+def test_number_of_samples_is_bounded(meshed_shell, shell_image):
+    mesh = load_mesh(meshed_shell / "m.inner.ply")
+    with pytest.raises(NemoError, match="at most"):
+        peel(shell_image, (1.0, 1.0, 1.0), mesh.vertices, vertex_normals(mesh), 0, 2, n_samples=10_000)
+
+
+def test_cli_peel_refuses_a_mesh_made_at_another_spacing(meshed_shell, tmp_path, run_cli, cli_error):
+    img = meshed_shell / "shell.tif"
+    code, _, err = run_cli("mesh", img, "-o", tmp_path / "half.ply", "--spacing", "0.5", "0.5", "0.5", "--step", "1")
+    assert code == 0, err
+    assert load_mesh(tmp_path / "half.ply").metadata["spacing"] == (0.5, 0.5, 0.5)
+    code, _, err = run_cli("peel", img, tmp_path / "half.ply", "-o", tmp_path / "l.parquet", "--range", "0", "2")
+    line = cli_error(code, err, "spacing", "0.5", "--spacing")
+    assert "(1, 1, 1)" in line
+    # with the spacing it was made with, it is accepted
+    code, _, err = run_cli("peel", img, tmp_path / "half.ply", "-o", tmp_path / "l.parquet", "--range", "0", "1",
+                           "--spacing", "0.5", "0.5", "0.5")
+    assert code == 0, err
+
+
+def test_cli_peel_refuses_a_pixel_unit_mesh_on_a_calibrated_image(shell_image, tmp_path, run_cli, cli_error):
+    raw = tmp_path / "raw.tif"
+    tifffile.imwrite(raw, shell_image)  # no calibration: unit "pixel"
+    code, _, err = run_cli("mesh", raw, "-o", tmp_path / "px.ply", "--step", "1")
+    assert code == 0, err
+    assert load_mesh(tmp_path / "px.ply").units == "pixel"
+    code, _, err = run_cli("peel", raw, tmp_path / "px.ply", "-o", tmp_path / "l.parquet", "--range", "0", "2",
+                           "--spacing", "0.5", "0.5", "0.5")
+    cli_error(code, err, "unit", "pixel", "um")
+
+
+def test_cli_peel_refuses_a_mesh_outside_the_image(meshed_shell, tmp_path, run_cli, cli_error):
+    mesh = load_mesh(meshed_shell / "m.inner.ply")
+    moved = make_mesh(np.asarray(mesh.vertices) * 2.5, mesh.faces)  # an external mesh: no spacing recorded
+    save_mesh(moved, tmp_path / "big.ply")
+    code, _, err = run_cli("peel", meshed_shell / "shell.tif", tmp_path / "big.ply", "-o", tmp_path / "l.parquet",
+                           "--range", "0", "1")
+    cli_error(code, err, "outside the image", "% of the mesh")
+
+
+def test_cli_peel_refuses_a_shift_table_from_another_mesh(meshed_shell, tmp_path, run_cli, cli_error):
+    shell = meshed_shell
+    code, _, err = run_cli("thickness", shell / "m.inner.ply", shell / "m.outer.ply", "-o", tmp_path / "th.parquet")
+    assert code == 0, err
+    # a thickness table of the inner half used to shift the range on the whole mesh
+    code, _, err = run_cli("peel", shell / "shell.tif", shell / "m.ply", "-o", tmp_path / "l.parquet",
+                           "--range", "0", "1", "--shift", f"{tmp_path / 'th.parquet'}:thickness",
+                           "--shift-fraction", "0.2")
+    cli_error(code, err, "th.parquet", "vertices")

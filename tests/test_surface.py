@@ -5,13 +5,20 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.special import ellipeinc, ellipkinc, erf
 
 from nemo.errors import NemoError
 from nemo.io import write_hyperstack
-from nemo.mesh import load_mesh, signed_volume
-from nemo.surface import default_sigma, fit_sphere, keep_components, reconstruct, split_mesh
+from nemo.mesh import load_mesh, signed_volume, vertex_normals
+from nemo.surface import (
+    default_sigma,
+    fit_sphere,
+    keep_components,
+    reconstruct,
+    split_mesh,
+)
 
 
 # ----------------------------------------------------------------------------- volumes
@@ -316,6 +323,16 @@ def test_bad_inputs_raise_clear_errors():
         reconstruct(vol, (1, 1, 1), sigma=-1)
 
 
+def test_nan_voxels_are_a_clear_error_for_mesh(shell_image, tmp_path, run_cli, cli_error):
+    vol = shell_image.astype(np.float32)
+    vol[0, :5, :5] = np.nan
+    with pytest.raises(NemoError, match="25 NaN or infinite voxels"):
+        reconstruct(vol, (1.0, 1.0, 1.0))
+    write_hyperstack(tmp_path / "nan.tif", vol, (1.0, 1.0, 1.0), axes="ZYX")
+    code, _, err = run_cli("mesh", tmp_path / "nan.tif", "-o", tmp_path / "m.ply")
+    cli_error(code, err, "NaN", "voxels")
+
+
 # ----------------------------------------------------------------------------- CLI
 def test_cli_mesh_split_and_fit_sphere(tmp_path, run_cli):
     R = 16.0
@@ -466,3 +483,56 @@ def test_huge_float64_image_meshes_like_the_scaled_down_one():
 def test_constant_image_is_an_error(value):
     with pytest.raises(NemoError, match="constant"):
         reconstruct(np.full((10, 10, 10), value), (1, 1, 1))
+
+
+# ----------------------------------------------------------------------------- level on voxel values
+@pytest.fixture(scope="module")
+def quantised():
+    """A uint8 synthetic vesicle meshed at the integer level 64 without blur, where many voxels
+    equal the level (marching cubes then gave zero-area faces and zero normals)."""
+    from nemo.synthetic import vesicle
+
+    data, truth = vesicle(radius=20.0, seed=1, fibre_spacing=3.0)
+    vol = data[0, :, 0]
+    whole = reconstruct(vol, (1.0, 1.0, 1.0), sigma=0.0, threshold=64, step=1, keep="all")
+    inner, outer = split_mesh(whole, by="centre")
+    return vol, np.asarray(truth["centre"]), float(truth["radius"]), (whole, inner, outer)
+
+
+def test_level_on_voxel_values_gives_no_degenerate_faces(quantised):
+    _, centre, radius, meshes = quantised
+    for mesh in meshes:
+        assert mesh.area_faces.min() > 0
+        normals = vertex_normals(mesh)
+        assert np.isfinite(normals).all()
+        np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-9)
+        assert np.unique(mesh.faces).size == len(mesh.vertices)  # no unreferenced vertex
+    _, inner, outer = meshes
+    # no face of one wall in the other half (zero-area faces of the outer wall, sign 0, used to
+    # go to the inner half)
+    r_in = np.linalg.norm(inner.vertices - centre, axis=1)
+    r_out = np.linalg.norm(outer.vertices - centre, axis=1)
+    assert r_in.max() < r_out.min()
+    assert abs(np.median(r_in) - radius) < 1.5
+
+
+def test_level_on_voxel_values_gives_no_fake_order_or_nan_layer(quantised):
+    """Order and peel on that mesh: no fake S = 0 (a vertex without a normal), no NaN layer."""
+    from nemo.order import order
+    from nemo.peel import peel
+
+    vol, centre, radius, (_, inner, _) = quantised
+    p = inner.vertices - centre
+    e_phi = np.c_[-p[:, 1], p[:, 0], np.zeros(len(p))]
+    v = np.flatnonzero(np.linalg.norm(e_phi, axis=1) > 0.3 * radius)  # away from the poles
+    nrm = vertex_normals(inner)[v]
+    d = e_phi[v] - np.einsum("ij,ij->i", e_phi[v], nrm)[:, None] * nrm  # tangent to the mesh
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    df = pd.DataFrame({"vertex": v, "x": inner.vertices[v, 0], "y": inner.vertices[v, 1],
+                       "z": inner.vertices[v, 2], "nx": d[:, 0], "ny": d[:, 1], "nz": d[:, 2], "coherency": 1.0})
+    s = order(inner, df, radius=2.0, targets=v)["S"].to_numpy()
+    # latitude circles on an unsmoothed staircase: S near 1 (lowered by the normals' scatter),
+    # never the fake S = 0 of a vertex without a normal
+    assert np.isfinite(s).all() and np.median(s) > 0.9 and s.min() > 0.5
+    layer = peel(vol, (1.0, 1.0, 1.0), inner.vertices, vertex_normals(inner), 0.0, 2.0, 5)
+    assert np.isfinite(layer).all()
