@@ -60,7 +60,7 @@ def write_table(df: pd.DataFrame, path: str | os.PathLike, **provenance) -> None
 
 
 def _json_default(obj):
-    if isinstance(obj, (np.integer, np.floating)):
+    if isinstance(obj, np.generic):  # numpy integers, floats and bools
         return obj.item()
     if isinstance(obj, np.ndarray):
         return obj.tolist()
@@ -95,6 +95,8 @@ def read_table(
         Missing or non-Parquet file, a file that lacks required columns, or a table made on
         another mesh.
     """
+    if kind is not None and kind not in SCHEMAS:
+        raise ValueError(f"unknown table kind {kind!r}: one of {', '.join(SCHEMAS)}")
     path = Path(path)
     if not path.exists():
         raise NemoError(f"table not found: {path}")
@@ -102,12 +104,12 @@ def read_table(
         df = pq.read_table(path).to_pandas()
     except (pa.ArrowInvalid, OSError) as exc:
         raise NemoError(f"{path} is not a Parquet table ({exc})") from None
-    need = tuple(SCHEMAS.get(kind, ())) + tuple(columns or ())
-    missing = [c for c in need if c not in df.columns]
-    if missing:
-        what = f"a {kind} table" if kind else "this step"
+    missing_kind = [c for c in SCHEMAS.get(kind, ()) if c not in df.columns]
+    missing_step = [c for c in columns or () if c not in df.columns and c not in missing_kind]
+    if missing_kind or missing_step:
+        what = " and ".join(w for w, m in ((f"a {kind} table", missing_kind), ("this step", missing_step)) if m)
         raise NemoError(
-            f"{path} lacks column(s) {', '.join(missing)} needed for {what} "
+            f"{path} lacks column(s) {', '.join(missing_kind + missing_step)} needed for {what} "
             f"(it has: {', '.join(map(str, df.columns))}); was it made by the right nemo command?"
         )
     if n_vertices is not None:
@@ -130,19 +132,28 @@ def check_table_mesh(df: pd.DataFrame, path: str | os.PathLike, n_vertices: int)
             f"the one given ({n_vertices} vertices): pass the mesh the table was made on"
         )
     if "vertex" in df.columns and len(df):
-        vmax = int(df["vertex"].max())
-        if vmax >= n_vertices or int(df["vertex"].min()) < 0:
+        vmin, vmax = int(df["vertex"].min()), int(df["vertex"].max())
+        bad = vmin if vmin < 0 else vmax
+        if vmax >= n_vertices or vmin < 0:
             raise NemoError(
-                f"{path} refers to vertex {vmax} but the mesh has {n_vertices} vertices: "
+                f"{path} refers to vertex {bad} but the mesh has vertices 0 to {n_vertices - 1}: "
                 "the table was computed on another mesh"
             )
 
 
 def read_provenance(path: str | os.PathLike) -> dict:
     """The ``nemo`` metadata stored with a table (empty dict when absent)."""
-    meta = pq.read_schema(path).metadata or {}
+    try:
+        meta = pq.read_schema(path).metadata or {}
+    except FileNotFoundError:
+        raise NemoError(f"table not found: {path}") from None
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise NemoError(f"{path} is not a Parquet table ({exc})") from None
     raw = meta.get(b"nemo")
-    return json.loads(raw) if raw else {}
+    try:
+        return json.loads(raw) if raw else {}
+    except ValueError:
+        return {}  # provenance written by hand or damaged: none rather than an error
 
 
 def field_on_vertices(

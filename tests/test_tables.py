@@ -94,7 +94,8 @@ def test_missing_columns_are_all_named_with_what_the_file_has(tmp_path):
     with pytest.raises(NemoError) as exc:
         read_table(path, "layer", columns=("profile",))
     assert str(exc.value) == (
-        f"{path} lacks column(s) intensity, profile needed for a layer table (it has: vertex, depth); "
+        f"{path} lacks column(s) intensity, profile needed for a layer table and this step (it has: vertex, "
+        "depth); "
         "was it made by the right nemo command?"
     )
     with pytest.raises(NemoError, match=r"lacks column\(s\) S needed for this step"):
@@ -145,7 +146,7 @@ def test_check_table_mesh_uses_provenance_then_vertex_indices(tmp_path):
     write_table(_layer([2, 9], [1.0, 1.0]), path)
     check_table_mesh(read_table(path), path, 10)
     check_table_mesh(read_table(path), path, 500)
-    with pytest.raises(NemoError, match="refers to vertex 9 but the mesh has 9 vertices"):
+    with pytest.raises(NemoError, match="refers to vertex 9 but the mesh has vertices 0 to 8"):
         check_table_mesh(read_table(path), path, 9)
     write_table(_layer([-1, 3], [1.0, 1.0]), path)
     with pytest.raises(NemoError, match="another mesh"):
@@ -210,3 +211,22 @@ def test_failed_first_write_leaves_no_file(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="No space left"):
         write_table(_layer([0], [1.0]), tmp_path / "out" / "t.parquet")
     assert list((tmp_path / "out").iterdir()) == []  # the folder was made, no table nor temporary in it
+
+
+def test_misuse_and_damaged_provenance_are_clear(tmp_path):
+    """An unknown kind is a programming error; numpy bools are JSON; a negative vertex is named;
+    provenance of a non-Parquet file is a NemoError, not pyarrow's."""
+    from nemo.tables import check_table_mesh, read_provenance
+
+    path = tmp_path / "t.parquet"
+    write_table(pd.DataFrame({"vertex": [-3, 1], "intensity": [1.0, 2.0]}), path, ok=np.bool_(True))
+    assert read_provenance(path)["ok"] is True
+    with pytest.raises(ValueError, match="unknown table kind 'layr'"):
+        read_table(path, "layr")
+    with pytest.raises(NemoError, match="refers to vertex -3 but the mesh has vertices 0 to 9"):
+        check_table_mesh(read_table(path), path, 10)
+    (tmp_path / "bad.parquet").write_bytes(b"not parquet at all")
+    with pytest.raises(NemoError, match="is not a Parquet table"):
+        read_provenance(tmp_path / "bad.parquet")
+    with pytest.raises(NemoError, match="table not found"):
+        read_provenance(tmp_path / "missing.parquet")
