@@ -2,7 +2,7 @@
 #
 #   snakemake --cores 2                                   # bundled default (synthetic demo)
 #   snakemake --cores 8 --configfile config/paper.yaml    # the paper's vesicle
-#   snakemake --profile profiles/slurm --configfile my.yaml
+#   snakemake --workflow-profile workflow/profiles/slurm --configfile my.yaml
 #
 # Per frame: mesh -> morphology (measure, curvature, thickness) -> peel (layers) -> directors
 # -> order -> defects, align; per dataset: aggregate -> track. Every rule calls the `nemo`
@@ -58,5 +58,6 @@ rule all:
     default_target: True
     input:
         [summary_targets(name) for name in config["datasets"]],
+        [report_targets(name) for name in config["datasets"]],
         [render_targets(name) for name in config["datasets"]],
         BENCHMARK_TARGETS,

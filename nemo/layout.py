@@ -227,11 +227,12 @@ def provenance_strings(obj) -> list[str]:
 
 def table_provenance(path: Path) -> dict:
     """A table's provenance (:func:`nemo.tables.read_provenance`); ``{}`` when unreadable."""
+    from nemo.errors import NemoError
     from nemo.tables import read_provenance
 
     try:
         return read_provenance(path)
-    except (OSError, ValueError):  # a convenience: a foreign or broken Parquet file has none
+    except (NemoError, OSError, ValueError):  # a convenience: a mesh, a foreign or broken file has none
         return {}
 
 

@@ -348,7 +348,9 @@ def test_changing_the_averaging_radius_reruns_only_order_and_below(demo_run, tmp
     counts = _rerun_counts(demo_run, tmp_path, lambda c: c["order"].update(radius=c["order"]["radius"] + 5))
     n = default_config()["datasets"]["demo"]["synthetic"]["frames"] * 2
     assert counts.pop("order") == n and counts.pop("defects") == n
-    assert set(counts) <= {"aggregate_frames", "aggregate_defects", "track", "render_summary", "all"}, counts
+    # the per-frame renders of the first and last frame (report.frames: ends) and the report tables too
+    assert set(counts) <= {"aggregate_frames", "aggregate_defects", "track", "render_summary", "render",
+                           "report_tables", "report_config", "all"}, counts
 
 
 def test_changing_one_layer_reruns_that_layer_only(demo_run, tmp_path):
@@ -361,7 +363,9 @@ def test_changing_one_layer_reruns_that_layer_only(demo_run, tmp_path):
 
 def test_changing_tracking_reruns_only_tracking(demo_run, tmp_path):
     counts = _rerun_counts(demo_run, tmp_path, lambda c: c["tracking"].update(max_distance=30))
-    assert set(counts) <= {"track", "render_summary", "all"} and counts["track"] == 1, counts
+    # and what shows its tables: the summary figures, the report's table previews and configuration
+    assert set(counts) <= {"track", "render_summary", "report_tables", "report_config", "all"}, counts
+    assert counts["track"] == 1, counts
 
 
 def test_nemo_run_with_the_workflow_config_gives_the_workflows_numbers(demo_run, tmp_path):
@@ -387,7 +391,8 @@ def test_nemo_run_with_the_workflow_config_gives_the_workflows_numbers(demo_run,
                                           read_table(out / layout.layer_file(kind, layer)))
     for name in ("curvature_inner.parquet", "thickness.parquet", "align_basal_apical.parquet"):
         pd.testing.assert_frame_equal(read_table(frame / name), read_table(out / name))
-    assert json.loads((frame / "measure_inner.json").read_text()) == json.loads((out / "measure_inner.json").read_text())
+    measure = "measure_inner.json"
+    assert json.loads((frame / measure).read_text()) == json.loads((out / measure).read_text())
 
 
 def _droplets(path: Path, radii, spacing=(1.0, 0.42, 0.42)) -> None:
@@ -528,8 +533,8 @@ def test_multiframe_two_channel_hyperstack(tmp_path):
 @pytest.mark.slow
 def test_failing_frame_does_not_corrupt_others(tmp_path):
     """A dark frame fails its mesh; --keep-going completes the other frame, no partial files."""
-    from nemo.io import read_stack, write_hyperstack
     from nemo.cli import main as nemo_main
+    from nemo.io import read_stack, write_hyperstack
 
     src = tmp_path / "src.tif"
     assert nemo_main(["synth", str(src), "--radius", "40", "--spacing", "2", "2", "2",
@@ -598,7 +603,8 @@ def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_ru
     ours = [r for r in rows if Path(r[3]).resolve() == tmp_path.resolve()]
     local_jobs = job_counts(smk(tmp_path, "-n", "--forceall", "--cores", "1"))
     per_frame = {"mesh", "measure", "curvature", "thickness", "peel", "directors", "order", "defects", "align"}
-    n_other = sum(v for k, v in local_jobs.items() if k not in per_frame | {"all"})
+    local_rules = {"all", "report_config", "report_tables"}  # run beside Snakemake (localrules)
+    n_other = sum(v for k, v in local_jobs.items() if k not in per_frame | local_rules)
     frames = default_config()["datasets"]["demo"]["synthetic"]["frames"]
     # one submission per time point (the group 'frame': its mesh, morphology and every layer's
     # jobs), one per other job (synth, aggregation, tracking, figures)
@@ -629,13 +635,110 @@ def test_report_of_the_default_run_has_figures_and_captions(demo_run, tmp_path):
     for png in pngs:
         pixels = np.asarray(Image.open(png).convert("L"), dtype=float)
         assert pixels.std() > 5, f"{png.name} looks blank"
+    # per-frame renders of the first and the last time point (report.frames: ends, the default)
+    frames = default_config()["datasets"]["demo"]["synthetic"]["frames"]
+    rendered = sorted(p.relative_to(work / "results/demo").as_posix() for p in
+                      (work / "results/demo").glob("t*/c*/figures/*") if p.is_dir())
+    assert rendered == sorted(f"t{t}/c0/figures/{layer}" for t in (0, frames - 1) for layer in layers)
     report = work / "report.html"
-    smk(work, "--report", report)
+    proc = smk(work, "--report", report)
+    # every report item has a known type: the tables are previewed as HTML, not as Parquet
+    assert "Could not detect mimetype" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
     html = report.read_text(encoding="utf-8", errors="replace")
     assert report.stat().st_size > 50_000
     for needle in ("tracks_basal", "tracks_apical", "frames.png", "Per-frame summary",
-                   "Defect tracks of dataset"):
+                   "Defect tracks of dataset", "frames.html", "defects.html", "tracks.html",
+                   "alignment.html", "config.html", "Configuration of dataset", "t0/c0/figures/basal/"):
         assert needle in html, needle
+    summary = work / "results/demo/summary"
+    frames_html = (summary / "frames.html").read_text(encoding="utf-8")
+    for header in ("area (µm²)", "volume (µm³)", "H_mean (1/µm)", "K_mean (1/µm²)", "thickness_mean (µm)",
+                   "charge_sum", "qc_pass", "qc_flags"):
+        assert f"<th>{header}</th>" in frames_html, header
+    assert "<th>x (µm)</th>" in (summary / "defects.html").read_text(encoding="utf-8")
+    assert "<th>path_length (µm)</th>" in (summary / "tracks.html").read_text(encoding="utf-8")
+    # the resolved configuration beside the summaries: a valid config with every default filled
+    from nemo import config as nconfig
+
+    resolved = yaml.safe_load((summary / "config.yaml").read_text(encoding="utf-8"))
+    assert nconfig.validate(resolved) == resolved
+    assert list(resolved["datasets"]) == ["demo"] and resolved["order"]["radius"] == 25
+    assert "resources" not in resolved and resolved["report"]["frames"] == "ends"
+
+
+# ----------------------------------------------------------------------------- catalog standard
+def test_lint_is_clean_and_rules_are_formatted(tmp_path):
+    """`snakemake --lint` reports nothing (default and benchmark configs) and snakefmt would change
+    nothing (the Snakemake workflow catalog's checks; .ci/run runs them too)."""
+    for cfg in (DEFAULT_CONFIG, ROOT / "config" / "benchmark-ci.yaml"):
+        proc = subprocess.run([*SNAKEMAKE, "-s", str(SNAKEFILE), "-d", str(tmp_path), "--lint",
+                               "--configfile", str(cfg)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, (cfg.name, (proc.stdout + proc.stderr)[-4000:])
+        assert "Lints for" not in proc.stdout + proc.stderr
+    snakefmt = Path(sys.executable).parent / "snakefmt"
+    if not snakefmt.exists():
+        pytest.skip("snakefmt is not installed (pip install snakefmt)")
+    proc = subprocess.run([str(snakefmt), "--check", "Snakefile", "workflow"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+@pytest.mark.parametrize("frames, expected", [
+    (None, [0, 2]),         # the default: the first and the last time point
+    (False, []),
+    (True, [0, 1, 2]),
+    ("all", [0, 1, 2]),
+    ([1], [1]),
+])
+def test_report_frames_chooses_the_rendered_time_points(tmp_path, frames, expected):
+    cfg = default_config()
+    if frames is None:
+        cfg["report"].pop("frames")
+    else:
+        cfg["report"]["frames"] = frames
+    counts = job_counts(smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c.yaml", cfg)))
+    assert counts.get("render", 0) == len(expected) * len(cfg["layers"]), counts
+    assert counts["report_tables"] == counts["report_config"] == 1
+
+
+def test_report_frames_not_analysed_is_a_config_error(tmp_path):
+    cfg = default_config()
+    cfg["report"]["frames"] = [0, 7]
+    proc = smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c.yaml", cfg), check=False)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert "config key 'report.frames'" in proc.stderr and "[7]" in proc.stderr, proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("profile", ["local", "slurm"])
+def test_workflow_profiles_dry_run(tmp_path, profile):
+    """Both profiles load with --workflow-profile (executor-plugin form of Snakemake 8+)."""
+    if profile == "slurm":
+        pytest.importorskip("snakemake_executor_plugin_slurm")
+    proc = smk(tmp_path, "-n", "--workflow-profile", ROOT / "workflow" / "profiles" / profile)
+    assert "Using workflow specific profile" in proc.stdout + proc.stderr
+    assert job_counts(proc)["mesh"] == default_config()["datasets"]["demo"]["synthetic"]["frames"]
+
+
+def test_catalog_test_config_runs(tmp_path):
+    """.test/config/config.yaml (the catalog's small test case, run in CI): a 40 µm vesicle at 2 µm
+    voxels, 2 frames, one layer, every length from the data; four +½ defects per frame, tracked."""
+    cfg = ROOT / ".test" / "config" / "config.yaml"
+    start = time.perf_counter()
+    smk(tmp_path, "--cores", "2", "--configfile", cfg, timeout=600)
+    print(f"\n.test config: {time.perf_counter() - start:.1f} s with --cores 2")
+    f = _summary(tmp_path, "frames", "tiny")
+    assert f["t"].tolist() == [0, 1] and (f["layer"] == "fibres").all()
+    R = yaml.safe_load(cfg.read_text())["datasets"]["tiny"]["synthetic"]["radius"]
+    assert np.allclose(f["area"], 4 * np.pi * R**2, rtol=0.02)
+    assert (f["n_defects"] == 4).all() and np.allclose(f["charge_sum"], 2.0, atol=0.05), f
+    tracks = _summary(tmp_path, "tracks", "tiny")
+    assert len(tracks) == 4 and (tracks["length"] == 2).all() and np.allclose(tracks["charge"], 0.5, atol=0.05)
+    summary = tmp_path / "results" / "tiny" / "summary"
+    for name in ("frames", "defects", "tracks", "alignment", "config"):
+        assert (summary / f"{name}.html").stat().st_size > 200, name
+    proc = smk(tmp_path, "--configfile", cfg, "--report", tmp_path / "report.zip")
+    assert "Could not detect mimetype" not in proc.stdout + proc.stderr
+    assert (tmp_path / "report.zip").stat().st_size > 10_000
 
 
 # ----------------------------------------------------------------------------- directors from other tools

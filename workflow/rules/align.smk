@@ -3,22 +3,24 @@
 
 rule align:
     input:
-        a=FRAME + "/directors_{a}.parquet",
-        b=FRAME + "/directors_{b}.parquet",
+        a=frame_path("directors_{a}.parquet"),
+        b=frame_path("directors_{b}.parquet"),
         mesh=lambda wc: layer_mesh(wc, wc.a),
     output:
-        FRAME + "/align_{a}_{b}.parquet",
+        frame_path("align_{a}_{b}.parquet"),
     log:
-        LOGS + "/align/t{t}_c{c}_{a}_{b}.log",
+        log_path("align/t{t}_c{c}_{a}_{b}.log"),
     benchmark:
-        BENCH + "/align/t{t}_c{c}_{a}_{b}.tsv"
+        bench_path("align/t{t}_c{c}_{a}_{b}.tsv")
     group:
         "frame"
+    conda:
+        "../envs/nemo.yaml"
     threads: res("align", "threads")
     resources:
         mem_mb=res("align", "mem_mb"),
         runtime=res("align", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
     shell:
-        NEMO + " align {input.a:q} {input.b:q} --mesh {input.mesh:q} -o {output:q} > {log:q} 2>&1"
+        nemo_shell(
+            "align {input.a:q} {input.b:q} --mesh {input.mesh:q} -o {output:q} > {log:q} 2>&1"
+        )

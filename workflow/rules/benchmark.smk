@@ -10,43 +10,8 @@
 # nemo.benchmark shape) are meshed by nemo mesh and scored for curvature and thickness.
 # Everything is collected by bench_aggregate into results/benchmark/summary/.
 
-import json
 
-from nemo.benchmark import expand_cases, expand_shapes
-
-BENCHMARK = config["benchmark"]
-BRES = RESULTS + "/benchmark"
-BCASES = expand_cases(BENCHMARK)
-BSHAPES = expand_shapes(BENCHMARK)
-BVOLUMES = {c["volume"]: c["synth"] for c in BCASES.values() if c["volume"]}
-_BMATCH = BENCHMARK.get("match_radius")
-_BORDERED = BENCHMARK.get("ordered_distance")
-_BSCORE_OPTS = ((f" --match-radius {_BMATCH}" if _BMATCH else "")
-                + (f" --ordered-distance {_BORDERED}" if _BORDERED else ""))
-
-
-def _case_dataset(cid, case):
-    """The dataset a case is analysed as: a configured one, or `bench.CASE` on its volume."""
-    if case["dataset"] is not None:
-        if case["dataset"] not in DATA:
-            config_error(f"benchmark.cases.{cid}.dataset",
-                         f"'{case['dataset']}' is not under datasets (defined: {', '.join(DATA)})")
-        if not DATA[case["dataset"]]["synthetic"]:
-            config_error(f"benchmark.cases.{cid}.dataset", "needs a synthetic dataset (its truth.json)")
-        return case["dataset"]
-    name = f"bench.{cid}"
-    path = f"{BRES}/volumes/{case['volume']}.tif"
-    try:
-        overrides = nconfig.validate({"datasets": {name: {"path": path, **case["run"]}}})["datasets"][name]
-        SECTIONS[name] = nconfig.analysis({**config, "datasets": {name: overrides}}, name)
-    except NemoError as exc:
-        _fail(f"benchmark case '{cid}' (run: {case['run']}): {exc}")
-    DATA[name] = {"path": path, "spacing": None, "mask": None, "synthetic": None, "seg": 0, "t": [0], "c": [0],
-                  "stack_mb": None}
-    return name
-
-
-BCASE_DATA = {cid: _case_dataset(cid, case) for cid, case in BCASES.items()}
+include: "benchmark_common.smk"
 
 
 wildcard_constraints:
@@ -55,85 +20,43 @@ wildcard_constraints:
     shape="|".join(sorted(BSHAPES)) or "NONE",
 
 
-def _truth_of(path):
-    return os.path.splitext(path)[0] + ".truth.json"
-
-
-def _scored_frame(name):
-    """(t, c, layer) scored for a dataset: its first frame and layer."""
-    frames = layer_frames(name)
-    if not frames:
-        _fail(f"benchmark: dataset '{name}' has no layer to score")
-    return frames[0]
-
-
-def _stage_files(name):
-    """Snakemake benchmark files of the per-frame rules of the scored frame of a dataset."""
-    t, c, layer = _scored_frame(name)
-    b = BENCH.format(dataset=name)
-    s, seg = SECTIONS[name], DATA[name]["seg"]
-    out = [f"{b}/mesh/t{t}_c{seg}.tsv"] + [f"{b}/{rule}/t{t}_c{c}_{layer}.tsv"
-                                          for rule in ("peel", "directors", "order", "defects")]
-    out += [f"{b}/measure/t{t}_c{seg}_{x}.tsv" for x in (s["measure"]["surfaces"] or s["surfaces"])]
-    if s["curvature"] is not None:
-        out += [f"{b}/curvature/t{t}_c{seg}_{x}.tsv" for x in s["surfaces"]]
-    if s["thickness"] is not None:
-        out.append(f"{b}/thickness/t{t}_c{seg}.tsv")
-    return out
-
-
-def _score_inputs(wc):
-    name = BCASE_DATA[wc.case]
-    t, c, layer = _scored_frame(name)
-    frame = layout.frame_dir(RESULTS, name, t, c)
-    seg = layout.frame_dir(RESULTS, name, t, DATA[name]["seg"])
-    inputs = {"truth": _truth_of(DATA[name]["path"]), "stages": _stage_files(name)}
-    for kind in ("defects", "directors", "order"):
-        inputs[kind] = f"{frame}/{layout.layer_file(kind, layer)}"
-    if SECTIONS[name]["curvature"] is not None:
-        inputs["curvature"] = f"{seg}/{layout.curvature_file(SECTIONS[name]['layers'][layer]['surface'])}"
-    return inputs
-
-
 rule bench_synth:
     output:
-        image=BRES + "/volumes/{vid}.tif",
-        truth=BRES + "/volumes/{vid}.truth.json",
-    params:
-        opts=lambda wc: cli_opts(BVOLUMES[wc.vid]),
+        image=bench_file("volumes/{vid}.tif"),
+        truth=bench_file("volumes/{vid}.truth.json"),
     log:
-        BRES + "/logs/synth/{vid}.log",
+        bench_file("logs/synth/{vid}.log"),
     benchmark:
-        BRES + "/benchmarks/cases/synth/{vid}.tsv"
+        bench_file("benchmarks/cases/synth/{vid}.tsv")
+    conda:
+        "../envs/nemo.yaml"
     threads: res("benchmark", "threads")
     resources:
         mem_mb=res("benchmark", "mem_mb"),
         runtime=res("benchmark", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=lambda wc: cli_opts(BVOLUMES[wc.vid]),
     shell:
-        NEMO + " synth {output.image} {params.opts} > {log} 2>&1"
+        nemo_shell("synth {output.image} {params.opts} > {log} 2>&1")
 
 
 rule bench_score:
     input:
-        unpack(_score_inputs),
+        unpack(bench_score_inputs),
     output:
-        BRES + "/cases/{case}/score.json",
-    params:
-        case=lambda wc: json.dumps({**{k: BCASES[wc.case][k] for k in
-                                       ("case", "sweep", "parameter", "value", "value_label", "rotation",
-                                        "synth", "run")}, "dataset": BCASE_DATA[wc.case]}).replace("'", ""),
-        curvature=lambda wc, input: f"--curvature {shlex.quote(input.curvature)}" if "curvature" in input.keys() else "",
-        opts=_BSCORE_OPTS,
+        bench_file("cases/{case}/score.json"),
     log:
-        BRES + "/logs/score/{case}.log",
+        bench_file("logs/score/{case}.log"),
+    conda:
+        "../envs/nemo.yaml"
     threads: 1
     resources:
         mem_mb=res("benchmark", "mem_mb"),
         runtime=res("benchmark", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        case=bench_case_json,
+        curvature=lambda wc, input: optional_file("--curvature", input, "curvature"),
+        opts=BSCORE_OPTS,
     shell:
         "python -m nemo.benchmark score --truth {input.truth:q} --defects {input.defects:q}"
         " --directors {input.directors:q} --order {input.order:q} {params.curvature}"
@@ -142,98 +65,90 @@ rule bench_score:
 
 rule bench_shape:
     output:
-        image=BRES + "/shapes/{shape}/volume.tif",
-        truth=BRES + "/shapes/{shape}/truth.json",
-    params:
-        spec=lambda wc: json.dumps({**{k: v for k, v in BSHAPES[wc.shape].items() if k != "mesh"},
-                                    "name": wc.shape}),
+        image=bench_file("shapes/{shape}/volume.tif"),
+        truth=bench_file("shapes/{shape}/truth.json"),
     log:
-        BRES + "/logs/shape/{shape}.log",
+        bench_file("logs/shape/{shape}.log"),
     benchmark:
-        BRES + "/benchmarks/shapes/shape/{shape}.tsv"
+        bench_file("benchmarks/shapes/shape/{shape}.tsv")
+    conda:
+        "../envs/nemo.yaml"
     threads: 1
     resources:
         mem_mb=res("benchmark", "mem_mb"),
         runtime=res("benchmark", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        spec=bench_shape_spec,
     shell:
         "python -m nemo.benchmark shape '{params.spec}' -o {output.image} --truth {output.truth} > {log} 2>&1"
 
 
 rule bench_shape_mesh:
     input:
-        image=BRES + "/shapes/{shape}/volume.tif",
-        truth=BRES + "/shapes/{shape}/truth.json",
+        image=bench_file("shapes/{shape}/volume.tif"),
+        truth=bench_file("shapes/{shape}/truth.json"),
     output:
-        BRES + "/shapes/{shape}/mesh.ply",
-    params:
-        opts=lambda wc, input: cli_opts({"threshold": json.load(open(input.truth))["threshold"],
-                                         "keep": "all" if BSHAPES[wc.shape]["kind"] == "shells" else "largest",
-                                         "split": "none",
-                                         **BSHAPES[wc.shape]["mesh"]}),
+        bench_file("shapes/{shape}/mesh.ply"),
     log:
-        BRES + "/logs/shape_mesh/{shape}.log",
+        bench_file("logs/shape_mesh/{shape}.log"),
     benchmark:
-        BRES + "/benchmarks/shapes/mesh/{shape}.tsv"
+        bench_file("benchmarks/shapes/mesh/{shape}.tsv")
+    conda:
+        "../envs/nemo.yaml"
     threads: res("mesh", "threads")
     resources:
         mem_mb=res("mesh", "mem_mb"),
         runtime=res("mesh", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=bench_shape_mesh_opts,
     shell:
-        NEMO + " mesh {input.image} -o {output} {params.opts} > {log} 2>&1"
+        nemo_shell("mesh {input.image} -o {output} {params.opts} > {log} 2>&1")
 
 
 rule bench_shape_score:
     input:
-        mesh=BRES + "/shapes/{shape}/mesh.ply",
-        truth=BRES + "/shapes/{shape}/truth.json",
+        mesh=bench_file("shapes/{shape}/mesh.ply"),
+        truth=bench_file("shapes/{shape}/truth.json"),
     output:
-        BRES + "/shapes/{shape}/score.json",
+        bench_file("shapes/{shape}/score.json"),
     log:
-        BRES + "/logs/shape_score/{shape}.log",
+        bench_file("logs/shape_score/{shape}.log"),
     benchmark:
-        BRES + "/benchmarks/shapes/score/{shape}.tsv"
+        bench_file("benchmarks/shapes/score/{shape}.tsv")
+    conda:
+        "../envs/nemo.yaml"
     threads: 1
     resources:
         mem_mb=res("benchmark", "mem_mb"),
         runtime=res("benchmark", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
     shell:
         "python -m nemo.benchmark score-shape {input.mesh} {input.truth} -o {output} > {log} 2>&1"
 
 
-def _bench_stage_files():
-    files = [f"{BRES}/benchmarks/cases/synth/{v}.tsv" for v in BVOLUMES]
-    files += [f"{BRES}/benchmarks/shapes/{k}/{s}.tsv" for s in BSHAPES for k in ("mesh", "score")]
-    return files
-
-
-BENCHMARK_TARGETS = [BRES + "/summary/cases.parquet"]
+BENCHMARK_TARGETS = [bench_file("summary/cases.parquet")]
 
 
 rule bench_aggregate:
     input:
-        scores=[f"{BRES}/cases/{c}/score.json" for c in BCASES],
-        shapes=[f"{BRES}/shapes/{s}/score.json" for s in BSHAPES],
-        stages=_bench_stage_files(),
+        scores=[bench_file(f"cases/{c}/score.json") for c in BCASES],
+        shapes=[bench_file(f"shapes/{s}/score.json") for s in BSHAPES],
+        stages=bench_stage_files(),
     output:
-        cases=BRES + "/summary/cases.parquet",
-        sweeps=BRES + "/summary/sweeps.parquet",
-        shapes=BRES + "/summary/shapes.parquet",
-        stages=BRES + "/summary/stages.parquet",
-        table=BRES + "/summary/benchmark.md",
+        cases=bench_file("summary/cases.parquet"),
+        sweeps=bench_file("summary/sweeps.parquet"),
+        shapes=bench_file("summary/shapes.parquet"),
+        stages=bench_file("summary/stages.parquet"),
+        table=bench_file("summary/benchmark.md"),
     log:
-        BRES + "/logs/aggregate.log",
+        bench_file("logs/aggregate.log"),
+    conda:
+        "../envs/nemo.yaml"
     threads: 1
     resources:
         mem_mb=res("benchmark", "mem_mb"),
         runtime=res("benchmark", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        summary=lambda wc, output: os.path.dirname(output.cases),
     shell:
         "python -m nemo.benchmark aggregate --scores {input.scores:q}"
-        " --shapes {input.shapes:q} --stages {input.stages:q} -o {BRES}/summary > {log:q} 2>&1"
+        " --shapes {input.shapes:q} --stages {input.stages:q} -o {params.summary:q} > {log:q} 2>&1"

@@ -9,6 +9,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import yaml
 
 
 def _fail(message):
@@ -34,31 +35,50 @@ except NemoError as exc:
 config.clear()
 config.update(_validated)
 if not config["datasets"]:
-    config_error("datasets", "no dataset to analyse: add one under datasets (see config/config.yaml)")
+    config_error(
+        "datasets",
+        "no dataset to analyse: add one under datasets (see config/config.yaml)",
+    )
 
 # `nemo` subprocesses: the interpreter running Snakemake first on PATH (so `.venv/bin/snakemake`
 # works without activating the venv), this checkout importable (conda envs via --use-conda).
-_bindir = os.path.dirname(sys.executable)
-if _bindir not in os.environ.get("PATH", "").split(os.pathsep)[:1]:
-    os.environ["PATH"] = _bindir + os.pathsep + os.environ.get("PATH", "")
-os.environ["PYTHONPATH"] = os.pathsep.join(
-    p for p in (workflow.basedir, os.environ.get("PYTHONPATH")) if p
-)
+sys.path.insert(0, os.path.join(workflow.basedir, "workflow", "lib"))
+import job_env  # noqa: E402
+
+job_env.prepare(workflow.basedir)
 # One warm worker for the many short `python -m nemo` jobs of a local run (nemo/worker.py):
 # numpy, scipy, pandas and trimesh are imported once instead of once per job. Started while
 # the workflow is parsed, so its imports overlap with building the DAG; not for dry runs,
 # linting or reports, and stopped in `onstart` when the jobs go to a cluster.
 from nemo.worker import ENV as WORKER_ENV  # noqa: E402
 
-_NO_JOBS = {"-n", "--dry-run", "--dryrun", "--lint", "--report", "--list-rules", "-l", "--summary",
-            "--detailed-summary", "--dag", "--rulegraph", "--filegraph", "--unlock", "--cleanup-metadata"}
+_NO_JOBS = {
+    "-n",
+    "--dry-run",
+    "--dryrun",
+    "--lint",
+    "--report",
+    "--list-rules",
+    "-l",
+    "--summary",
+    "--detailed-summary",
+    "--dag",
+    "--rulegraph",
+    "--filegraph",
+    "--unlock",
+    "--cleanup-metadata",
+}
 
 
 def start_worker():
     from nemo.worker import start
 
-    if (config["worker"] and workflow.exec_mode.name == "DEFAULT" and WORKER_ENV not in os.environ
-            and not _NO_JOBS & set(sys.argv)):
+    if (
+        config["worker"]
+        and workflow.exec_mode.name == "DEFAULT"
+        and WORKER_ENV not in os.environ
+        and not _NO_JOBS & set(sys.argv)
+    ):
         os.environ[WORKER_ENV] = start(wait=False)
 
 
@@ -83,6 +103,44 @@ FRAME = layout.frame_dir(RESULTS, "{dataset}", "{t}", "{c}")
 LOGS = layout.dataset_dir(RESULTS, "{dataset}", layout.LOG_DIR)
 BENCH = layout.dataset_dir(RESULTS, "{dataset}", layout.BENCH_DIR)
 SUMMARY = layout.dataset_dir(RESULTS, "{dataset}", layout.SUMMARY_DIR)
+
+
+# ----------------------------------------------------------------------------- path patterns
+# Wildcard patterns of the rules' files ({dataset}, {t}, {c} ... kept for Snakemake to fill).
+def frame_path(name):
+    """A file of one frame: ``results/{dataset}/t{t}/c{c}/NAME``."""
+    return f"{FRAME}/{name}"
+
+
+def log_path(name):
+    """A job's log: ``results/{dataset}/logs/NAME``."""
+    return f"{LOGS}/{name}"
+
+
+def bench_path(name):
+    """A job's Snakemake benchmark file: ``results/{dataset}/benchmarks/NAME``."""
+    return f"{BENCH}/{name}"
+
+
+def summary_path(name):
+    """A file of a dataset's summary: ``results/{dataset}/summary/NAME``."""
+    return f"{SUMMARY}/{name}"
+
+
+def truth_path(image_path):
+    """The ground truth written by `nemo synth` beside its image (``X.tif`` -> ``X.truth.json``)."""
+    return f"{os.path.splitext(image_path)[0]}.truth.json"
+
+
+def nemo_shell(arguments):
+    """Shell command running ``nemo ARGUMENTS`` with the job's threads for BLAS/OpenMP."""
+    return f"{NEMO} {arguments}"
+
+
+def optional_file(flag, input, name, suffix=""):
+    """``FLAG 'path'`` for an optional named input of a job; "" when the job has none."""
+    path = getattr(input, name) if name in input.keys() else None
+    return f"{flag} {shlex.quote(path + suffix)}" if path else ""
 
 
 def _sections():
@@ -129,11 +187,11 @@ def cli_opts(options, skip=()):
     for key, value in sorted((options or {}).items()):
         if key in skip or value is None or value is False:
             continue
-        flag = "--" + str(key).replace("_", "-")
+        flag = f"--{str(key).replace('_', '-')}"
         if value is True:
             parts.append(flag)
         elif isinstance(value, (list, tuple)):
-            parts.append(flag + " " + " ".join(str(v) for v in value))
+            parts.append(f"{flag} {' '.join(str(v) for v in value)}")
         else:
             parts.append(f"{flag} {value}")
     return " ".join(parts)
@@ -158,7 +216,9 @@ def _dataset_info(name, d):
         try:
             from nemo.io import read_info
             from nemo.errors import NemoError
-        except ImportError as exc:  # a Snakemake environment without nemo: trust the config
+        except (
+            ImportError
+        ) as exc:  # a Snakemake environment without nemo: trust the config
             warnings.warn(f"cannot import nemo ({exc}); not checking {path}'s header")
             return None
         try:
@@ -166,12 +226,21 @@ def _dataset_info(name, d):
         except NemoError as exc:
             config_error(f"{key}.path", str(exc))
         if not info.calibrated and d["spacing"] is None:
-            warnings.warn(f"{path} has no spatial calibration; set {key}.spacing: [dz, dy, dx] (µm)")
+            warnings.warn(
+                f"{path} has no spatial calibration; set {key}.spacing: [dz, dy, dx] (µm)"
+            )
         return info.shape
     if synth is None:
-        config_error(f"{key}.path", f"file not found: {path} (relative to {os.getcwd()}); give an "
-                                    "existing hyperstack, or a 'synthetic:' section to generate it")
-    return {"T": int(synth.get("frames", 1)), "C": int(synth.get("channels", 1)), "Z": None}
+        config_error(
+            f"{key}.path",
+            f"file not found: {path} (relative to {os.getcwd()}); give an "
+            "existing hyperstack, or a 'synthetic:' section to generate it",
+        )
+    return {
+        "T": int(synth.get("frames", 1)),
+        "C": int(synth.get("channels", 1)),
+        "Z": None,
+    }
 
 
 def _indices(name, d, axis, size):
@@ -182,7 +251,10 @@ def _indices(name, d, axis, size):
     bad = [v for v in values if v >= size]
     if bad:
         what = "time points" if axis == "T" else "channels"
-        config_error(key, f"{bad} out of range: {d['path']} has {size} {what} (valid: 0 to {size - 1})")
+        config_error(
+            key,
+            f"{bad} out of range: {d['path']} has {size} {what} (valid: 0 to {size - 1})",
+        )
     return sorted(values)
 
 
@@ -190,20 +262,39 @@ def _datasets():
     out = {}
     for name, d in config["datasets"].items():
         shape = _dataset_info(name, d)
-        seg = d["segment_channel"] if d["segment_channel"] is not None else config["segment_channel"]
-        entry = {"path": d["path"], "spacing": d["spacing"], "mask": d["mask"],
-                 "synthetic": d["synthetic"], "seg": seg, "stack_mb": None}
+        seg = (
+            d["segment_channel"]
+            if d["segment_channel"] is not None
+            else config["segment_channel"]
+        )
+        entry = {
+            "path": d["path"],
+            "spacing": d["spacing"],
+            "mask": d["mask"],
+            "synthetic": d["synthetic"],
+            "seg": seg,
+            "stack_mb": None,
+        }
         if shape is None:
             if d["t"] == "all" or d["c"] == "all":
-                config_error(f"datasets.{name}", "cannot read the header: give t and c as lists")
+                config_error(
+                    f"datasets.{name}", "cannot read the header: give t and c as lists"
+                )
             entry["t"], entry["c"] = sorted(d["t"]), sorted(d["c"])
         else:
             entry["t"] = _indices(name, d, "T", shape["T"])
             entry["c"] = _indices(name, d, "C", shape["C"])
             if seg >= shape["C"]:
-                key = f"datasets.{name}.segment_channel" if d["segment_channel"] is not None else "segment_channel"
-                config_error(key, f"channel {seg} is not in {d['path']}, which has {shape['C']} "
-                                  f"channel{'s' if shape['C'] != 1 else ''} (valid: 0 to {shape['C'] - 1})")
+                key = (
+                    f"datasets.{name}.segment_channel"
+                    if d["segment_channel"] is not None
+                    else "segment_channel"
+                )
+                config_error(
+                    key,
+                    f"channel {seg} is not in {d['path']}, which has {shape['C']} "
+                    f"channel{'s' if shape['C'] != 1 else ''} (valid: 0 to {shape['C'] - 1})",
+                )
             if shape.get("Z"):
                 entry["stack_mb"] = shape["Z"] * shape["Y"] * shape["X"] * 4 / 1e6
         if d["mask"] is not None and not Path(d["mask"]).exists():
@@ -211,8 +302,12 @@ def _datasets():
         out[name] = entry
     paths = [e["path"] for e in out.values()]
     for p in set(paths):
-        if paths.count(p) > 1 and any(e["synthetic"] for e in out.values() if e["path"] == p):
-            config_error("datasets", f"two datasets generate/read the same synthetic file {p}")
+        if paths.count(p) > 1 and any(
+            e["synthetic"] for e in out.values() if e["path"] == p
+        ):
+            config_error(
+                "datasets", f"two datasets generate/read the same synthetic file {p}"
+            )
     return out
 
 
@@ -225,16 +320,20 @@ def _check_layer_channels():
         layers = sec(name, "layers") or {}
         for layer in layers:
             if not layer_channels(name, layer):
-                config_error(f"layers.{layer}.channels", f"{layers[layer]['channels']} holds none of the "
-                                                         f"channels analysed in dataset '{name}' ({analysed})")
-
+                config_error(
+                    f"layers.{layer}.channels",
+                    f"{layers[layer]['channels']} holds none of the "
+                    f"channels analysed in dataset '{name}' ({analysed})",
+                )
 
 
 # ----------------------------------------------------------------------------- resources
 def res(rule, key):
     table = config["resources"]
     defaults = {"mem_mb": 2000, "runtime": 30, "threads": 1}
-    value = table.get(rule, {}).get(key, table.get("default", {}).get(key, defaults[key]))
+    value = table.get(rule, {}).get(
+        key, table.get("default", {}).get(key, defaults[key])
+    )
     return value
 
 
@@ -254,7 +353,9 @@ def image(wildcards):
 
 
 def seg_dir(wildcards):
-    return layout.frame_dir(RESULTS, wildcards.dataset, wildcards.t, DATA[wildcards.dataset]["seg"])
+    return layout.frame_dir(
+        RESULTS, wildcards.dataset, wildcards.t, DATA[wildcards.dataset]["seg"]
+    )
 
 
 def surface_mesh(wildcards, surface):
@@ -271,7 +372,7 @@ def frame_file(wildcards, name):
 
 def spacing_opt(wildcards):
     sp = DATA[wildcards.dataset]["spacing"]
-    return "--spacing " + " ".join(str(v) for v in sp) if sp else ""
+    return f"--spacing {' '.join(str(v) for v in sp)}" if sp else ""
 
 
 def layer_channels(name, layer):
@@ -283,21 +384,33 @@ def layer_channels(name, layer):
 def layer_frames(name):
     """(t, c, layer) triples analysed in a dataset."""
     # sorted: params built from this list must not depend on the order of keys in the config
-    return sorted((t, c, layer) for t in DATA[name]["t"] for layer in (sec(name, "layers") or {})
-                  for c in layer_channels(name, layer))
+    return sorted(
+        (t, c, layer)
+        for t in DATA[name]["t"]
+        for layer in (sec(name, "layers") or {})
+        for c in layer_channels(name, layer)
+    )
 
 
 def align_frames(name):
     """(t, c, a, b): alignment pairs in the channels that hold both layers."""
-    return sorted((t, c, a, b) for t in DATA[name]["t"] for a, b in (sec(name, "alignment") or [])
-                  for c in layer_channels(name, a) if c in layer_channels(name, b))
+    return sorted(
+        (t, c, a, b)
+        for t in DATA[name]["t"]
+        for a, b in (sec(name, "alignment") or [])
+        for c in layer_channels(name, a)
+        if c in layer_channels(name, b)
+    )
 
 
 def morphology_files(name, t):
     """Files of the morphology of time point t: measure, curvature per surface, thickness."""
     d = layout.frame_dir(RESULTS, name, t, DATA[name]["seg"])
     s = SECTIONS[name]
-    files = [f"{d}/{layout.measure_file(x)}" for x in (s["measure"]["surfaces"] or s["surfaces"])]
+    files = [
+        f"{d}/{layout.measure_file(x)}"
+        for x in (s["measure"]["surfaces"] or s["surfaces"])
+    ]
     if s["curvature"] is not None:
         files += [f"{d}/{layout.curvature_file(x)}" for x in s["surfaces"]]
     if s["thickness"] is not None:
@@ -324,11 +437,16 @@ def imported(dataset, layer):
 
 def directors_source(wc):
     """Input function: the file holding a frame's directors of an imported layer."""
-    return nconfig.directors_from_path(layer_cfg(wc)["directors_from"], dataset=wc.dataset, t=int(wc.t),
-                                       c=int(wc.c), layer=wc.layer)
+    return nconfig.directors_from_path(
+        layer_cfg(wc)["directors_from"],
+        dataset=wc.dataset,
+        t=int(wc.t),
+        c=int(wc.c),
+        layer=wc.layer,
+    )
 
 
-def _layer_regex(names):
+def layer_regex(names):
     return "|".join(map(re.escape, sorted(names))) or "(?!)"  # (?!): matches nothing
 
 
@@ -341,9 +459,15 @@ def _split_layer_names():
             kinds.setdefault(layer, {})[imported(name, layer)] = name
     both = {layer: k for layer, k in kinds.items() if len(k) == 2}
     for layer, k in both.items():
-        config_error(f"layers.{layer}.directors_from", f"layer '{layer}' takes its directors from files in "
-                     f"dataset '{k[True]}' but is peeled in dataset '{k[False]}': give one of them another name")
-    return ({layer for layer, k in kinds.items() if True in k}, {layer for layer, k in kinds.items() if False in k})
+        config_error(
+            f"layers.{layer}.directors_from",
+            f"layer '{layer}' takes its directors from files in "
+            f"dataset '{k[True]}' but is peeled in dataset '{k[False]}': give one of them another name",
+        )
+    return (
+        {layer for layer, k in kinds.items() if True in k},
+        {layer for layer, k in kinds.items() if False in k},
+    )
 
 
 def _check_directors_files():
@@ -353,24 +477,275 @@ def _check_directors_files():
     for name in DATA:
         for layer, cfg in nconfig.imported_layers(SECTIONS[name]).items():
             over = "layers" in (config["datasets"][name] or {})
-            key = f"{'datasets.' + name + '.' if over else ''}layers.{layer}.directors_from"
+            prefix = f"datasets.{name}." if over else ""
+            key = f"{prefix}layers.{layer}.directors_from"
             pattern = cfg["directors_from"]
             if not pattern.lower().endswith(SUFFIXES):
-                config_error(key, f"{pattern!r}: directors are read from {', '.join(SUFFIXES)} files")
+                config_error(
+                    key,
+                    f"{pattern!r}: directors are read from {', '.join(SUFFIXES)} files",
+                )
             frames = [(t, c) for t, c, lay in layer_frames(name) if lay == layer]
             try:
-                paths = {(t, c): nconfig.directors_from_path(pattern, key, dataset=name, t=t, c=c, layer=layer)
-                         for t, c in frames}
+                paths = {
+                    (t, c): nconfig.directors_from_path(
+                        pattern, key, dataset=name, t=t, c=c, layer=layer
+                    )
+                    for t, c in frames
+                }
             except NemoError as exc:
                 _fail(str(exc))
-            missing = [f"{p} (t={t}, c={c})" for (t, c), p in paths.items() if not Path(p).is_file()]
+            missing = [
+                f"{p} (t={t}, c={c})"
+                for (t, c), p in paths.items()
+                if not Path(p).is_file()
+            ]
             if missing:
-                config_error(key, f"{len(missing)} of {len(paths)} director file(s) of dataset '{name}' not found "
-                             f"(relative to {os.getcwd()}): {', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''}")
+                config_error(
+                    key,
+                    f"{len(missing)} of {len(paths)} director file(s) of dataset '{name}' not found "
+                    f"(relative to {os.getcwd()}): {', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''}",
+                )
             if len(set(paths.values())) < len(paths):
-                warnings.warn(f"{key}: {pattern!r} names the same file for several frames (no {{t}} or {{c}}): "
-                              "every frame gets the same directors")
+                warnings.warn(
+                    f"{key}: {pattern!r} names the same file for several frames (no {{t}} or {{c}}): "
+                    "every frame gets the same directors"
+                )
 
 
 IMPORTED_LAYERS, MEASURED_LAYERS = _split_layer_names()
 _check_directors_files()
+
+
+# ----------------------------------------------------------------------------- per-rule inputs and options
+SYNTHETIC = [name for name in DATA if DATA[name]["synthetic"]]
+#: datasets whose mesh is split into inner/outer walls (rule mesh) or not (rule mesh_single)
+SPLIT_MESH = [name for name in DATA if sec(name, "mesh")["split"] != "none"]
+SINGLE_MESH = [name for name in DATA if name not in SPLIT_MESH]
+
+MESH_SHELL = nemo_shell(
+    "mesh {input.image:q} -o {output.whole:q} --t {wildcards.t} --c {wildcards.c}"
+    " {params.spacing} {params.mask} {params.opts} > {log:q} 2>&1"
+)
+
+
+def dataset_regex(names):
+    return "|".join(map(re.escape, names))
+
+
+def mask_file(wc):
+    return DATA[wc.dataset]["mask"] or []
+
+
+def thickness_mesh(wc, end):
+    """Mesh of the thickness's `from` or `to` surface."""
+    return frame_file(wc, layout.MESH[sec(wc.dataset, "thickness")[end]])
+
+
+def peel_inputs(wc):
+    inputs = {"image": image(wc), "mesh": layer_mesh(wc)}
+    if layer_cfg(wc)["shift"]:
+        inputs["shift"] = f"{seg_dir(wc)}/{layout.THICKNESS}"
+    return inputs
+
+
+def peel_opts(wc):
+    layer = layer_cfg(wc)
+    opts = cli_opts(
+        {k: layer[k] for k in ("range", "reduce", "samples", "interp", "inward")}
+    )
+    if layer["shift"]:
+        opts += f" --shift-fraction {layer['shift']}"
+    return opts
+
+
+def import_opts(wc):
+    return cli_opts(nconfig.section("directors_import", layer_cfg(wc).get("import")))
+
+
+def defects_inputs(wc):
+    inputs = {
+        "mesh": layer_mesh(wc),
+        "order": frame_file(wc, layout.layer_file("order", wc.layer)),
+        "directors": frame_file(wc, layout.layer_file("directors", wc.layer)),
+    }
+    if not imported(
+        wc.dataset, wc.layer
+    ):  # imported directors: no layer, no refinement pass
+        inputs["layer"] = frame_file(wc, layout.layer_file("layer", wc.layer))
+    d = sec(wc.dataset, "defects")
+    if d["curvature_source"] == "table" and d["curvature_correction"]:
+        inputs["curvature"] = (
+            f"{seg_dir(wc)}/{layout.curvature_file(layer_cfg(wc)['surface'])}"
+        )
+    return inputs
+
+
+def defects_opts(wc):
+    d = sec(wc.dataset, "defects")
+    return cli_opts(d, skip=("curvature_correction",)) + (
+        "" if d["curvature_correction"] else " --no-curvature-correction"
+    )
+
+
+# ----------------------------------------------------------------------------- aggregation records
+def frame_records(name):
+    """One record per (t, c, layer); a dataset without layers: one per (t, surface)."""
+    d = DATA[name]
+    s = SECTIONS[name]
+    records = []
+
+    def morphology(t, surface):
+        seg = layout.frame_dir(RESULTS, name, t, d["seg"])
+        thickness = s["thickness"] is not None and s["thickness"]["from"] == surface
+        return {
+            "measure": f"{seg}/{layout.measure_file(surface)}",
+            "curvature": (
+                f"{seg}/{layout.curvature_file(surface)}"
+                if s["curvature"] is not None
+                else None
+            ),
+            "thickness": f"{seg}/{layout.THICKNESS}" if thickness else None,
+        }
+
+    for t, c, layer in layer_frames(name):
+        frame = layout.frame_dir(RESULTS, name, t, c)
+        surface = s["layers"][layer]["surface"]
+        tables = {
+            (
+                k if k != "layer" else "layer_table"
+            ): f"{frame}/{layout.layer_file(k, layer)}"
+            for k in layout.LAYER_KINDS
+            if k != "layer" or not imported(name, layer)
+        }
+        records.append(
+            {
+                "t": t,
+                "c": c,
+                "layer": layer,
+                "surface": surface,
+                **morphology(t, surface),
+                **tables,
+            }
+        )
+    if not s["layers"]:
+        records = [
+            {
+                "t": t,
+                "c": d["seg"],
+                "layer": "",
+                "surface": surface,
+                **morphology(t, surface),
+            }
+            for t in d["t"]
+            for surface in s["surfaces"]
+        ]
+    return records
+
+
+def defect_records(name):
+    return [
+        {k: r[k] for k in ("t", "c", "layer", "defects")}
+        for r in frame_records(name)
+        if r.get("defects")
+    ]
+
+
+def record_files(records, keys):
+    return sorted({r[k] for r in records for k in keys if r.get(k)})
+
+
+def align_records(name):
+    return [
+        {
+            "t": t,
+            "c": c,
+            "layer_a": a,
+            "layer_b": b,
+            "align": f"{layout.frame_dir(RESULTS, name, t, c)}/{layout.align_file(a, b)}",
+        }
+        for t, c, a, b in align_frames(name)
+    ]
+
+
+# ----------------------------------------------------------------------------- figures and report
+REPORT = config["report"]
+#: summary tables previewed as HTML in the report (the Parquet files are the data)
+REPORT_TABLES = ("frames", "defects", "tracks", "alignment")
+
+
+def render_inputs(wc):
+    seg = seg_dir(wc)
+    s = SECTIONS[wc.dataset]
+    surface = layer_cfg(wc)["surface"]
+    kinds = [
+        k
+        for k in layout.LAYER_KINDS
+        if k != "layer" or not imported(wc.dataset, wc.layer)
+    ]
+    inputs = [layer_mesh(wc)] + [
+        frame_file(wc, layout.layer_file(kind, wc.layer)) for kind in kinds
+    ]
+    if s["curvature"] is not None:
+        inputs.append(f"{seg}/{layout.curvature_file(surface)}")
+    if s["thickness"] is not None and s["thickness"]["from"] == surface:
+        inputs.append(f"{seg}/{layout.THICKNESS}")
+    return inputs
+
+
+def rendered_times(name):
+    """Time points of a dataset whose frames are rendered (config key report.frames)."""
+    times, choice = DATA[name]["t"], REPORT["frames"]
+    if choice is False or not times:
+        return []
+    if choice is True or choice == "all":
+        return list(times)
+    if choice == "ends":
+        return sorted({times[0], times[-1]})
+    missing = sorted(set(choice) - set(times))
+    if missing:
+        config_error(
+            "report.frames",
+            f"time point(s) {missing} are not analysed in dataset '{name}' "
+            f"(analysed: {times})",
+        )
+    return sorted(choice)
+
+
+def _canonical(value):
+    """Mappings with sorted keys (the order of keys in a config file reruns nothing)."""
+    if isinstance(value, dict):
+        return {k: _canonical(value[k]) for k in sorted(value)}
+    if isinstance(value, list):
+        return [_canonical(v) for v in value]
+    return value
+
+
+def report_config(name):
+    """The validated configuration of one dataset (defaults filled), as written to the report:
+    sections in the schema's order, keys within them sorted; the analysis keys only, so that
+    changing resources or the worker reruns nothing."""
+    skip = ("resources", "worker", "benchmark")
+    cfg = {**config, "datasets": {name: config["datasets"][name]}}
+    order = [k for k in nconfig.schema()["properties"] if k in cfg and k not in skip]
+    return {k: _canonical(cfg[k]) for k in order}
+
+
+def render_targets(name):
+    targets = []
+    if REPORT["summary"] and layer_frames(name):
+        targets.append(summary_path("figures").format(dataset=name))
+    times = rendered_times(name)
+    targets += [
+        frame_path(f"figures/{layer}").format(dataset=name, t=t, c=c)
+        for t, c, layer in layer_frames(name)
+        if t in times
+    ]
+    return targets
+
+
+def report_targets(name):
+    """The report items of a dataset besides the figures: the table previews and the config."""
+    return [
+        summary_path(f"{table}.html").format(dataset=name) for table in REPORT_TABLES
+    ] + [summary_path("config.html").format(dataset=name)]

@@ -1,45 +1,33 @@
 # Topological defects (method note §7): localisation from low S, curvature-corrected charge,
-# refinement pass with extra directors near each first-pass defect.
-
-
-def _defects_inputs(wc):
-    inputs = {
-        "mesh": layer_mesh(wc),
-        "order": frame_file(wc, layout.layer_file("order", wc.layer)),
-        "directors": frame_file(wc, layout.layer_file("directors", wc.layer)),
-    }
-    if not imported(wc.dataset, wc.layer):  # imported directors: no layer, no refinement pass
-        inputs["layer"] = frame_file(wc, layout.layer_file("layer", wc.layer))
-    d = sec(wc.dataset, "defects")
-    if d["curvature_source"] == "table" and d["curvature_correction"]:
-        inputs["curvature"] = f"{seg_dir(wc)}/{layout.curvature_file(layer_cfg(wc)['surface'])}"
-    return inputs
+# refinement pass with extra directors near each first-pass defect. Inputs: defects_inputs
+# (common.smk).
 
 
 rule defects:
     input:
-        unpack(_defects_inputs),
+        unpack(defects_inputs),
     output:
-        defects=FRAME + "/defects_{layer}.parquet",
-        refined=FRAME + "/refined_{layer}.parquet",
-    params:
-        opts=lambda wc: cli_opts(sec(wc.dataset, "defects"), skip=("curvature_correction",))
-        + ("" if sec(wc.dataset, "defects")["curvature_correction"] else " --no-curvature-correction"),
-        curvature=lambda wc, input: f"--curvature {shlex.quote(input.curvature)}" if "curvature" in input.keys() else "",
-        layer=lambda wc, input: f"--layer {shlex.quote(input.layer)}" if "layer" in input.keys() else "",
+        defects=frame_path("defects_{layer}.parquet"),
+        refined=frame_path("refined_{layer}.parquet"),
     log:
-        LOGS + "/defects/t{t}_c{c}_{layer}.log",
+        log_path("defects/t{t}_c{c}_{layer}.log"),
     benchmark:
-        BENCH + "/defects/t{t}_c{c}_{layer}.tsv"
+        bench_path("defects/t{t}_c{c}_{layer}.tsv")
     group:
         "frame"
+    conda:
+        "../envs/nemo.yaml"
     threads: res("defects", "threads")
     resources:
         mem_mb=res("defects", "mem_mb"),
         runtime=res("defects", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=defects_opts,
+        curvature=lambda wc, input: optional_file("--curvature", input, "curvature"),
+        layer=lambda wc, input: optional_file("--layer", input, "layer"),
     shell:
-        NEMO + " defects {input.mesh:q} {input.order:q} {input.directors:q} {params.curvature}"
-        " {params.layer} --refined {output.refined:q} -o {output.defects:q} {params.opts}"
-        " > {log:q} 2>&1"
+        nemo_shell(
+            "defects {input.mesh:q} {input.order:q} {input.directors:q} {params.curvature}"
+            " {params.layer} --refined {output.refined:q} -o {output.defects:q} {params.opts}"
+            " > {log:q} 2>&1"
+        )

@@ -5,27 +5,29 @@
 rule directors:
     input:
         mesh=layer_mesh,
-        layer=FRAME + "/layer_{layer}.parquet",
+        layer=frame_path("layer_{layer}.parquet"),
     output:
-        FRAME + "/directors_{layer}.parquet",
-    wildcard_constraints:
-        layer=_layer_regex(MEASURED_LAYERS),
-    params:
-        opts=opts("directors"),
+        frame_path("directors_{layer}.parquet"),
     log:
-        LOGS + "/directors/t{t}_c{c}_{layer}.log",
+        log_path("directors/t{t}_c{c}_{layer}.log"),
     benchmark:
-        BENCH + "/directors/t{t}_c{c}_{layer}.tsv"
+        bench_path("directors/t{t}_c{c}_{layer}.tsv")
+    wildcard_constraints:
+        layer=layer_regex(MEASURED_LAYERS),
     group:
         "frame"
+    conda:
+        "../envs/nemo.yaml"
     threads: res("directors", "threads")
     resources:
         mem_mb=res("directors", "mem_mb"),
         runtime=res("directors", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=opts("directors"),
     shell:
-        NEMO + " directors {input.mesh:q} {input.layer:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+        nemo_shell(
+            "directors {input.mesh:q} {input.layer:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+        )
 
 
 if IMPORTED_LAYERS:
@@ -35,22 +37,25 @@ if IMPORTED_LAYERS:
             mesh=layer_mesh,
             points=directors_source,
         output:
-            FRAME + "/directors_{layer}.parquet",
-        wildcard_constraints:
-            layer=_layer_regex(IMPORTED_LAYERS),
-        params:
-            opts=lambda wc: cli_opts(nconfig.section("directors_import", layer_cfg(wc).get("import"))),
+            frame_path("directors_{layer}.parquet"),
         log:
-            LOGS + "/directors_import/t{t}_c{c}_{layer}.log",
+            log_path("directors_import/t{t}_c{c}_{layer}.log"),
         benchmark:
-            BENCH + "/directors_import/t{t}_c{c}_{layer}.tsv"
+            bench_path("directors_import/t{t}_c{c}_{layer}.tsv")
+        wildcard_constraints:
+            layer=layer_regex(IMPORTED_LAYERS),
         group:
             "frame"
+        conda:
+            "../envs/nemo.yaml"
         threads: res("directors", "threads")
         resources:
             mem_mb=res("directors", "mem_mb"),
             runtime=res("directors", "runtime"),
-        conda:
-            "../envs/nemo.yaml"
+        params:
+            opts=import_opts,
         shell:
-            NEMO + " directors import {input.mesh:q} {input.points:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+            nemo_shell(
+                "directors import {input.mesh:q} {input.points:q} -o {output:q} {params.opts}"
+                " > {log:q} 2>&1"
+            )

@@ -1,77 +1,65 @@
 # Surface reconstruction (method note §2): one mesh per time point from the segmented channel,
 # split into inner/outer walls when the dataset's mesh.split is not none. Outputs live in
-# t{t}/c{segment_channel}/ (names: nemo.layout).
-
-_SPLIT = [name for name in DATA if sec(name, "mesh")["split"] != "none"]
-_SINGLE = [name for name in DATA if name not in _SPLIT]
+# t{t}/c{segment_channel}/ (names: nemo.layout; datasets SPLIT_MESH / SINGLE_MESH: common.smk).
 
 
-def _mesh_params():
-    return dict(
-        opts=opts("mesh"),
-        spacing=spacing_opt,
-        mask=lambda wc, input: f"--mask {shlex.quote(input.mask)}" if input.mask else "",
-    )
-
-
-_MESH_SHELL = (
-    NEMO + " mesh {input.image:q} -o {output.whole:q} --t {wildcards.t} --c {wildcards.c}"
-    " {params.spacing} {params.mask} {params.opts} > {log:q} 2>&1"
-)
-
-if _SPLIT:
+if SPLIT_MESH:
 
     rule mesh:
         input:
             image=image,
-            mask=lambda wc: DATA[wc.dataset]["mask"] or [],
+            mask=mask_file,
         output:
-            whole=FRAME + "/" + layout.MESH["whole"],
-            inner=FRAME + "/" + layout.MESH["inner"],
-            outer=FRAME + "/" + layout.MESH["outer"],
-        wildcard_constraints:
-            dataset="|".join(map(re.escape, _SPLIT)),
-        params:
-            **_mesh_params(),
+            whole=frame_path(layout.MESH["whole"]),
+            inner=frame_path(layout.MESH["inner"]),
+            outer=frame_path(layout.MESH["outer"]),
         log:
-            LOGS + "/mesh/t{t}_c{c}.log",
+            log_path("mesh/t{t}_c{c}.log"),
         benchmark:
-            BENCH + "/mesh/t{t}_c{c}.tsv"
+            bench_path("mesh/t{t}_c{c}.tsv")
+        wildcard_constraints:
+            dataset=dataset_regex(SPLIT_MESH),
         group:
             "frame"
+        conda:
+            "../envs/nemo.yaml"
         threads: res("mesh", "threads")
         resources:
             mem_mb=mem_image("mesh"),
             runtime=res("mesh", "runtime"),
-        conda:
-            "../envs/nemo.yaml"
+        params:
+            opts=opts("mesh"),
+            spacing=spacing_opt,
+            mask=lambda wc, input: optional_file("--mask", input, "mask"),
         shell:
-            _MESH_SHELL
+            MESH_SHELL
 
 
-if _SINGLE:
+if SINGLE_MESH:
 
     rule mesh_single:
         input:
             image=image,
-            mask=lambda wc: DATA[wc.dataset]["mask"] or [],
+            mask=mask_file,
         output:
-            whole=FRAME + "/" + layout.MESH["whole"],
-        wildcard_constraints:
-            dataset="|".join(map(re.escape, _SINGLE)),
-        params:
-            **_mesh_params(),
+            whole=frame_path(layout.MESH["whole"]),
         log:
-            LOGS + "/mesh/t{t}_c{c}.log",
+            log_path("mesh/t{t}_c{c}.log"),
         benchmark:
-            BENCH + "/mesh/t{t}_c{c}.tsv"
+            bench_path("mesh/t{t}_c{c}.tsv")
+        wildcard_constraints:
+            dataset=dataset_regex(SINGLE_MESH),
         group:
             "frame"
+        conda:
+            "../envs/nemo.yaml"
         threads: res("mesh", "threads")
         resources:
             mem_mb=mem_image("mesh"),
             runtime=res("mesh", "runtime"),
-        conda:
-            "../envs/nemo.yaml"
+        params:
+            opts=opts("mesh"),
+            spacing=spacing_opt,
+            mask=lambda wc, input: optional_file("--mask", input, "mask"),
         shell:
-            _MESH_SHELL
+            MESH_SHELL

@@ -6,66 +6,73 @@ rule measure:
     input:
         mesh=lambda wc: frame_file(wc, layout.MESH[wc.surface]),
     output:
-        FRAME + "/measure_{surface}.json",
+        frame_path("measure_{surface}.json"),
     log:
-        LOGS + "/measure/t{t}_c{c}_{surface}.log",
+        log_path("measure/t{t}_c{c}_{surface}.log"),
     benchmark:
-        BENCH + "/measure/t{t}_c{c}_{surface}.tsv"
+        bench_path("measure/t{t}_c{c}_{surface}.tsv")
     group:
         "frame"
+    conda:
+        "../envs/nemo.yaml"
     threads: res("measure", "threads")
     resources:
         mem_mb=res("measure", "mem_mb"),
         runtime=res("measure", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
     shell:
         # stdout is the JSON: write it to a temporary file and rename (atomic)
-        NEMO + " measure {input.mesh:q} --json > {output:q}.tmp 2> {log:q} && mv {output:q}.tmp {output:q}"
+        nemo_shell(
+            "measure {input.mesh:q} --json > {output:q}.tmp 2> {log:q} && mv {output:q}.tmp {output:q}"
+        )
 
 
 rule curvature:
     input:
         mesh=lambda wc: frame_file(wc, layout.MESH[wc.surface]),
     output:
-        FRAME + "/curvature_{surface}.parquet",
-    params:
-        opts=opts("curvature"),
+        frame_path("curvature_{surface}.parquet"),
     log:
-        LOGS + "/curvature/t{t}_c{c}_{surface}.log",
+        log_path("curvature/t{t}_c{c}_{surface}.log"),
     benchmark:
-        BENCH + "/curvature/t{t}_c{c}_{surface}.tsv"
+        bench_path("curvature/t{t}_c{c}_{surface}.tsv")
     group:
         "frame"
+    conda:
+        "../envs/nemo.yaml"
     threads: res("curvature", "threads")
     resources:
         mem_mb=res("curvature", "mem_mb"),
         runtime=res("curvature", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=opts("curvature"),
     shell:
-        NEMO + " curvature {input.mesh:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+        nemo_shell(
+            "curvature {input.mesh:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+        )
 
 
 rule thickness:
     input:
-        mesh_from=lambda wc: frame_file(wc, layout.MESH[sec(wc.dataset, "thickness")["from"]]),
-        mesh_to=lambda wc: frame_file(wc, layout.MESH[sec(wc.dataset, "thickness")["to"]]),
+        mesh_from=lambda wc: thickness_mesh(wc, "from"),
+        mesh_to=lambda wc: thickness_mesh(wc, "to"),
     output:
-        FRAME + "/" + layout.THICKNESS,
-    params:
-        opts=opts("thickness", skip=("from", "to")),
+        frame_path(layout.THICKNESS),
     log:
-        LOGS + "/thickness/t{t}_c{c}.log",
+        log_path("thickness/t{t}_c{c}.log"),
     benchmark:
-        BENCH + "/thickness/t{t}_c{c}.tsv"
+        bench_path("thickness/t{t}_c{c}.tsv")
     group:
         "frame"
+    conda:
+        "../envs/nemo.yaml"
     threads: res("thickness", "threads")
     resources:
         mem_mb=res("thickness", "mem_mb"),
         runtime=res("thickness", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=opts("thickness", skip=("from", "to")),
     shell:
-        NEMO + " thickness {input.mesh_from:q} {input.mesh_to:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+        nemo_shell(
+            "thickness {input.mesh_from:q} {input.mesh_to:q} -o {output:q} {params.opts}"
+            " > {log:q} 2>&1"
+        )

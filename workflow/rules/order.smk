@@ -4,22 +4,24 @@
 rule order:
     input:
         mesh=layer_mesh,
-        directors=FRAME + "/directors_{layer}.parquet",
+        directors=frame_path("directors_{layer}.parquet"),
     output:
-        FRAME + "/order_{layer}.parquet",
-    params:
-        opts=opts("order"),
+        frame_path("order_{layer}.parquet"),
     log:
-        LOGS + "/order/t{t}_c{c}_{layer}.log",
+        log_path("order/t{t}_c{c}_{layer}.log"),
     benchmark:
-        BENCH + "/order/t{t}_c{c}_{layer}.tsv"
+        bench_path("order/t{t}_c{c}_{layer}.tsv")
     group:
         "frame"
+    conda:
+        "../envs/nemo.yaml"
     threads: res("order", "threads")
     resources:
         mem_mb=res("order", "mem_mb"),
         runtime=res("order", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=opts("order"),
     shell:
-        NEMO + " order {input.mesh:q} {input.directors:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+        nemo_shell(
+            "order {input.mesh:q} {input.directors:q} -o {output:q} {params.opts} > {log:q} 2>&1"
+        )

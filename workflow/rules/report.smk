@@ -1,29 +1,23 @@
-# Figures and report (`nemo render`, pyvista off-screen + matplotlib): per frame and layer with
-# report.frames: true, per dataset (tracks, per-frame summaries) with report.summary: true.
-# Both are report items, so `snakemake --report report.html` shows them with captions.
+# Figures and report (`nemo render`, pyvista off-screen + matplotlib): per frame and layer for
+# the time points chosen by report.frames (default: the first and the last), per dataset
+# (tracks, per-frame summaries) with report.summary: true. The summary tables are previewed as
+# HTML and the dataset's configuration is written beside them. All are report items, so
+# `snakemake --report report.html` shows them with captions. Helpers: common.smk.
 
-REPORT = config["report"]
+# two small Python jobs: on a cluster they run beside Snakemake instead of being submitted
 
 
-def _render_inputs(wc):
-    seg = seg_dir(wc)
-    s = SECTIONS[wc.dataset]
-    surface = layer_cfg(wc)["surface"]
-    kinds = [k for k in layout.LAYER_KINDS if k != "layer" or not imported(wc.dataset, wc.layer)]
-    inputs = [layer_mesh(wc)] + [frame_file(wc, layout.layer_file(kind, wc.layer)) for kind in kinds]
-    if s["curvature"] is not None:
-        inputs.append(f"{seg}/{layout.curvature_file(surface)}")
-    if s["thickness"] is not None and s["thickness"]["from"] == surface:
-        inputs.append(f"{seg}/{layout.THICKNESS}")
-    return inputs
+localrules:
+    report_config,
+    report_tables,
 
 
 rule render:
     input:
-        _render_inputs,
+        render_inputs,
     output:
         report(
-            directory(FRAME + "/figures/{layer}"),
+            directory(frame_path("figures/{layer}")),
             patterns=["{name}.png"],
             caption="../report/render.rst",
             category="Frames",
@@ -31,50 +25,115 @@ rule render:
             labels={"t": "{t}", "c": "{c}", "layer": "{layer}", "figure": "{name}"},
         ),
     log:
-        LOGS + "/render/t{t}_c{c}_{layer}.log",
+        log_path("render/t{t}_c{c}_{layer}.log"),
     benchmark:
-        BENCH + "/render/t{t}_c{c}_{layer}.tsv"
+        bench_path("render/t{t}_c{c}_{layer}.tsv")
+    conda:
+        "../envs/nemo.yaml"
     threads: res("render", "threads")
     resources:
         mem_mb=res("render", "mem_mb"),
         runtime=res("render", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
     shell:
-        NEMO + " render {input:q} --layer {wildcards.layer} -o {output:q} > {log:q} 2>&1"
+        nemo_shell(
+            "render {input:q} --layer {wildcards.layer} -o {output:q} > {log:q} 2>&1"
+        )
 
 
 rule render_summary:
     input:
-        SUMMARY + "/frames.parquet",
-        SUMMARY + "/defects.parquet",
+        summary_path("frames.parquet"),
+        summary_path("defects.parquet"),
     output:
         report(
-            directory(SUMMARY + "/figures"),
+            directory(summary_path("figures")),
             patterns=["{name}.png"],
             caption="../report/render_summary.rst",
             category="Summary",
-            labels={"figure": "{name}"},
+            subcategory="Figures",
+            labels={"dataset": "{dataset}", "figure": "{name}"},
         ),
     log:
-        LOGS + "/render/summary.log",
+        log_path("render/summary.log"),
     benchmark:
-        BENCH + "/render/summary.tsv"
+        bench_path("render/summary.tsv")
+    conda:
+        "../envs/nemo.yaml"
     threads: res("render", "threads")
     resources:
         mem_mb=res("render", "mem_mb"),
         runtime=res("render", "runtime"),
+    shell:
+        nemo_shell("render --summary {input:q} -o {output:q} > {log:q} 2>&1")
+
+
+rule report_tables:
+    input:
+        frames=summary_path("frames.parquet"),
+        defects=summary_path("defects.parquet"),
+        tracks=summary_path("tracks.parquet"),
+        alignment=summary_path("alignment.parquet"),
+    output:
+        frames=report(
+            summary_path("frames.html"),
+            caption="../report/frames.rst",
+            category="Summary",
+            subcategory="Tables",
+            labels={"dataset": "{dataset}", "table": "frames"},
+        ),
+        defects=report(
+            summary_path("defects.html"),
+            caption="../report/defects.rst",
+            category="Summary",
+            subcategory="Tables",
+            labels={"dataset": "{dataset}", "table": "defects"},
+        ),
+        tracks=report(
+            summary_path("tracks.html"),
+            caption="../report/tracks.rst",
+            category="Summary",
+            subcategory="Tables",
+            labels={"dataset": "{dataset}", "table": "tracks"},
+        ),
+        alignment=report(
+            summary_path("alignment.html"),
+            caption="../report/alignment.rst",
+            category="Summary",
+            subcategory="Tables",
+            labels={"dataset": "{dataset}", "table": "alignment"},
+        ),
+    log:
+        log_path("report/tables.log"),
     conda:
         "../envs/nemo.yaml"
-    shell:
-        NEMO + " render --summary {input:q} -o {output:q} > {log:q} 2>&1"
+    threads: 1
+    resources:
+        mem_mb=res("aggregate", "mem_mb"),
+        runtime=res("aggregate", "runtime"),
+    params:
+        max_rows=1000,
+    script:
+        "../scripts/report_tables.py"
 
 
-def render_targets(name):
-    targets = []
-    if REPORT["summary"] and layer_frames(name):
-        targets.append(SUMMARY.format(dataset=name) + "/figures")
-    if REPORT["frames"]:
-        targets += [FRAME.format(dataset=name, t=t, c=c) + f"/figures/{layer}"
-                    for t, c, layer in layer_frames(name)]
-    return targets
+rule report_config:
+    output:
+        yaml=summary_path("config.yaml"),
+        html=report(
+            summary_path("config.html"),
+            caption="../report/config.rst",
+            category="Configuration",
+            labels={"dataset": "{dataset}"},
+        ),
+    log:
+        log_path("report/config.log"),
+    conda:
+        "../envs/nemo.yaml"
+    threads: 1
+    resources:
+        mem_mb=res("aggregate", "mem_mb"),
+        runtime=res("aggregate", "runtime"),
+    params:
+        config=lambda wc: report_config(wc.dataset),
+    script:
+        "../scripts/report_config.py"

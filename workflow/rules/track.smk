@@ -3,23 +3,25 @@
 
 rule track:
     input:
-        SUMMARY + "/defects_untracked.parquet",
+        summary_path("defects_untracked.parquet"),
     output:
-        tracks=report(SUMMARY + "/tracks.parquet", caption="../report/tracks.rst", category="Summary"),
-        defects=report(SUMMARY + "/defects.parquet", caption="../report/defects.rst", category="Summary"),
-    params:
-        opts=opts("tracking"),
-        frames=lambda wc: " ".join(str(t) for t in DATA[wc.dataset]["t"]),
+        tracks=summary_path("tracks.parquet"),
+        defects=summary_path("defects.parquet"),
     log:
-        LOGS + "/track.log",
+        log_path("track.log"),
     benchmark:
-        BENCH + "/track.tsv"
+        bench_path("track.tsv")
+    conda:
+        "../envs/nemo.yaml"
     threads: res("track", "threads")
     resources:
         mem_mb=res("track", "mem_mb"),
         runtime=res("track", "runtime"),
-    conda:
-        "../envs/nemo.yaml"
+    params:
+        opts=opts("tracking"),
+        frames=lambda wc: " ".join(str(t) for t in DATA[wc.dataset]["t"]),
     shell:
-        NEMO + " track {input:q} -o {output.tracks:q} --linked {output.defects:q}"
-        " --frames {params.frames} {params.opts} > {log:q} 2>&1"
+        nemo_shell(
+            "track {input:q} -o {output.tracks:q} --linked {output.defects:q}"
+            " --frames {params.frames} {params.opts} > {log:q} 2>&1"
+        )
