@@ -1,4 +1,5 @@
-"""environment.yml and workflow/envs/*.yaml pin the same packages as pyproject.toml."""
+"""pyproject.toml is the one source of the dependency pins: environment.yml installs the
+checkout (pins from pyproject), workflow/envs/nemo.yaml is generated from it and pins the same."""
 
 from __future__ import annotations
 
@@ -53,7 +54,8 @@ def _env_requirements(path: Path) -> dict[str, tuple[str, str, str]]:
     return out
 
 
-ENV_FILES = [ROOT / "environment.yml", *sorted((ROOT / "workflow" / "envs").glob("*.yaml"))]
+WORKFLOW_ENVS = sorted((ROOT / "workflow" / "envs").glob("*.yaml"))
+ENV_FILES = [ROOT / "environment.yml", *WORKFLOW_ENVS]
 
 
 def test_env_files_exist():
@@ -61,7 +63,7 @@ def test_env_files_exist():
     assert len(ENV_FILES) >= 2, "workflow/envs/ has no environment file"
 
 
-@pytest.mark.parametrize("path", ENV_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+@pytest.mark.parametrize("path", WORKFLOW_ENVS, ids=lambda p: str(p.relative_to(ROOT)))
 def test_env_pins_match_pyproject(path):
     project = _pyproject()
     env = _env_requirements(path)
@@ -110,3 +112,24 @@ def test_parser_catches_a_mismatch(tmp_path):
     env = _env_requirements(bad)
     numpy_pin = next(s for s in _pyproject()["dependencies"] if s.startswith("numpy"))
     assert env["numpy"][:2] != _parse(numpy_pin)[1:3]
+
+
+def test_environment_yml_takes_its_pins_from_pyproject():
+    env = yaml.safe_load((ROOT / "environment.yml").read_text())
+    pip = next(d["pip"] for d in env["dependencies"] if isinstance(d, dict))
+    assert pip == ["-e .[slurm]"], "environment.yml should install the checkout, not pin packages itself"
+    assert not set(_env_requirements(ROOT / "environment.yml")) - {"python", "pip"}
+
+
+def test_workflow_env_is_generated_from_pyproject(tmp_path):
+    """workflow/envs/nemo.yaml is exactly what workflow/envs/update.py writes, and the
+    generator follows a change of pyproject.toml (so the check can fail)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("update_env", ROOT / "workflow" / "envs" / "update.py")
+    update = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(update)
+    assert (ROOT / "workflow" / "envs" / "nemo.yaml").read_text() == update.render()
+    changed = tmp_path / "pyproject.toml"
+    changed.write_text((ROOT / "pyproject.toml").read_text().replace('"numpy==', '"numpy>='))
+    assert "numpy>=" in update.render(changed) and "numpy>=" not in update.render()
