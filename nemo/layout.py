@@ -330,3 +330,13 @@ def find_frames(path: str | os.PathLike, dataset: str | None = None) -> ResultsT
     if dataset not in datasets:
         raise NemoError(f"dataset {dataset!r} not found in {root} (found: {', '.join(datasets)})")
     return find_frames(datasets[dataset])
+
+
+def surface_mesh_path(pattern: str, t: int) -> str:
+    """The surface file of time point ``t`` (``{t}`` in a dataset's ``surface_mesh``)."""
+    from nemo.errors import NemoError
+
+    try:
+        return pattern.format(t=t)
+    except (KeyError, IndexError, ValueError):
+        raise NemoError(f"surface_mesh {pattern!r}: the only placeholder it may hold is {{t}}") from None

@@ -22,9 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nemo import atomic
+from nemo import atomic, layout, stages
 from nemo import config as nconfig
-from nemo import layout, stages
 from nemo._log import logger, step
 from nemo.errors import NemoError
 
@@ -46,7 +45,9 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing) -> dict:
         raise NemoError("give an image (or a config with a dataset and --dataset NAME)")
     seg = d.get("segment_channel")
     return {"dataset": dataset, "image": str(image), "spacing": spacing or d.get("spacing"),
-            "mask": d.get("mask"), "seg": cfg["segment_channel"] if seg is None else seg}
+            "mask": d.get("mask"), "mask_labels": d.get("mask_labels"), "mask_threshold": d.get("mask_threshold"),
+            "surface_mesh": d.get("surface_mesh"), "mesh_unit": d.get("mesh_unit"),
+            "seg": cfg["segment_channel"] if seg is None else seg}
 
 
 def run_frame(
@@ -153,7 +154,11 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     with timed("read"):
         volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    mask = read_mask(frame["mask"], t, frame["seg"], volume.shape) if frame["mask"] else None
+    mask = read_mask(frame["mask"], t, frame["seg"], volume.shape, labels=frame["mask_labels"],
+                     threshold=frame["mask_threshold"]) if frame["mask"] else None
+    if frame["surface_mesh"]:
+        sections["mesh"] = {**sections["mesh"], "surface_mesh": layout.surface_mesh_path(frame["surface_mesh"], t),
+                            "mesh_unit": frame["mesh_unit"]}
     summary = {"image": frame["image"], "dataset": frame["dataset"], "t": t, "c": c,
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
                "outdir": str(final)}
@@ -215,6 +220,15 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     return json.loads(json.dumps(sections, default=atomic.json_default))
 
 
+def _mesh_or_import(volume, info, mask, section: dict):
+    """The frame's meshes: reconstructed from the image, or a user's surface checked against it."""
+    section = dict(section)
+    path, mesh_unit = section.pop("surface_mesh", None), section.pop("mesh_unit", None)
+    if path is None:
+        return stages.mesh(volume, info.spacing, section, mask=mask, unit=info.unit)
+    return stages.import_mesh(path, volume, info.spacing, section, unit=info.unit, mesh_unit=mesh_unit)
+
+
 def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None):
     """Mesh, measure, curvature and thickness of a time point (the workflow's mesh/morphology rules).
 
@@ -226,7 +240,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
     from nemo.tables import write_table
 
     with timed("mesh"):
-        meshes, params = stages.mesh(volume, info.spacing, sections["mesh"], mask=mask, unit=info.unit)
+        meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"])
         for name, m in meshes.items():
             m.metadata["nemo_params"] = params
             save_mesh(m, out / layout.MESH[name])

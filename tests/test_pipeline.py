@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from nemo import layout
+from nemo.errors import NemoError
 from nemo.pipeline import run_frame
 from nemo.synthetic import write_vesicle
 from nemo.tables import read_provenance, read_table
@@ -301,3 +302,59 @@ def test_stale_removal_keeps_files_that_are_not_results(small_vesicle, tmp_path)
     (out / "directors_cells.csv").write_text("x,y,z,angle\n")  # a user's input, named like a table
     run_frame(small_vesicle[0], out, {**SMALL, "curvature": None, "thickness": None})
     assert (out / "directors_cells.csv").exists()
+
+
+# ------------------------------------------------------- segmentations and user surfaces
+@pytest.fixture
+def ball_and_labels(tmp_path):
+    """A blurred ball (R = 10 µm at (16, 16, 16)) and a label image: the ball is label 2, a
+    second, larger ball elsewhere label 5 (so the mask picks the object, not the threshold)."""
+    from scipy.ndimage import gaussian_filter
+
+    from nemo.io import write_hyperstack
+
+    z, y, x = np.indices((32, 32, 64))
+    ball = np.sqrt((x - 16) ** 2 + (y - 16) ** 2 + (z - 16) ** 2) <= 10
+    other = np.sqrt((x - 46) ** 2 + (y - 16) ** 2 + (z - 16) ** 2) <= 13
+    image = gaussian_filter(200.0 * (ball | other), 1.0).astype(np.float32)
+    labels = np.where(ball, 2, np.where(other, 5, 0)).astype(np.uint16)
+    write_hyperstack(tmp_path / "img.tif", image, (1, 1, 1), axes="ZYX")
+    write_hyperstack(tmp_path / "labels.tif", labels, (1, 1, 1), axes="ZYX")
+    return tmp_path
+
+
+def _morphology_config(path, **dataset):
+    return {"datasets": {"d": {"path": str(path), **dataset}}, "layers": {}, "curvature": None,
+            "thickness": None, "mesh": {"split": "none"}}
+
+
+def test_run_frame_with_a_label_mask_analyses_the_chosen_object(ball_and_labels):
+    d = ball_and_labels
+    cfg = _morphology_config(d / "img.tif", mask=str(d / "labels.tif"), mask_labels=[2])
+    run_frame(None, d / "out", cfg, dataset="d")
+    m = json.loads((d / "out" / "measure_whole.json").read_text())
+    assert m["area"] == pytest.approx(4 * np.pi * 10.5**2, rel=0.08)  # the labelled voxels' hull
+    np.testing.assert_allclose(read_mesh_centre(d / "out" / "mesh.ply"), (16, 16, 16), atol=0.2)
+
+
+def test_run_frame_with_user_surfaces_per_time_point(ball_and_labels):
+    import trimesh
+
+    d = ball_and_labels
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=10_000.0)
+    sphere.apply_translation((16_000, 16_000, 16_000))
+    sphere.export(d / "surface_t0.stl")
+    cfg = _morphology_config(d / "img.tif", surface_mesh=str(d / "surface_t{t}.stl"), mesh_unit="nm")
+    summary = run_frame(None, d / "out", cfg, dataset="d")
+    assert summary["mesh"]["source"].endswith("surface_t0.stl") and summary["mesh"]["mesh_unit"] == "nm"
+    m = json.loads((d / "out" / "measure_whole.json").read_text())
+    assert m["area"] == pytest.approx(sphere.area * 1e-6, rel=1e-4)
+    cfg["datasets"]["d"]["mesh_unit"] = None
+    with pytest.raises(NemoError, match="does not say in which unit"):
+        run_frame(None, d / "out2", cfg, dataset="d")
+
+
+def read_mesh_centre(path):
+    from nemo.mesh import load_mesh
+
+    return load_mesh(path).vertices.mean(axis=0)

@@ -258,6 +258,22 @@ def _indices(name, d, axis, size):
     return sorted(values)
 
 
+def _check_surface_meshes(name, pattern, times):
+    """Every analysed time point has its surface file (before any job starts)."""
+    try:
+        missing = [
+            t for t in times if not Path(layout.surface_mesh_path(pattern, t)).exists()
+        ]
+    except NemoError as exc:
+        config_error(f"datasets.{name}.surface_mesh", str(exc))
+    if missing:
+        config_error(
+            f"datasets.{name}.surface_mesh",
+            f"no surface file for time point(s) {missing[:10]} "
+            f"(e.g. {layout.surface_mesh_path(pattern, missing[0])})",
+        )
+
+
 def _datasets():
     out = {}
     for name, d in config["datasets"].items():
@@ -271,6 +287,10 @@ def _datasets():
             "path": d["path"],
             "spacing": d["spacing"],
             "mask": d["mask"],
+            "mask_labels": d["mask_labels"],
+            "mask_threshold": d["mask_threshold"],
+            "surface_mesh": d["surface_mesh"],
+            "mesh_unit": d["mesh_unit"],
             "synthetic": d["synthetic"],
             "seg": seg,
             "stack_mb": None,
@@ -299,6 +319,8 @@ def _datasets():
                 entry["stack_mb"] = shape["Z"] * shape["Y"] * shape["X"] * 4 / 1e6
         if d["mask"] is not None and not Path(d["mask"]).exists():
             config_error(f"datasets.{name}.mask", f"file not found: {d['mask']}")
+        if d["surface_mesh"] is not None:
+            _check_surface_meshes(name, d["surface_mesh"], entry["t"])
         out[name] = entry
     paths = [e["path"] for e in out.values()]
     for p in set(paths):
@@ -525,7 +547,7 @@ SINGLE_MESH = [name for name in DATA if name not in SPLIT_MESH]
 
 MESH_SHELL = nemo_shell(
     "mesh {input.image:q} -o {output.whole:q} --t {wildcards.t} --c {wildcards.c}"
-    " {params.spacing} {params.mask} {params.opts} > {log:q} 2>&1"
+    " {params.spacing} {params.source} {params.opts} > {log:q} 2>&1"
 )
 
 
@@ -535,6 +557,29 @@ def dataset_regex(names):
 
 def mask_file(wc):
     return DATA[wc.dataset]["mask"] or []
+
+
+def surface_file(wc):
+    """The user's surface of this time point (datasets.NAME.surface_mesh), or none."""
+    pattern = DATA[wc.dataset]["surface_mesh"]
+    return layout.surface_mesh_path(pattern, int(wc.t)) if pattern else []
+
+
+def mesh_source_opts(wc, input):
+    """Options naming where the mesh comes from: a mask (and its labels or threshold) or a
+    user's surface (and its unit)."""
+    d = DATA[wc.dataset]
+    out = [
+        optional_file("--mask", input, "mask"),
+        optional_file("--from-mesh", input, "surface"),
+    ]
+    if d["mask_labels"]:
+        out.append("--mask-labels " + " ".join(str(int(v)) for v in d["mask_labels"]))
+    if d["mask_threshold"] is not None:
+        out.append(f"--mask-threshold {float(d['mask_threshold'])!r}")
+    if d["surface_mesh"] and d["mesh_unit"]:
+        out.append(f"--mesh-unit {shlex.quote(d['mesh_unit'])}")
+    return " ".join(o for o in out if o)
 
 
 def thickness_mesh(wc, end):

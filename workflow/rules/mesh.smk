@@ -9,6 +9,7 @@ if SPLIT_MESH:
         input:
             image=image,
             mask=mask_file,
+            surface=surface_file,
         output:
             whole=frame_path(layout.MESH["whole"]),
             inner=frame_path(layout.MESH["inner"]),
@@ -30,7 +31,7 @@ if SPLIT_MESH:
         params:
             opts=opts("mesh"),
             spacing=spacing_opt,
-            mask=lambda wc, input: optional_file("--mask", input, "mask"),
+            source=mesh_source_opts,
         shell:
             MESH_SHELL
 
@@ -41,6 +42,7 @@ if SINGLE_MESH:
         input:
             image=image,
             mask=mask_file,
+            surface=surface_file,
         output:
             whole=frame_path(layout.MESH["whole"]),
         log:
@@ -60,6 +62,6 @@ if SINGLE_MESH:
         params:
             opts=opts("mesh"),
             spacing=spacing_opt,
-            mask=lambda wc, input: optional_file("--mask", input, "mask"),
+            source=mesh_source_opts,
         shell:
             MESH_SHELL
