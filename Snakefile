@@ -27,12 +27,12 @@ report: "workflow/report/workflow.rst"
 include: "workflow/rules/common.smk"
 
 
-# benchmark and validation protocol (docs/benchmarks.md): only with a `benchmark:` section; its
-# cases are datasets analysed by the rules below, so it comes before them
-BENCHMARK_TARGETS = []
-if config.get("benchmark"):
+# validation protocol (docs/validation.md): only with a `validation:` section; its cases are
+# datasets analysed by the rules below, so it comes before them
+VALIDATION_TARGETS = []
+if config.get("validation"):
 
-    include: "workflow/rules/benchmark.smk"
+    include: "workflow/rules/validation.smk"
 
 
 include: "workflow/rules/synth.smk"
@@ -60,4 +60,4 @@ rule all:
         [summary_targets(name) for name in config["datasets"]],
         [report_targets(name) for name in config["datasets"]],
         [render_targets(name) for name in config["datasets"]],
-        BENCHMARK_TARGETS,
+        VALIDATION_TARGETS,

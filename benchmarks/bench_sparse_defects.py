@@ -9,7 +9,7 @@ defects with the data-derived defaults. A case passes when every defect is found
     python benchmarks/bench_sparse_defects.py                    # the full sweep (≈ 2 min)
     python benchmarks/bench_sparse_defects.py --seeds 3 --presets tetrahedron
 
-Results are recorded in docs/benchmarks.md ("Sparse director fields").
+Results are recorded in docs/validation.md ("Sparse director fields").
 """
 
 from __future__ import annotations

@@ -146,9 +146,9 @@ def _mesh_and_intensity(wd):
 
 
 def st_directors(wd, n_patches, phase, data=None):
-    from nemo.benchmark import director_errors
     from nemo.directors import directors
     from nemo.synthetic import truth_directors
+    from nemo.validation import director_errors
 
     if phase == "load":
         return _mesh_and_intensity(wd)
@@ -216,10 +216,10 @@ def director_loop(mesh, intensity, centres, patch_radius, pixel, sigma, half):
 
 
 def st_loop_vs_vectorised(wd, n_loop, phase, data=None):
-    from nemo.benchmark import director_errors
     from nemo.directors import SIGMA_PX, _MARGIN_PX, default_pixel, directors
     from nemo.mesh import mean_edge_length
     from nemo.synthetic import truth_directors
+    from nemo.validation import director_errors
 
     if phase == "load":
         return _mesh_and_intensity(wd)

@@ -95,8 +95,8 @@ On a closed surface the charges add up to the Euler characteristic χ (Poincaré
 
 Accuracy
 --------
-The measured accuracy is in ``docs/benchmarks.md`` (``benchmarks/bench_defects.py``, the
-benchmark protocol of :mod:`nemo.benchmark`). On measured directors the remaining error of a +½
+The measured accuracy is in ``docs/validation.md`` (``benchmarks/bench_defects.py``, the
+validation protocol of :mod:`nemo.validation`). On measured directors the remaining error of a +½
 core is mostly a displacement along the comet axis towards the tail: the gradient structure
 tensor weights orientations by fibre "ink", which is uneven around a comet of streamlines
 (denser on the head side), so the measured field's core moves towards the tail by an amount

@@ -46,7 +46,7 @@ PATCHES_PER_AREA = 30.0
 
 #: Default micro-image pixel as a fraction of the mean edge length (finer than the vertex
 #: spacing: the σ = 1 px gradient kernel and the SIGMA_PX integration then measure the field at
-#: about one edge, which keeps defect cores sharp; docs/benchmarks.md).
+#: about one edge, which keeps defect cores sharp; docs/validation.md).
 PIXEL_PER_EDGE = 0.25
 
 #: Default pixel is at least patch radius / this (micro-images of at most 195 × 195 pixels).

@@ -609,6 +609,23 @@ case("render:missing", "render", "{tab.missing}", "-o", "{out}/f", expect="error
 case("render:img.folder (empty folder)", "render", "{img.folder}", "-o", "{out}/f", expect="error")
 case("render:out under a file", "render", "{frame}", "--no-surfaces", "-o", "{block}/f", expect="error")
 
+# ---------------------------------------------------------------------------- validate
+_ELL = '{"kind": "ellipsoid", "axes": [6, 5, 4], "spacing": [1, 1, 1]}'
+case("validate:shape", "validate", "shape", _ELL, "-o", "{out}/e.tif", "--truth", "{out}/e.json", expect="ok",
+     outputs=[_out("{out}/e.tif", "tif"), _out("{out}/e.json", "json")])
+case("validate:shape not JSON", "validate", "shape", "{kind: torus", "-o", "{out}/e.tif", "--truth", "{out}/e.json",
+     expect="error")
+case("validate:shape torus without minor", "validate", "shape", '{"kind": "torus", "major": 5}', "-o", "{out}/e.tif",
+     "--truth", "{out}/e.json", expect="error")
+case("validate:shape out under a file", "validate", "shape", _ELL, "-o", "{block}/e.tif", "--truth", "{out}/e.json",
+     expect="error")
+case("validate:score-shape truth = a table", "validate", "score-shape", "{mesh.inner}", "{tab.defects}", "-o",
+     "{out}/s.json", expect="error")
+case("validate:score tab.defects without truth", "validate", "score", "--truth", "{tab.missing}", "--defects",
+     "{tab.defects}", "-o", "{out}/s.json", expect="error")
+case("validate:aggregate --scores a table", "validate", "aggregate", "--scores", "{tab.defects}", "-o",
+     "{out}/summary", expect="error")
+
 assert len({c.id for c in CASES}) == len(CASES), "duplicate case ids"
 COMMANDS_COVERED = {c.argv[0] for c in CASES}
 

@@ -1,5 +1,6 @@
-"""Benchmark protocol (issue 8): scoring functions against constructed cases, analytic shapes,
-case expansion, aggregation, and the CI variant of the sweep through Snakemake."""
+"""Validation protocol (nemo.validation, nemo validate): scoring functions against constructed
+cases, analytic shapes, case expansion, aggregation, the command line, and the CI variant of the
+sweep through Snakemake."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from nemo import benchmark as B
+from nemo import validation as V
+from nemo.cli import main as nemo_main
 from nemo.errors import NemoError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,7 +42,7 @@ def test_defects_one_micron_off_gives_one_micron_error():
     found = truth.copy()
     found[["x", "y", "z"]] = p + _tangent(p, 80.0) * 1.0
     found["charge_rounded"] = 0.5
-    s = B.score_defects(found, truth, max_distance=10.0)
+    s = V.score_defects(found, truth, max_distance=10.0)
     assert s["detection_rate"] == 1.0 and s["false_positives"] == 0
     assert s["loc_err_mean"] == pytest.approx(1.0, abs=1e-9)
     assert s["loc_err_max"] == pytest.approx(1.0, abs=1e-9)
@@ -51,11 +53,11 @@ def test_missing_and_extra_defects():
     truth = _truth_defects()
     found = truth.iloc[:3].copy()
     found["charge_rounded"] = 0.5
-    s = B.score_defects(found, truth, 10.0)
+    s = V.score_defects(found, truth, 10.0)
     assert s["detection_rate"] == pytest.approx(0.75) and s["false_positives"] == 0
     assert not s["all_found"]
     extra = pd.concat([truth, pd.DataFrame({"x": [100.0], "y": [100.0], "z": [180.0], "charge": [0.5]})])
-    s = B.score_defects(extra, truth, 10.0)
+    s = V.score_defects(extra, truth, 10.0)
     assert s["detection_rate"] == 1.0 and s["false_positives"] == 1 and not s["all_found"]
 
 
@@ -63,9 +65,9 @@ def test_defect_beyond_match_radius_is_missed_and_false():
     truth = _truth_defects()
     found = truth.copy()
     found.loc[0, "x"] += 20.0  # 20 µm off with a 10 µm matching radius
-    s = B.score_defects(found, truth, 10.0)
+    s = V.score_defects(found, truth, 10.0)
     assert s["detection_rate"] == pytest.approx(0.75) and s["false_positives"] == 1
-    s = B.score_defects(found, truth, 25.0)
+    s = V.score_defects(found, truth, 25.0)
     assert s["detection_rate"] == 1.0 and s["loc_err_max"] == pytest.approx(20.0)
 
 
@@ -74,7 +76,7 @@ def test_charge_errors():
     found = truth.copy()
     found["charge"] = [0.45, 0.5, 0.55, -0.5]
     found["charge_rounded"] = [0.5, 0.5, 0.5, -0.5]
-    s = B.score_defects(found, truth, 10.0)
+    s = V.score_defects(found, truth, 10.0)
     assert s["charge_err_max"] == pytest.approx(1.0)
     assert s["charge_err_mean"] == pytest.approx((0.05 + 0 + 0.05 + 1.0) / 4)
     assert s["charge_correct"] == pytest.approx(0.75) and not s["all_found"]
@@ -85,10 +87,10 @@ def test_matching_is_one_to_one():
     # two detections near the same true defect: one match, one false positive, 3 missed
     p = truth[["x", "y", "z"]].to_numpy()[[0, 0]] + [[1.0, 0, 0], [0, 2.0, 0]]
     found = pd.DataFrame({"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "charge": 0.5})
-    s = B.score_defects(found, truth, 10.0)
+    s = V.score_defects(found, truth, 10.0)
     assert s["n_matched"] == 1 and s["false_positives"] == 1
     assert s["detection_rate"] == pytest.approx(0.25) and s["loc_err_mean"] == pytest.approx(1.0)
-    s = B.score_defects(found.iloc[:0], truth, 10.0)
+    s = V.score_defects(found.iloc[:0], truth, 10.0)
     assert s["detection_rate"] == 0.0 and np.isnan(s["loc_err_mean"])
 
 
@@ -101,8 +103,8 @@ def test_director_errors_known_angles_and_head_tail():
     t2 = np.cross((p - 100) / 80.0, t1)
     ang = rng.uniform(0, 90, 50)
     n = np.cos(np.deg2rad(ang))[:, None] * t1 + np.sin(np.deg2rad(ang))[:, None] * t2
-    assert np.allclose(B.director_errors(n, t1), ang, atol=1e-6)
-    assert np.allclose(B.director_errors(-n, t1), ang, atol=1e-6)
+    assert np.allclose(V.director_errors(n, t1), ang, atol=1e-6)
+    assert np.allclose(V.director_errors(-n, t1), ang, atol=1e-6)
 
 
 @pytest.fixture(scope="module")
@@ -124,49 +126,49 @@ def test_score_vesicle_exact_tables_score_perfectly(small_truth):
     n = truth_directors(truth, p)
     dirs = pd.DataFrame({"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2]})
     order = dirs.assign(S=1.0)
-    tdf = B.truth_defects(truth)
+    tdf = V.truth_defects(truth)
     defects = tdf[["x", "y", "z", "charge"]].assign(charge_rounded=tdf["charge"])
     curv = pd.DataFrame({"H": np.full(2000, 1.1 / R), "K": np.full(2000, 1 / R**2)})
-    s = B.score_vesicle(truth, defects, dirs, order, curv)
+    s = V.score_vesicle(truth, defects, dirs, order, curv)
     assert s["detection_rate"] == 1.0 and s["loc_err_max"] == pytest.approx(0.0, abs=1e-9)
     assert s["angle_err_median"] < 1e-3 and s["angle_err_p90"] < 1e-3
     assert s["S_ordered_median"] == 1.0 and s["avg_angle_err_ordered_median"] < 1e-3
     assert s["H_relerr_median"] == pytest.approx(0.1) and s["K_relerr_median"] == pytest.approx(0.0)
-    assert s["match_radius"] == pytest.approx(B.MATCH_FRACTION * R)
+    assert s["match_radius"] == pytest.approx(V.MATCH_FRACTION * R)
     # directors rotated by 30° in the tangent plane: 30° error everywhere
     nrm = (p - c) / R
     n30 = np.cos(np.pi / 6) * n + np.sin(np.pi / 6) * np.cross(nrm, n)
     d30 = dirs.assign(nx=n30[:, 0], ny=n30[:, 1], nz=n30[:, 2])
-    s = B.score_vesicle(truth, defects, d30)
+    s = V.score_vesicle(truth, defects, d30)
     assert s["angle_err_median"] == pytest.approx(30.0, abs=1e-6)
 
 
 # ----------------------------------------------------------------------------- analytic shapes
 def test_analytic_curvature_formulas():
     a, b, c = 60.0, 45.0, 35.0
-    H, K = B.ellipsoid_curvature(np.array([[0, 0, c], [a, 0, 0]]), (a, b, c))
+    H, K = V.ellipsoid_curvature(np.array([[0, 0, c], [a, 0, 0]]), (a, b, c))
     # principal curvatures at the pole (0, 0, c): c/a², c/b²; at (a, 0, 0): a/b², a/c²
     assert H[0] == pytest.approx((c / a**2 + c / b**2) / 2) and K[0] == pytest.approx(c**2 / (a * b) ** 2)
     assert H[1] == pytest.approx((a / b**2 + a / c**2) / 2) and K[1] == pytest.approx(a**2 / (b * c) ** 2)
-    H, K = B.ellipsoid_curvature(np.array([[3.0, 4.0, 12.0]]), (20, 20, 20))
+    H, K = V.ellipsoid_curvature(np.array([[3.0, 4.0, 12.0]]), (20, 20, 20))
     assert H[0] == pytest.approx(1 / 20) and K[0] == pytest.approx(1 / 400)
     R, r = 45.0, 15.0
-    H, K = B.torus_curvature(np.array([[R + r, 0, 0], [R - r, 0, 0], [R, 0, r]]), R, r)
+    H, K = V.torus_curvature(np.array([[R + r, 0, 0], [R - r, 0, 0], [R, 0, r]]), R, r)
     assert K[0] == pytest.approx(1 / (r * (R + r))) and H[0] == pytest.approx((1 / r + 1 / (R + r)) / 2)
     assert K[1] == pytest.approx(-1 / (r * (R - r))) and H[1] == pytest.approx((1 / r - 1 / (R - r)) / 2)
     assert K[2] == pytest.approx(0, abs=1e-12) and H[2] == pytest.approx(1 / (2 * r))
 
 
 def test_shell_thickness_exact():
-    d = B.shell_thickness(np.array([[10.0, 0, 0], [0, 3, 4]]), (50, 50, 50), (58, 58, 58))
+    d = V.shell_thickness(np.array([[10.0, 0, 0], [0, 3, 4]]), (50, 50, 50), (58, 58, 58))
     assert np.allclose(d, 8.0)
-    d = B.shell_thickness(np.array([[0, 0, 1.0], [1.0, 0, 0]]), (50, 40, 32), (60, 48, 38))
+    d = V.shell_thickness(np.array([[0, 0, 1.0], [1.0, 0, 0]]), (50, 40, 32), (60, 48, 38))
     assert np.allclose(d, [6.0, 10.0])
 
 
 def test_shape_volume_edge_at_the_surface():
     spec = {"kind": "ellipsoid", "axes": [12, 10, 8], "spacing": [1, 1, 1]}
-    vol, truth = B.shape_volume(spec)
+    vol, truth = V.shape_volume(spec)
     cz, cy, cx = (np.asarray(truth["centre"])[::-1]).astype(int)
     line = vol[cz, cy, cx:].astype(float)
     mid = truth["threshold"]
@@ -175,7 +177,7 @@ def test_shape_volume_edge_at_the_surface():
     x = (i - 1) + (line[i - 1] - mid) / (line[i - 1] - line[i])
     assert x == pytest.approx(12.0, abs=0.1)
     with pytest.raises(NemoError):
-        B.shape_volume({"kind": "cube", "spacing": [1, 1, 1]})
+        V.shape_volume({"kind": "cube", "spacing": [1, 1, 1]})
 
 
 def test_score_shape_concentric_spheres(tmp_path):
@@ -184,10 +186,10 @@ def test_score_shape_concentric_spheres(tmp_path):
 
     spec = {"kind": "shells", "inner": [20, 20, 20], "outer": [26, 26, 26], "spacing": [2, 1, 1],
             "radius_edges": [5.0], "name": "spheres"}
-    vol, truth = B.shape_volume(spec)
+    vol, truth = V.shape_volume(spec)
     mesh = reconstruct(vol, truth["spacing"], threshold=truth["threshold"], keep="all")
     save_mesh(mesh, tmp_path / "m.ply")
-    (row,) = B.score_shape(tmp_path / "m.ply", truth)
+    (row,) = V.score_shape(tmp_path / "m.ply", truth)
     assert row["thickness_valid"] > 0.99
     assert row["thickness_err_median"] < 0.25 * 1.0  # within a quarter lateral voxel (dz = 2 dx)
     assert row["H_err_median"] < 0.03 and row["K_err_median"] < 0.06
@@ -195,7 +197,7 @@ def test_score_shape_concentric_spheres(tmp_path):
 
 
 # ----------------------------------------------------------------------------- cases, aggregate
-BENCH = {
+SECTION = {
     "base": {"synth": {"radius": 60, "noise": 5}, "run": {"order": {"radius": 20}}},
     "rotations": [1, 2],
     "sweeps": {
@@ -207,7 +209,7 @@ BENCH = {
 
 
 def test_expand_cases():
-    cases = B.expand_cases(BENCH)
+    cases = V.expand_cases(SECTION)
     assert len(cases) == 2 * 2 + 2 * 2 + 1
     c = cases["noise-10-r2"]
     assert c["synth"] == {"radius": 60, "noise": 10, "seed": 2, "rotate_random": 2}
@@ -218,9 +220,9 @@ def test_expand_cases():
     assert a["volume"] == cases["avg-10-r1"]["volume"] != cases["avg-10-r2"]["volume"]
     assert cases["paper"]["dataset"] == "paper" and cases["paper"]["volume"] is None
     with pytest.raises(NemoError, match="synth"):
-        B.expand_cases({"sweeps": {"x": {"key": "noise", "values": [1]}}})
+        V.expand_cases({"sweeps": {"x": {"key": "noise", "values": [1]}}})
     with pytest.raises(NemoError, match="no cases"):
-        B.expand_cases({})
+        V.expand_cases({})
 
 
 def test_aggregate_writes_tables_and_plots(tmp_path):
@@ -232,11 +234,11 @@ def test_aggregate_writes_tables_and_plots(tmp_path):
                                  "detection_rate": det, "false_positives": 0, "loc_err_mean": 1.0 + noise / 10,
                                  "angle_err_median": 2.0, "timings_s": {"mesh": 0.5, "directors": 1.0}}))
         scores.append(f)
-    tsv = tmp_path / "bench" / "cases" / "run" / "noise-0-r0.tsv"
+    tsv = tmp_path / "validation" / "cases" / "run" / "noise-0-r0.tsv"
     tsv.parent.mkdir(parents=True)
     tsv.write_text("s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
                    "3.5\t0:00:03\t410.5\t900\t400\t405\t0\t1\t90\t3.1\n")
-    out = B.aggregate(scores, [], [tsv], tmp_path / "summary")
+    out = V.aggregate(scores, [], [tsv], tmp_path / "summary")
     sw = out["sweeps"].set_index("value_label")
     assert sw.loc["20", "detection_rate"] == pytest.approx(0.625) and sw.loc["0", "n_cases"] == 2
     st = out["stages"]
@@ -244,27 +246,59 @@ def test_aggregate_writes_tables_and_plots(tmp_path):
     assert st[st["source"] == "snakemake"]["sweep"].iloc[0] == "noise"
     for name in ("cases", "sweeps", "shapes", "stages"):
         assert (tmp_path / "summary" / f"{name}.parquet").exists()
-    md = (tmp_path / "summary" / "benchmark.md").read_text()
+    md = (tmp_path / "summary" / "validation.md").read_text()
     assert "| noise | 20 | 2 | 0.62" in md or "| noise | 20 | 2 | 0.63" in md
     assert (tmp_path / "summary" / "plots" / "error_vs_noise.png").stat().st_size > 1000
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
-    rc = B.main(["score", "--truth", str(tmp_path / "none.tif"), "--defects", "x", "-o", str(tmp_path / "o")])
+    rc = nemo_main(["validate", "score", "--truth", str(tmp_path / "none.tif"), "--defects", "x",
+                    "-o", str(tmp_path / "o")])
     assert rc == 2
-    assert "no ground truth" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("nemo validate: error: ") and "no ground truth" in err and len(err.splitlines()) == 1
+    rc = nemo_main(["validate", "shape", '{"kind": "cube"}', "-o", str(tmp_path / "c.tif"),
+                    "--truth", str(tmp_path / "c.json")])
+    assert rc == 2 and "unknown shape kind 'cube'" in capsys.readouterr().err
+    rc = nemo_main(["validate", "shape", "{kind: ellipsoid", "-o", str(tmp_path / "c.tif"),
+                    "--truth", str(tmp_path / "c.json")])
+    assert rc == 2 and "not valid JSON" in capsys.readouterr().err
+    rc = nemo_main(["validate", "score-shape", str(tmp_path / "m.ply"), str(tmp_path / "none.json"),
+                    "-o", str(tmp_path / "s.json")])
+    assert rc == 2 and "shape truth not found" in capsys.readouterr().err
+
+
+def test_cli_shape_writes_the_stack_and_its_truth(tmp_path, capsys):
+    from nemo.io import read_info
+
+    spec = {"kind": "ellipsoid", "axes": [12, 10, 8], "spacing": [2, 1, 1]}
+    rc = nemo_main(["validate", "shape", json.dumps(spec), "-o", str(tmp_path / "e.tif"),
+                    "--truth", str(tmp_path / "sub" / "e.json")])
+    assert rc == 0, capsys.readouterr().err
+    truth = json.loads((tmp_path / "sub" / "e.json").read_text())
+    vol, expected = V.shape_volume(spec)
+    assert truth["centre"] == expected["centre"] and truth["threshold"] == expected["threshold"]
+    assert read_info(tmp_path / "e.tif").shape["Z"] == vol.shape[0]
+
+
+def test_cli_help_names_every_step(capsys):
+    with pytest.raises(SystemExit):
+        nemo_main(["validate", "--help"])
+    out = capsys.readouterr().out
+    for step in ("shape", "score-shape", "score", "aggregate", "examples:", "validation-ci.yaml"):
+        assert step in out
 
 
 # ----------------------------------------------------------------------------- CI variant through Snakemake
 def test_ci_variant_through_snakemake(tmp_path):
-    """config/benchmark-ci.yaml through the workflow: every case is a dataset analysed by the
+    """config/validation-ci.yaml through the workflow: every case is a dataset analysed by the
     ordinary per-frame rules (≈ 60 s on 2 idle cores)."""
     cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(tmp_path),
-           "--configfile", str(ROOT / "config" / "benchmark-ci.yaml"), "--cores", "2", "-q"]
+           "--configfile", str(ROOT / "config" / "validation-ci.yaml"), "--cores", "2", "-q"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900,
                           env=dict(os.environ, PYTHONWARNINGS="ignore"))
     assert proc.returncode == 0, proc.stderr[-4000:]
-    summ = tmp_path / "results" / "benchmark" / "summary"
+    summ = tmp_path / "results" / "validation" / "summary"
     cases = pd.read_parquet(summ / "cases.parquet").set_index("case")
     shapes = pd.read_parquet(summ / "shapes.parquet")
     stages = pd.read_parquet(summ / "stages.parquet")
@@ -284,6 +318,6 @@ def test_ci_variant_through_snakemake(tmp_path):
     assert sph["thickness_err_median"] < 0.25
     assert {"mesh", "directors", "order", "defects"} <= set(stages["stage"])
     assert (stages["s"] > 0).all()
-    assert (summ / "benchmark.md").read_text().count("\n|") > 10
+    assert (summ / "validation.md").read_text().count("\n|") > 10
     for png in ("error_vs_noise.png", "error_vs_anisotropy.png", "time_per_stage.png"):
         assert (summ / "plots" / png).stat().st_size > 1000

@@ -214,7 +214,7 @@ def _summary(work: Path, name: str, dataset: str = "demo") -> pd.DataFrame:
 # mid-surface (inner wall at r = 99.79 µm instead of 100, outer at 110.63 instead of 110,
 # from the volumes), so the thickness is 10.84 µm, not the generator's 10. An open issue
 # (walls biased outward): test_default_run_thickness_is_unbiased below is its strict xfail.
-# The bias shrinks with the voxel size (docs/benchmarks.md: 10.26 at the paper's 2 µm step on
+# The bias shrinks with the voxel size (benchmarks/README.md: 10.26 at the paper's 2 µm step on
 # R 200, 10.03 at 1 µm voxels).
 DEMO_THICKNESS_BIAS = 0.84  # µm, measured: 0.832 - 0.842 over the 3 frames
 
@@ -668,9 +668,9 @@ def test_report_of_the_default_run_has_figures_and_captions(demo_run, tmp_path):
 
 # ----------------------------------------------------------------------------- catalog standard
 def test_lint_is_clean_and_rules_are_formatted(tmp_path):
-    """`snakemake --lint` reports nothing (default and benchmark configs) and snakefmt would change
+    """`snakemake --lint` reports nothing (default and validation configs) and snakefmt would change
     nothing (the Snakemake workflow catalog's checks; .ci/run runs them too)."""
-    for cfg in (DEFAULT_CONFIG, ROOT / "config" / "benchmark-ci.yaml"):
+    for cfg in (DEFAULT_CONFIG, ROOT / "config" / "validation-ci.yaml"):
         proc = subprocess.run([*SNAKEMAKE, "-s", str(SNAKEFILE), "-d", str(tmp_path), "--lint",
                                "--configfile", str(cfg)], capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, (cfg.name, (proc.stdout + proc.stderr)[-4000:])
@@ -815,3 +815,28 @@ def test_directors_from_files_replace_peel_and_directors(tmp_path):
         b = read_table(frame / f"{kind}_ext.parquet")
         pd.testing.assert_frame_equal(a, b, check_exact=False, rtol=1e-9)
     assert not (work / "one" / "layer_ext.parquet").exists()
+
+
+# ----------------------------------------------------------------------------- real microscopy
+def test_real_stacks_run_end_to_end_with_quality_control(tmp_path):
+    """config/real.yaml on the two real stacks shipped in data/real/ (a neural-tube organoid at
+    3.4 µm voxels, an uncalibrated Drosophila embryo cut by the field of view): the workflow runs
+    through, every frame has its QC verdict, what is wrong with the data is named (the organoid's
+    DAPI channel holds a second object), and the input files are not modified."""
+    import hashlib
+
+    (tmp_path / "data").symlink_to(ROOT / "data")
+    stacks = sorted((ROOT / "data" / "real").glob("*.tif"))
+    digest = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in stacks}
+    smk(tmp_path, "--cores", "2", "--configfile", ROOT / "config" / "real.yaml", timeout=900)
+    organoid = _summary(tmp_path, "frames", "organoid")
+    assert len(organoid) == 1 and organoid["c"].tolist() == [1] and organoid["layer"].tolist() == ["apical"]
+    assert organoid["n_objects"].iloc[0] == 2 and not organoid["qc_pass"].iloc[0]
+    assert "2 objects in the image" in organoid["qc_flags"].iloc[0]
+    assert 0 <= organoid["S_mean"].iloc[0] <= 1 and organoid["snr"].iloc[0] > 3
+    fly = _summary(tmp_path, "frames", "drosophila")
+    assert len(fly) == 1 and fly["n_objects"].iloc[0] == 1 and fly["area"].iloc[0] > 1000  # pixel² units
+    for name in ("organoid", "drosophila"):
+        figures = tmp_path / "results" / name / "summary" / "figures"
+        assert (figures / "frames.png").stat().st_size > 10_000
+    assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in stacks} == digest

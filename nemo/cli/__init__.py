@@ -30,13 +30,14 @@ from nemo.errors import NemoError, NemoWarning
 #: Subcommands in the order ``nemo --help`` lists them (module name = command name).
 COMMANDS = (
     "info", "synth", "mesh", "curvature", "thickness", "measure", "peel", "directors",
-    "order", "align", "defects", "run", "track", "render", "view",
+    "order", "align", "defects", "run", "track", "render", "view", "validate",
 )
 
 _EPILOG = """\
 data flow: image (t, c) -> mesh (PLY) -> layer (peel) -> directors -> order -> defects;
 curvature/thickness/measure from meshes; align from two director tables.
 Every step reads and writes files, so any step can be rerun alone.
+validate: the validation protocol's steps (scores against a known truth; docs/validation.md).
 Lengths are physical (the image's unit, usually µm); tables use physical x, y, z.
 Run 'nemo COMMAND --help' for a command's options."""
 

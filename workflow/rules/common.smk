@@ -770,7 +770,7 @@ def report_config(name):
     """The validated configuration of one dataset (defaults filled), as written to the report:
     sections in the schema's order, keys within them sorted; the analysis keys only, so that
     changing resources or the worker reruns nothing."""
-    skip = ("resources", "worker", "benchmark")
+    skip = ("resources", "worker", "validation")
     cfg = {**config, "datasets": {name: config["datasets"][name]}}
     order = [k for k in nconfig.schema()["properties"] if k in cfg and k not in skip]
     return {k: _canonical(cfg[k]) for k in order}

@@ -1,98 +1,103 @@
-# Benchmark and validation protocol (docs/benchmarks.md). Included by the Snakefile, right after
-# common.smk, when the config has a `benchmark:` section (config/benchmark.yaml,
-# config/benchmark-ci.yaml).
+# Validation protocol (docs/validation.md). Included by the Snakefile, right after common.smk,
+# when the config has a `validation:` section (config/validation.yaml,
+# config/validation-ci.yaml).
 #
-# Every vesicle case (nemo.benchmark.expand_cases) becomes a dataset `bench.CASE` of one frame,
-# analysed by the workflow's own per-frame rules (mesh, morphology, peel, directors, order,
-# defects) with the case's `run` overrides as per-dataset sections: the protocol measures what
-# `snakemake` users get. Each case's defects are scored against the synthetic truth; the stage
-# times are Snakemake's benchmark files of those rules. Analytic shapes (python -m
-# nemo.benchmark shape) are meshed by nemo mesh and scored for curvature and thickness.
-# Everything is collected by bench_aggregate into results/benchmark/summary/.
+# Every vesicle case (nemo.validation.expand_cases) becomes a dataset `validation.CASE` of one
+# frame, analysed by the workflow's own per-frame rules (mesh, morphology, peel, directors,
+# order, defects) with the case's `run` overrides as per-dataset sections: the protocol measures
+# what `snakemake` users get. Each case's defects are scored against the synthetic truth
+# (nemo validate score); the stage times are Snakemake's benchmark files of those rules.
+# Analytic shapes (nemo validate shape) are meshed by nemo mesh and scored for curvature and
+# thickness (nemo validate score-shape). Everything is collected by validation_aggregate into
+# results/validation/summary/.
 
 
-include: "benchmark_common.smk"
+include: "validation_common.smk"
 
 
 wildcard_constraints:
-    case="|".join(sorted(BCASES)),
+    case="|".join(sorted(VCASES)),
     vid=r"v[0-9a-f]{10}",
-    shape="|".join(sorted(BSHAPES)) or "NONE",
+    shape="|".join(sorted(VSHAPES)) or "NONE",
 
 
-rule bench_synth:
+rule validation_synth:
     output:
-        image=bench_file("volumes/{vid}.tif"),
-        truth=bench_file("volumes/{vid}.truth.json"),
+        image=validation_file("volumes/{vid}.tif"),
+        truth=validation_file("volumes/{vid}.truth.json"),
     log:
-        bench_file("logs/synth/{vid}.log"),
+        validation_file("logs/synth/{vid}.log"),
     benchmark:
-        bench_file("benchmarks/cases/synth/{vid}.tsv")
+        validation_file("benchmarks/cases/synth/{vid}.tsv")
     conda:
         "../envs/nemo.yaml"
-    threads: res("benchmark", "threads")
+    threads: res("validation", "threads")
     resources:
-        mem_mb=res("benchmark", "mem_mb"),
-        runtime=res("benchmark", "runtime"),
+        mem_mb=res("validation", "mem_mb"),
+        runtime=res("validation", "runtime"),
     params:
-        opts=lambda wc: cli_opts(BVOLUMES[wc.vid]),
+        opts=lambda wc: cli_opts(VVOLUMES[wc.vid]),
     shell:
         nemo_shell("synth {output.image} {params.opts} > {log} 2>&1")
 
 
-rule bench_score:
+rule validation_score:
     input:
-        unpack(bench_score_inputs),
+        unpack(validation_score_inputs),
     output:
-        bench_file("cases/{case}/score.json"),
+        validation_file("cases/{case}/score.json"),
     log:
-        bench_file("logs/score/{case}.log"),
+        validation_file("logs/score/{case}.log"),
     conda:
         "../envs/nemo.yaml"
     threads: 1
     resources:
-        mem_mb=res("benchmark", "mem_mb"),
-        runtime=res("benchmark", "runtime"),
+        mem_mb=res("validation", "mem_mb"),
+        runtime=res("validation", "runtime"),
     params:
-        case=bench_case_json,
+        case=validation_case_json,
         curvature=lambda wc, input: optional_file("--curvature", input, "curvature"),
-        opts=BSCORE_OPTS,
+        opts=VSCORE_OPTS,
     shell:
-        "python -m nemo.benchmark score --truth {input.truth:q} --defects {input.defects:q}"
-        " --directors {input.directors:q} --order {input.order:q} {params.curvature}"
-        " --stage-files {input.stages:q} --case '{params.case}' {params.opts} -o {output:q} > {log:q} 2>&1"
+        nemo_shell(
+            "validate score --truth {input.truth:q} --defects {input.defects:q}"
+            " --directors {input.directors:q} --order {input.order:q} {params.curvature}"
+            " --stage-files {input.stages:q} --case '{params.case}' {params.opts} -o {output:q} > {log:q} 2>&1"
+        )
 
 
-rule bench_shape:
+rule validation_shape:
     output:
-        image=bench_file("shapes/{shape}/volume.tif"),
-        truth=bench_file("shapes/{shape}/truth.json"),
+        image=validation_file("shapes/{shape}/volume.tif"),
+        truth=validation_file("shapes/{shape}/truth.json"),
     log:
-        bench_file("logs/shape/{shape}.log"),
+        validation_file("logs/shape/{shape}.log"),
     benchmark:
-        bench_file("benchmarks/shapes/shape/{shape}.tsv")
+        validation_file("benchmarks/shapes/shape/{shape}.tsv")
     conda:
         "../envs/nemo.yaml"
     threads: 1
     resources:
-        mem_mb=res("benchmark", "mem_mb"),
-        runtime=res("benchmark", "runtime"),
+        mem_mb=res("validation", "mem_mb"),
+        runtime=res("validation", "runtime"),
     params:
-        spec=bench_shape_spec,
+        spec=validation_shape_spec,
     shell:
-        "python -m nemo.benchmark shape '{params.spec}' -o {output.image} --truth {output.truth} > {log} 2>&1"
+        nemo_shell(
+            "validate shape '{params.spec}' -o {output.image:q} --truth {output.truth:q} > {log:q} 2>&1"
+        )
 
 
-rule bench_shape_mesh:
+rule validation_shape_mesh:
     input:
-        image=bench_file("shapes/{shape}/volume.tif"),
-        truth=bench_file("shapes/{shape}/truth.json"),
+        image=validation_file("shapes/{shape}/volume.tif"),
+        truth=validation_file("shapes/{shape}/truth.json"),
     output:
-        bench_file("shapes/{shape}/mesh.ply"),
+        validation_file("shapes/{shape}/mesh.ply"),
     log:
-        bench_file("logs/shape_mesh/{shape}.log"),
+        validation_file("logs/shape_mesh/{shape}.log"),
     benchmark:
-        bench_file("benchmarks/shapes/mesh/{shape}.tsv")
+        validation_file("benchmarks/shapes/mesh/{shape}.tsv")
     conda:
         "../envs/nemo.yaml"
     threads: res("mesh", "threads")
@@ -100,55 +105,59 @@ rule bench_shape_mesh:
         mem_mb=res("mesh", "mem_mb"),
         runtime=res("mesh", "runtime"),
     params:
-        opts=bench_shape_mesh_opts,
+        opts=validation_shape_mesh_opts,
     shell:
         nemo_shell("mesh {input.image} -o {output} {params.opts} > {log} 2>&1")
 
 
-rule bench_shape_score:
+rule validation_shape_score:
     input:
-        mesh=bench_file("shapes/{shape}/mesh.ply"),
-        truth=bench_file("shapes/{shape}/truth.json"),
+        mesh=validation_file("shapes/{shape}/mesh.ply"),
+        truth=validation_file("shapes/{shape}/truth.json"),
     output:
-        bench_file("shapes/{shape}/score.json"),
+        validation_file("shapes/{shape}/score.json"),
     log:
-        bench_file("logs/shape_score/{shape}.log"),
+        validation_file("logs/shape_score/{shape}.log"),
     benchmark:
-        bench_file("benchmarks/shapes/score/{shape}.tsv")
+        validation_file("benchmarks/shapes/score/{shape}.tsv")
     conda:
         "../envs/nemo.yaml"
     threads: 1
     resources:
-        mem_mb=res("benchmark", "mem_mb"),
-        runtime=res("benchmark", "runtime"),
+        mem_mb=res("validation", "mem_mb"),
+        runtime=res("validation", "runtime"),
     shell:
-        "python -m nemo.benchmark score-shape {input.mesh} {input.truth} -o {output} > {log} 2>&1"
+        nemo_shell(
+            "validate score-shape {input.mesh:q} {input.truth:q} -o {output:q} > {log:q} 2>&1"
+        )
 
 
-BENCHMARK_TARGETS = [bench_file("summary/cases.parquet")]
+VALIDATION_TARGETS = [validation_file("summary/cases.parquet")]
 
 
-rule bench_aggregate:
+rule validation_aggregate:
     input:
-        scores=[bench_file(f"cases/{c}/score.json") for c in BCASES],
-        shapes=[bench_file(f"shapes/{s}/score.json") for s in BSHAPES],
-        stages=bench_stage_files(),
+        scores=[validation_file(f"cases/{c}/score.json") for c in VCASES],
+        shapes=[validation_file(f"shapes/{s}/score.json") for s in VSHAPES],
+        stages=validation_stage_files(),
     output:
-        cases=bench_file("summary/cases.parquet"),
-        sweeps=bench_file("summary/sweeps.parquet"),
-        shapes=bench_file("summary/shapes.parquet"),
-        stages=bench_file("summary/stages.parquet"),
-        table=bench_file("summary/benchmark.md"),
+        cases=validation_file("summary/cases.parquet"),
+        sweeps=validation_file("summary/sweeps.parquet"),
+        shapes=validation_file("summary/shapes.parquet"),
+        stages=validation_file("summary/stages.parquet"),
+        table=validation_file("summary/validation.md"),
     log:
-        bench_file("logs/aggregate.log"),
+        validation_file("logs/aggregate.log"),
     conda:
         "../envs/nemo.yaml"
     threads: 1
     resources:
-        mem_mb=res("benchmark", "mem_mb"),
-        runtime=res("benchmark", "runtime"),
+        mem_mb=res("validation", "mem_mb"),
+        runtime=res("validation", "runtime"),
     params:
         summary=lambda wc, output: os.path.dirname(output.cases),
     shell:
-        "python -m nemo.benchmark aggregate --scores {input.scores:q}"
-        " --shapes {input.shapes:q} --stages {input.stages:q} -o {params.summary:q} > {log:q} 2>&1"
+        nemo_shell(
+            "validate aggregate --scores {input.scores:q}"
+            " --shapes {input.shapes:q} --stages {input.stages:q} -o {params.summary:q} > {log:q} 2>&1"
+        )

@@ -1,39 +1,39 @@
-# Parse-time part of the benchmark protocol (workflow/rules/benchmark.smk, which includes this
-# file): the cases and shapes of the config's `benchmark:` section, the datasets they are
-# analysed as, and the helpers of the benchmark rules.
+# Parse-time part of the validation protocol (workflow/rules/validation.smk, which includes this
+# file): the cases and shapes of the config's `validation:` section, the datasets they are
+# analysed as, and the helpers of the validation rules.
 
 import json
 
-from nemo.benchmark import expand_cases, expand_shapes
+from nemo.validation import expand_cases, expand_shapes
 
-BENCHMARK = config["benchmark"]
-BRES = f"{RESULTS}/benchmark"
-BCASES = expand_cases(BENCHMARK)
-BSHAPES = expand_shapes(BENCHMARK)
-BVOLUMES = {c["volume"]: c["synth"] for c in BCASES.values() if c["volume"]}
-_BMATCH = BENCHMARK.get("match_radius")
-_BORDERED = BENCHMARK.get("ordered_distance")
-BSCORE_OPTS = (f" --match-radius {_BMATCH}" if _BMATCH else "") + (
-    f" --ordered-distance {_BORDERED}" if _BORDERED else ""
+VALIDATION = config["validation"]
+VRES = f"{RESULTS}/validation"
+VCASES = expand_cases(VALIDATION)
+VSHAPES = expand_shapes(VALIDATION)
+VVOLUMES = {c["volume"]: c["synth"] for c in VCASES.values() if c["volume"]}
+_VMATCH = VALIDATION.get("match_radius")
+_VORDERED = VALIDATION.get("ordered_distance")
+VSCORE_OPTS = (f" --match-radius {_VMATCH}" if _VMATCH else "") + (
+    f" --ordered-distance {_VORDERED}" if _VORDERED else ""
 )
 
 
 def _case_dataset(cid, case):
-    """The dataset a case is analysed as: a configured one, or `bench.CASE` on its volume."""
+    """The dataset a case is analysed as: a configured one, or `validation.CASE` on its volume."""
     if case["dataset"] is not None:
         if case["dataset"] not in DATA:
             config_error(
-                f"benchmark.cases.{cid}.dataset",
+                f"validation.cases.{cid}.dataset",
                 f"'{case['dataset']}' is not under datasets (defined: {', '.join(DATA)})",
             )
         if not DATA[case["dataset"]]["synthetic"]:
             config_error(
-                f"benchmark.cases.{cid}.dataset",
+                f"validation.cases.{cid}.dataset",
                 "needs a synthetic dataset (its truth.json)",
             )
         return case["dataset"]
-    name = f"bench.{cid}"
-    path = f"{BRES}/volumes/{case['volume']}.tif"
+    name = f"validation.{cid}"
+    path = f"{VRES}/volumes/{case['volume']}.tif"
     try:
         overrides = nconfig.validate(
             {"datasets": {name: {"path": path, **case["run"]}}}
@@ -42,28 +42,29 @@ def _case_dataset(cid, case):
             {**config, "datasets": {name: overrides}}, name
         )
     except NemoError as exc:
-        _fail(f"benchmark case '{cid}' (run: {case['run']}): {exc}")
-    DATA[name] = {
-        "path": path,
-        "spacing": None,
-        "mask": None,
-        "synthetic": None,
-        "seg": 0,
-        "t": [0],
-        "c": [0],
-        "stack_mb": None,
-    }
+        _fail(f"validation case '{cid}' (run: {case['run']}): {exc}")
+    # every dataset key with its default (whatever common.smk reads); one frame, one channel
+    DATA[name] = {**overrides, "seg": 0, "t": [0], "c": [0], "stack_mb": None}
     return name
 
 
-BCASE_DATA = {cid: _case_dataset(cid, case) for cid, case in BCASES.items()}
+VCASE_DATA = {cid: _case_dataset(cid, case) for cid, case in VCASES.items()}
+
+# common.smk sorted the configured datasets into the mesh rules (and layer kinds) before the
+# cases were added: sort the cases' datasets too (in place: the rules below read these)
+SPLIT_MESH[:] = [name for name in DATA if sec(name, "mesh")["split"] != "none"]
+SINGLE_MESH[:] = [name for name in DATA if name not in SPLIT_MESH]
+for _names_now, _names_all in zip(
+    (IMPORTED_LAYERS, MEASURED_LAYERS), _split_layer_names()
+):
+    _names_now |= _names_all
 
 
 def _scored_frame(name):
     """(t, c, layer) scored for a dataset: its first frame and layer."""
     frames = layer_frames(name)
     if not frames:
-        _fail(f"benchmark: dataset '{name}' has no layer to score")
+        _fail(f"validation: dataset '{name}' has no layer to score")
     return frames[0]
 
 
@@ -87,8 +88,8 @@ def _stage_files(name):
     return out
 
 
-def bench_score_inputs(wc):
-    name = BCASE_DATA[wc.case]
+def validation_score_inputs(wc):
+    name = VCASE_DATA[wc.case]
     t, c, layer = _scored_frame(name)
     frame = layout.frame_dir(RESULTS, name, t, c)
     seg = layout.frame_dir(RESULTS, name, t, DATA[name]["seg"])
@@ -102,23 +103,24 @@ def bench_score_inputs(wc):
     return inputs
 
 
-def bench_stage_files():
-    files = [f"{BRES}/benchmarks/cases/synth/{v}.tsv" for v in BVOLUMES]
+def validation_stage_files():
+    """Snakemake benchmark files of the protocol's own jobs (volumes, shapes)."""
+    files = [f"{VRES}/benchmarks/cases/synth/{v}.tsv" for v in VVOLUMES]
     files += [
-        f"{BRES}/benchmarks/shapes/{k}/{s}.tsv"
-        for s in BSHAPES
+        f"{VRES}/benchmarks/shapes/{k}/{s}.tsv"
+        for s in VSHAPES
         for k in ("mesh", "score")
     ]
     return files
 
 
-def bench_file(name):
-    """A file of the benchmark protocol: ``results/benchmark/NAME``."""
-    return f"{BRES}/{name}"
+def validation_file(name):
+    """A file of the validation protocol: ``results/validation/NAME``."""
+    return f"{VRES}/{name}"
 
 
-def bench_case_json(wc):
-    """The case's description for `nemo.benchmark score --case` (JSON without single quotes)."""
+def validation_case_json(wc):
+    """The case's description for `nemo validate score --case` (JSON without single quotes)."""
     keys = (
         "case",
         "sweep",
@@ -129,28 +131,28 @@ def bench_case_json(wc):
         "synth",
         "run",
     )
-    case = {**{k: BCASES[wc.case][k] for k in keys}, "dataset": BCASE_DATA[wc.case]}
+    case = {**{k: VCASES[wc.case][k] for k in keys}, "dataset": VCASE_DATA[wc.case]}
     return json.dumps(case).replace("'", "")
 
 
-def bench_shape_spec(wc):
+def validation_shape_spec(wc):
     return json.dumps(
         {
-            **{k: v for k, v in BSHAPES[wc.shape].items() if k != "mesh"},
+            **{k: v for k, v in VSHAPES[wc.shape].items() if k != "mesh"},
             "name": wc.shape,
         }
     )
 
 
-def bench_shape_mesh_opts(wc, input):
+def validation_shape_mesh_opts(wc, input):
     with open(input.truth) as f:
         threshold = json.load(f)["threshold"]
-    keep = "all" if BSHAPES[wc.shape]["kind"] == "shells" else "largest"
+    keep = "all" if VSHAPES[wc.shape]["kind"] == "shells" else "largest"
     return cli_opts(
         {
             "threshold": threshold,
             "keep": keep,
             "split": "none",
-            **BSHAPES[wc.shape]["mesh"],
+            **VSHAPES[wc.shape]["mesh"],
         }
     )
