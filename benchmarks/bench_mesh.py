@@ -62,7 +62,7 @@ def analytic_vesicle(path: Path, seed: int = 0) -> dict:
 def vesicle(fresh: bool) -> tuple[Path, dict]:
     OUT.mkdir(parents=True, exist_ok=True)
     try:
-        from nemo.synthetic import write_vesicle  # noqa: F401
+        from nemo.synthetic import write_vesicle
         have_synth = True
     except ImportError:
         have_synth = False

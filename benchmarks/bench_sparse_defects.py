@@ -22,11 +22,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-import sparse_fields as sf  # noqa: E402  (the tests' independent sparse-field builder)
+import sparse_fields as sf  # the tests' independent sparse-field builder
 
-from nemo.defects import find_defects  # noqa: E402
-from nemo.order import order  # noqa: E402
-from nemo.synthetic import director_field, preset_defects, projection_pole  # noqa: E402
+from nemo.defects import find_defects
+from nemo.order import order
+from nemo.synthetic import director_field, preset_defects, projection_pole
 
 
 def case(preset: str, spacing: float, noise: float, seed: int, radius: float = 50.0) -> dict:

@@ -54,7 +54,7 @@ def _child(fn_name, args, conn):
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         conn.send({"wall_s": wall, "cpu_s": cpu, "rss_inputs_mb": base, "peak_rss_mb": peak, **info})
-    except Exception as exc:  # report, do not hang the parent
+    except Exception as exc:  # noqa: BLE001 - report, do not hang the parent
         conn.send({"error": f"{type(exc).__name__}: {exc}"})
     conn.close()
 
@@ -163,6 +163,7 @@ def st_directors(wd, n_patches, phase, data=None):
 
 def st_order(wd, phase, data=None):
     import pandas as pd
+
     from nemo.mesh import load_mesh
     from nemo.order import order
 
@@ -175,6 +176,7 @@ def st_order(wd, phase, data=None):
 
 def st_defects(wd, phase, data=None):
     import pandas as pd
+
     from nemo.defects import find_defects
     from nemo.mesh import load_mesh
 
@@ -216,7 +218,7 @@ def director_loop(mesh, intensity, centres, patch_radius, pixel, sigma, half):
 
 
 def st_loop_vs_vectorised(wd, n_loop, phase, data=None):
-    from nemo.directors import SIGMA_PX, _MARGIN_PX, default_pixel, directors
+    from nemo.directors import _MARGIN_PX, SIGMA_PX, default_pixel, directors
     from nemo.mesh import mean_edge_length
     from nemo.synthetic import truth_directors
     from nemo.validation import director_errors

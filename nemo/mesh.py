@@ -224,7 +224,7 @@ def _load_ply(path: Path) -> trimesh.Trimesh:
         raise NemoError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
     try:
         loaded = trimesh.load(trimesh.util.wrap_as_stream(raw), file_type="ply", process=False)
-    except Exception as exc:  # trimesh raises many types on corrupt files
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on corrupt files
         raise NemoError(f"{path} is a corrupt PLY file ({type(exc).__name__}: {exc}); re-export it") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise NemoError(f"{path} holds no triangles (a point cloud?); NEMO needs a triangle mesh")
@@ -262,7 +262,7 @@ def _load_other(path: Path, kind: str) -> trimesh.Trimesh:
     """An OBJ or STL surface (no unit in the file: ``units`` "um", ``unit_in_file`` False)."""
     try:
         loaded = trimesh.load(path, file_type=kind, process=False, force="mesh")
-    except Exception as exc:  # trimesh raises many types on corrupt files
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types on corrupt files
         raise NemoError(f"{path} is a corrupt {kind.upper()} file ({exc}); re-export it") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise NemoError(f"{path} holds no triangles; NEMO needs a triangle mesh")

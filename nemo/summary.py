@@ -3,10 +3,10 @@
 The workflow writes one folder per time point and channel (``results/{dataset}/t{t}/c{c}/``);
 these functions collect the per-frame tables into ``results/{dataset}/summary/``:
 
-* :func:`frame_summary` -> ``frames.parquet``: one row per (t, c, layer) with the surface's
-  objects found and signal-to-noise ratio of the image, area, volume, Euler characteristic, mean H and K, mean thickness, mean layer intensity,
-  director count and coherency, mean S, number of defects, their total charge and the frame's
-  quality control (``qc_pass``, ``qc_flags``);
+* :func:`frame_summary` -> ``frames.parquet``: one row per (t, c, layer) with the objects found
+  and signal-to-noise ratio of the image, the surface's area, volume, Euler characteristic, mean
+  H and K, mean thickness, mean layer intensity, director count and coherency, mean S, number of
+  defects, their total charge and the frame's quality control (``qc_pass``, ``qc_flags``);
 * :func:`collect_defects` -> the defects of all frames with ``t``, ``c``, ``layer`` columns
   (``nemo track`` then adds ``track_id``);
 * :func:`alignment_summary` -> ``alignment.parquet``: one row per (t, c, layer pair).

@@ -139,7 +139,7 @@ def _child(conn: socket.socket) -> None:
         code = main(request["argv"])
     except SystemExit as exc:  # argparse's --help and usage errors
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
-    except BaseException:  # a bug: the traceback goes to the caller's stderr, as without a worker
+    except BaseException:  # noqa: BLE001 - a bug: the traceback goes to the caller's stderr, as without a worker
         import traceback
 
         traceback.print_exc()

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import copy
+import math
+
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from nemo import config
 from nemo.errors import NemoError
@@ -135,12 +140,6 @@ def test_keys_of_the_former_run_config_say_what_replaced_them():
 # it passes the schema with strict JSON types (an integer is an int, not 1.0 or True; a number
 # is finite -- JSON has no NaN or infinity). nemo.config.analysis and nemo.config.section on
 # accepted values likewise return (strictly typed) or raise NemoError.
-
-import copy
-import math
-
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 SCHEMA = config.schema()
 #: Hypothesis warns when it prints the (large) repr of the schema strategies in a failure report.

@@ -155,7 +155,8 @@ def test_corrupt_and_wrong_files(tmp_path):
                                            b"property float x\nend_header\n\x00\x01")
     with pytest.raises(NemoError):
         load_mesh(tmp_path / "garbage.ply")
-    points = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    points = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+              "end_header\n0 0 0\n1 0 0\n0 1 0\n")
     (tmp_path / "cloud.ply").write_text(points)
     with pytest.raises(NemoError, match="no triangles"):
         load_mesh(tmp_path / "cloud.ply")

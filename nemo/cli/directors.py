@@ -130,7 +130,8 @@ def _add_measure_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) the layer was peeled on")
     parser.add_argument("layer", help="layer table from 'nemo peel'")
     size = parser.add_mutually_exclusive_group()
-    size.add_argument("--patch-radius", type=positive(), metavar="UM", help="patch radius in the mesh's unit (µm; default 0.1 × the object radius "
+    size.add_argument("--patch-radius", type=positive(), metavar="UM",
+                      help="patch radius in the mesh's unit (µm; default 0.1 × the object radius "
                       "sqrt(area/4π), at least 8 mean edge lengths)")
     size.add_argument("--patch-k", type=positive(int), metavar="K", help="patch = K nearest vertices")
     parser.add_argument("--n-patches", type=positive(int), metavar="N",

@@ -45,7 +45,8 @@ def run(args) -> int:
     u = "µm" if res["unit"] == "um" else res["unit"]
     print(f"mesh               {args.mesh}: {res['n_vertices']} vertices, {res['n_faces']} faces")
     print(f"area               {_fmt(res['area'])} {u}²")
-    print(f"volume             {_fmt(res['volume'])} {u}³" + ("" if res["is_watertight"] else "  (open mesh: no enclosed volume)"))
+    open_note = "" if res["is_watertight"] else "  (open mesh: no enclosed volume)"
+    print(f"volume             {_fmt(res['volume'])} {u}³{open_note}")
     print(f"watertight         {res['is_watertight']}")
     print(f"components         {res['n_components']}  (boundary loops: {res['n_boundary_loops']})")
     print(f"Euler χ / genus    {res['euler_characteristic']} / {_fmt(res['genus'], '')}")

@@ -32,9 +32,9 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from nemo.mesh import load_mesh
     from nemo import stages
     from nemo.cli.common import section_params
+    from nemo.mesh import load_mesh
     from nemo.tables import write_table
 
     out = output_path(args.output)

@@ -159,8 +159,9 @@ def robust_limits(values: np.ndarray, kind: str = "") -> tuple[float, float]:
     (lo, hi) : tuple of float
         Fixed for S [0, 1], alignment c and charge [−1, 1]. Curvatures (:data:`SIGNED_KINDS`,
         diverging maps) are symmetric about 0, ±(99th percentile of |value|) rounded up to a
-        round number (so the colour-bar ticks ±m, ±m/2 read well), whatever the data: white is always 0, red always positive (convex with outward normals), blue always
-        negative -- an all-positive sphere is uniformly red, never half blue. Other fields: the
+        round number (so the colour-bar ticks ±m, ±m/2 read well), whatever the data: white is
+        always 0, red always positive (convex with outward normals), blue always negative -- an
+        all-positive sphere is uniformly red, never half blue. Other fields: the
         1--99 % range.
     """
     if kind == "S":
