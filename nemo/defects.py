@@ -77,6 +77,16 @@ vertex by the fraction of its cell inside the circle. ``df.attrs["parameters"]["
 counts the contour kinds (``loop``, ``ring`` fallback, ``circle``) and the contours ``shrunk``
 to stay off an open rim.
 
+Open surfaces
+-------------
+A surface cut by the field of view (``mesh.border: open``) has a rim. A contour must be a closed
+curve *on* the surface around the candidate: one that reaches the rim leaves the surface and
+its winding says nothing about a defect (the director's turning along the rim is not a charge).
+So a contour is shrunk until it stays one edge inside the rim (``shrunk``), and a candidate
+with no room for a contour of at least min(3 edges, averaging radius) is rejected as
+``"contour leaves the surface"`` (:data:`RIM_REASON`, counted in ``rejected`` and listed in the
+candidate table like the other rejections): no defect and no charge come from the rim.
+
 Integer defects
 ---------------
 The averaged Q-tensor of an |m| = 1 defect vanishes quadratically, and any noise splits that
@@ -122,6 +132,7 @@ from nemo.geometry import (
     edge_graph,
     geodesic_ball,
     project_tangent,
+    rim,
     smooth_conserving,
     tangent_basis,
 )
@@ -456,27 +467,35 @@ def _geometry(mesh: trimesh.Trimesh, curvature: np.ndarray | None) -> _Geometry:
     # vertex -> incident faces (CSR rows), so that a ball's faces cost O(ball), not O(mesh)
     vf = sparse.csr_matrix((np.ones(faces.size, dtype=np.int8),
                             (faces.ravel(), np.repeat(np.arange(len(faces)), 3))), shape=(n, len(faces)))
-    if curvature is not None:
-        curvature = np.asarray(curvature, dtype=np.float64)
-        if curvature.shape != (n,):
-            raise NemoError(f"curvature has shape {curvature.shape}, expected ({n},) = one K per vertex")
-        if not np.all(np.isfinite(curvature)):
-            logger.warning("curvature has %d NaN values: using angle defects for the K term",
-                           int((~np.isfinite(curvature)).sum()))
-            curvature = None
-    if curvature is not None:
-        kdA = curvature * vertex_areas(mesh)
-        k_source = "curvature table K x vertex area"
-    else:
-        kdA = smooth_conserving(np.asarray(mesh.vertex_defects, dtype=np.float64), graph, 3)
-        k_source = "angle defects (discrete Gauss-Bonnet, 3 conservative smoothing passes)"
-    boundary = np.zeros(n, dtype=bool)
-    if not mesh.is_watertight:
-        edges = np.sort(np.asarray(mesh.edges), axis=1)
-        uniq, counts = np.unique(edges, axis=0, return_counts=True)
-        boundary[uniq[counts == 1].ravel()] = True
+    boundary = rim(faces, n)["vertices"]
+    kdA, k_source = _integrated_k(mesh, graph, curvature, boundary)
     return _Geometry(np.asarray(mesh.vertices, dtype=np.float64), vertex_normals(mesh), faces, vf, graph,
                      kdA, k_source, boundary, float(np.mean(mesh.edges_unique_length)))
+
+
+def _integrated_k(mesh: trimesh.Trimesh, graph: sparse.csr_matrix, curvature: np.ndarray | None,
+                  boundary: np.ndarray) -> tuple[np.ndarray, str]:
+    """∫K dA per vertex (N,) and its source: K × vertex area from a curvature table, else the
+    smoothed angle defects. Vertices where the table's K is NaN (e.g. within the fitting radius
+    of an open rim) take the angle defects. The angle defect of a rim vertex (``boundary``) is
+    the rim's turning (geodesic curvature), not Gaussian curvature: it counts 0, so that the
+    smoothing does not spread it into the contours near the rim."""
+    n = len(mesh.vertices)
+    angle = "angle defects (discrete Gauss-Bonnet, 3 conservative smoothing passes)"
+    defects = np.where(boundary, 0.0, np.asarray(mesh.vertex_defects, dtype=np.float64))
+    if curvature is None:
+        return smooth_conserving(defects, graph, 3), angle
+    curvature = np.asarray(curvature, dtype=np.float64)
+    if curvature.shape != (n,):
+        raise NemoError(f"curvature has shape {curvature.shape}, expected ({n},) = one K per vertex")
+    kdA = curvature * vertex_areas(mesh)
+    bad = ~np.isfinite(kdA)
+    if not bad.any():
+        return kdA, "curvature table K x vertex area"
+    logger.info("curvature has %d NaN values (e.g. at an open rim): angle defects there for the K term",
+                int(bad.sum()))
+    kdA[bad] = smooth_conserving(defects, graph, 3)[bad]
+    return kdA, f"curvature table K x vertex area; {angle} at {int(bad.sum())} vertices without K"
 
 
 def _estimate_avg_radius(geo: _Geometry, S: np.ndarray, s_ref: float, size: float) -> float:
@@ -714,7 +733,7 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
     ``rejected`` (reason -> count) and ``contours`` (contour kind -> count, ``shrunk`` at a rim).
     """
     rejected = dict.fromkeys(("disordered contour", "unresolved winding", "zero charge", "off-half charge",
-                              "no contour", "same dip", "same defect"), 0)
+                              "no contour", RIM_REASON, "same dip", "same defect"), 0)
     contours = dict.fromkeys(("loop", "ring", "circle", "shrunk"), 0)
     # low-S dips = connected components of the candidate vertices. Several zeros of the averaged
     # Q-tensor can share one dip (an |m| = 1 defect splits into two ±1/2 zeros a few µm apart under
@@ -736,15 +755,13 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
             continue
         near = np.concatenate([cpos[ccomp != comp[v]]] + [p[None] for p, _, _ in accepted])
         dmin = float(np.min(np.linalg.norm(near - geo.verts[v], axis=1))) if len(near) else np.inf
-        res = None
-        for r_c in _contour_radii(r_default, contour_radius, dmin, geo.h, st.avg_radius):
-            res = _charge(geo, f, st, v, r_c)
-            if res is None or res["contour_S"] >= res["s_floor"]:
-                break
+        res = _measure(geo, f, st, v, _contour_radii(r_default, contour_radius, dmin, geo.h, st.avg_radius))
+        at_rim = res is AT_RIM
+        res = None if at_rim else res
         if res is not None:
             contours[res["contour"]] += 1
             contours["shrunk"] += int(res["shrunk"])
-        reason = _rejection(res, st)
+        reason = RIM_REASON if at_rim else _rejection(res, st)
         if reason:
             rejected[reason] += 1
             records.append(_record(rec, res, reason))
@@ -761,6 +778,17 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
         rows.append(row)
         records.append(_record({**rec, "x": row["x"], "y": row["y"], "z": row["z"]}, res, ""))
     return rows, records, {"rejected": rejected, "contours": contours}
+
+
+def _measure(geo: _Geometry, f: _Fields, st: _Settings, v: int, radii: list[float]) -> dict | None:
+    """The charge on the first contour radius whose median S reaches the floor (else the last
+    tried); None or :data:`AT_RIM` when no contour fits (:func:`_charge`)."""
+    res = None
+    for r_c in radii:
+        res = _charge(geo, f, st, v, r_c)
+        if res is None or res is AT_RIM or res["contour_S"] >= res["s_floor"]:
+            break
+    return res
 
 
 def _record(rec: dict, res: dict | None, reason: str) -> dict:
@@ -790,7 +818,7 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
     vv = int(ball_idx[np.argmin(np.linalg.norm(geo.verts[ball_idx] - point, axis=1))])
     if vv != v:
         res2 = _charge(geo, f, st, vv, res["contour_radius"])
-        if res2 is not None and res2["charge_rounded"] == res["charge_rounded"]:
+        if res2 is not None and res2 is not AT_RIM and res2["charge_rounded"] == res["charge_rounded"]:
             res = res2
     return {
         "x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(f.S[vv]),
@@ -800,13 +828,21 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
     }
 
 
+#: What :func:`_charge` returns when no contour fits between the candidate and the open rim.
+AT_RIM = {"at_rim": True}
+#: Rejection reason of a candidate whose contour would leave the surface (an open rim).
+RIM_REASON = "contour leaves the surface"
+
+
 def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> dict | None:
     """Winding + curvature charge on a closed contour of geodesic radius ``r_c`` around vertex ``v``.
 
     The contour is the boundary loop of the geodesic ball (``loop``), else the ring of vertices
     at the radius sorted by angle (``ring``); when it has fewer vertices than
     :func:`steps_needed` (a coarse mesh), a circle sampled in ``v``'s tangent plane and projected
-    onto the surface (``circle``, :func:`_circle_contour`). Shrunk to stay off a mesh boundary.
+    onto the surface (``circle``, :func:`_circle_contour`). Shrunk to stay off a mesh boundary;
+    :data:`AT_RIM` when the shrunk contour would be smaller than min(3 edges, ``avg_radius``)
+    (a contour that leaves the surface encloses no defect and no charge).
     """
     h = geo.h
     idx, dist = geodesic_ball(geo.graph, v, 1.5 * r_c + 2 * h)
@@ -814,7 +850,7 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
     if shrunk:  # shrink the contour so it stays off the mesh boundary
         r_c = 0.9 * float(dist[geo.boundary[idx]].min()) - h
         if r_c < min(3 * h, st.avg_radius):
-            return None
+            return AT_RIM
     inside = np.zeros(len(geo.verts), dtype=bool)
     inside[idx[dist < r_c + 0.5 * h]] = True  # loop vertices then lie at r_c on average (ring: r_c ± h)
     # unique faces: vf lists a face once per incident ball vertex, and duplicated border edges

@@ -37,6 +37,13 @@ Mesh-edge graph
 along the mesh edges". :func:`smooth_conserving` averages a per-vertex quantity over edge
 neighbours without changing its sum, and :func:`boundary_loop` walks the boundary of a patch of
 faces counter-clockwise (the defect contours of :mod:`nemo.defects`).
+
+Open rim
+--------
+A surface cut by the field of view (``mesh.border: open``) has a rim: the edges used by one face
+only. :func:`boundary_edges` lists them in the faces' winding order and :func:`rim` gives the
+rim vertices, the number of rim loops and each vertex's distance to the rim (Euclidean, to the
+nearest rim vertex): curvature fits, defect contours and renders use it to stay honest there.
 """
 
 from __future__ import annotations
@@ -358,3 +365,109 @@ def _follow_loops(starts: list[int], nxt: dict[int, int]) -> list[list[int]] | N
             return None
         loops.append(loop)
     return loops
+
+
+# ----------------------------------------------------------------------------------------------
+# open rim
+
+
+def boundary_edges(faces: np.ndarray) -> np.ndarray:
+    """Edges used by exactly one face, as directed half-edges in the faces' winding order.
+
+    Parameters
+    ----------
+    faces : ndarray, shape (F, 3)
+
+    Returns
+    -------
+    ndarray of int, shape (B, 2)
+        ``(a, b)`` per rim edge, running from ``a`` to ``b`` as in its face (empty for a closed
+        surface). Walking them goes counter-clockwise around the surface seen from outside.
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()
+    n = np.int64(max(int(faces.max()) + 1, 1))
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    once = counts[inverse.ravel()] == 1
+    return np.column_stack([a[once], b[once]])
+
+
+def rim(faces: np.ndarray, n_vertices: int, vertices: np.ndarray | None = None) -> dict:
+    """The open rim of a surface: its vertices, loops and every vertex's distance to it.
+
+    Parameters
+    ----------
+    faces : ndarray, shape (F, 3)
+    n_vertices : int
+    vertices : ndarray, shape (N, 3), optional
+        Positions; with them the distance of every vertex to the nearest rim vertex.
+
+    Returns
+    -------
+    dict
+        ``edges`` (B, 2) (:func:`boundary_edges`), ``vertices`` (N,) bool (on the rim),
+        ``n_vertices`` and ``n_loops`` (connected rim curves; 0 for a closed surface), and with
+        ``vertices`` given ``distance`` (N,) (Euclidean distance to the nearest rim vertex, inf
+        on a closed surface).
+    """
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    edges = boundary_edges(faces)
+    on_rim = np.zeros(int(n_vertices), dtype=bool)
+    on_rim[edges.ravel()] = True
+    n_loops = 0
+    if len(edges):
+        nodes, inv = np.unique(edges, return_inverse=True)
+        inv = inv.reshape(-1, 2)
+        g = sparse.coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(nodes), len(nodes)))
+        n_loops = int(connected_components(g, directed=False)[0])
+    out = {"edges": edges, "vertices": on_rim, "n_vertices": int(on_rim.sum()), "n_loops": n_loops}
+    if vertices is not None:
+        vertices = np.asarray(vertices, dtype=np.float64)
+        dist = np.full(len(vertices), np.inf)
+        if on_rim.any():
+            dist = cKDTree(vertices[on_rim]).query(vertices)[0]
+        out["distance"] = dist
+    return out
+
+
+def close_rim(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The surface with every rim loop closed by a fan of triangles to the loop's centroid.
+
+    The fans keep the surface's orientation (each rim half-edge ``a → b`` gets the face
+    ``(b, a, centroid)``), so a surface cut by a plane is closed by the flat cap it lost (a
+    planar loop's fan covers exactly the region it encloses, convex or not): winding numbers
+    then tell inside from outside as for the closed surface.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (N, 3)
+    faces : ndarray, shape (F, 3)
+
+    Returns
+    -------
+    vertices : ndarray, shape (N + L, 3)
+        With the L loop centroids appended.
+    faces : ndarray, shape (F + B, 3)
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    edges = boundary_edges(faces)
+    if len(edges) == 0:
+        return vertices, faces
+    nodes, inv = np.unique(edges, return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    g = sparse.coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(nodes), len(nodes)))
+    n_loops, label = connected_components(g, directed=False)
+    count = np.bincount(label, minlength=n_loops)
+    centroid = np.stack([np.bincount(label, weights=vertices[nodes, k], minlength=n_loops) / count
+                         for k in range(3)], axis=1)
+    fan = np.column_stack([edges[:, 1], edges[:, 0], len(vertices) + label[inv[:, 0]]])
+    return np.vstack([vertices, centroid]), np.vstack([faces, fan])

@@ -5,6 +5,8 @@ Method note §3, paper methods "Morphological analysis".
 * :func:`curvature` -- mean and Gaussian curvature (and principal curvatures/directions) from a
   least-squares quadric fitted to the neighbours within a physical radius of a random subset of
   vertices, inverse-distance interpolated to every vertex (paper eq. ``mesh-interpolation``).
+  On an open surface (cut by the image border) vertices within the radius of the rim are NaN:
+  a fit there sees the surface on one side only.
 * :func:`thickness` -- distance along the vertex normal from one surface to another, by ray
   casting (Embree through trimesh when available); NaN where the ray finds nothing.
 * :func:`measure` -- area, enclosed volume, Euler characteristic, genus, components, discrete
@@ -36,7 +38,7 @@ it is the most accurate at the radii the default picks, the quadratic one at rad
 for a quartic. On noisy meshes (staircase left by a thresholded, little-blurred volume) every
 fit needs a larger radius, and the quartic fit at the largest radius the shape allows is the
 most accurate. The errors against analytic shapes are measured in ``tests/test_morphology.py``
-and ``docs/benchmarks.md``.
+and ``docs/validation.md``.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
-from nemo.geometry import axis_frames, project_tangent, unit_vectors
+from nemo.geometry import axis_frames, project_tangent, rim, unit_vectors
 from nemo.mesh import (
     check_mesh,
     face_normals_areas,
@@ -272,9 +274,10 @@ def curvature(
     z = (V−V0)·N0, and a least-squares fit of z(ξ, η) (see the module docstring for ``fit``)
     gives the curvature tensor C (C = [[−2a, −c], [−c, −2b]] for the paper's fit),
     H = tr(g⁻¹C)/2, K = det C / det g. The least squares of all samples are solved at once:
-    per-sample moments Σ ξ^p η^q (z) summed with ``np.add.reduceat``, then one batched solve. The samples' values are then interpolated to every
-    vertex by inverse-distance weights over the ``k_interp`` nearest samples whose normal
-    agrees (paper eq. mesh-interpolation); a sampled vertex keeps its own value.
+    per-sample moments Σ ξ^p η^q (z) summed with ``np.add.reduceat``, then one batched solve.
+    The samples' values are then interpolated to every vertex by inverse-distance weights over
+    the ``k_interp`` nearest samples whose normal agrees (paper eq. mesh-interpolation); a
+    sampled vertex keeps its own value.
 
     Parameters
     ----------
@@ -305,7 +308,10 @@ def curvature(
         principal directions ``d1x, d1y, d1z`` (of k1) and ``d2x, d2y, d2z`` (unit tangent
         vectors taken from the nearest sample, projected onto the vertex's tangent plane),
         and ``sampled`` (True where the fit was done at that vertex). NaN where the fit had
-        fewer than :data:`MIN_NEIGHBOURS` neighbours (with a :class:`NemoWarning`).
+        fewer than :data:`MIN_NEIGHBOURS` neighbours (with a :class:`NemoWarning`), and on an
+        open surface (cut by the image border) at every vertex within ``radius`` of the rim:
+        its fit would see the surface on one side only (a biased value); no sample is drawn
+        there. ``df.attrs["rim_vertices"]`` counts them.
 
     Raises
     ------
@@ -319,7 +325,8 @@ def curvature(
     n_vert = len(vertices)
     n = _sample_count(mesh, n_vert, radius, n_samples, fraction)
     normals = vertex_normals(mesh)
-    samples = _draw_samples(normals, n, rng)
+    near_rim = _near_rim(mesh, vertices, radius)
+    samples = _draw_samples(np.where(near_rim[:, None] & ~near_rim.all(), np.nan, normals), n, rng)
     n = len(samples)
 
     tree = cKDTree(vertices)
@@ -333,8 +340,32 @@ def curvature(
     with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
         H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
     df = _curvature_table(H, K, idx, out, d1, d2, samples, normals)
-    df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp))
+    df.loc[near_rim, list(_RIM_NAN)] = np.nan
+    df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp),
+                    rim_vertices=int(near_rim.sum()))
     return df
+
+
+#: Columns of the curvature table set to NaN where the fit's neighbourhood reaches an open rim.
+_RIM_NAN = ("H", "K", "k1", "k2", "d1x", "d1y", "d1z", "d2x", "d2y", "d2z")
+
+
+def _near_rim(mesh: trimesh.Trimesh, vertices: np.ndarray, radius: float) -> np.ndarray:
+    """Vertices whose fitting ball (``radius``) holds a vertex of the open rim, shape (N,) bool.
+
+    The fit there would see the surface on one side only (a biased, one-sided fit): such
+    vertices get NaN. All False on a closed surface; a warning when no vertex is left.
+    """
+    info = rim(mesh.faces, len(vertices), vertices)
+    near = info["distance"] <= radius
+    if near.any():
+        logger.info("curvature: %d of %d vertices lie within the radius %g of the open rim (%d loop(s)): NaN",
+                    int(near.sum()), len(vertices), radius, info["n_loops"])
+    if near.all():
+        warnings.warn(
+            f"curvature: every vertex lies within the fitting radius {radius:g} of the surface's open rim: "
+            "every H and K is NaN; use a smaller radius", NemoWarning, stacklevel=3)
+    return near
 
 
 def _check_curvature_args(radius: float, n_samples: int | None, fraction: float | None, fit: str,
@@ -801,10 +832,12 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         ``boundary_turning`` (Σ (π − angle sum) over boundary vertices = ∫k_g ds),
         ``gauss_bonnet_ratio`` ((∫K dA + ∫k_g ds) / 2πχ; None when χ = 0), ``mean_H``
         (area-weighted, from the dihedral angles: ∫H dA = ½ Σ_edges ℓ θ), ``mean_K``, and with
-        ``curvature_df``: ``integral_K_fit``, ``gauss_bonnet_ratio_fit``, ``mean_H_fit``,
-        ``mean_K_fit``; ``n_objects``, ``snr`` and ``noise`` of the image the mesh was made
-        from (NEMO's mesh step; None otherwise); ``notes`` (list of str). Coincident vertices are merged (and the faces
-        they collapse ignored) for the topology and the angles.
+        ``curvature_df``: ``integral_K_fit``, ``gauss_bonnet_ratio_fit`` (None on an open
+        surface whose fits are NaN along the rim: the sum misses that band), ``mean_H_fit``,
+        ``mean_K_fit`` (over the vertices with a fit); ``n_objects``, ``snr`` and ``noise`` of
+        the image the mesh was made from (NEMO's mesh step; None otherwise); ``notes`` (list of
+        str). Coincident vertices are merged (and the faces they collapse ignored) for the
+        topology and the angles.
     """
     check_mesh(mesh, manifold=False)  # a diagnostic: it reports a non-manifold surface in its notes
     notes: list[str] = []
@@ -880,7 +913,9 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         ik = float(np.sum(kf[ok] * areas[ok]))
         a_ok = float(areas[ok].sum())
         result["integral_K_fit"] = ik
-        result["gauss_bonnet_ratio_fit"] = (ik + turning) / (2 * np.pi * chi) if chi != 0 else None
+        # an open surface's fits are NaN along the rim: the sum then misses a band, no check
+        whole = chi != 0 and not (n_loops and (~ok & (areas > 0)).any())
+        result["gauss_bonnet_ratio_fit"] = (ik + turning) / (2 * np.pi * chi) if whole else None
         result["mean_H_fit"] = float(np.sum(hf[ok] * areas[ok]) / a_ok) if a_ok > 0 else None
         result["mean_K_fit"] = ik / a_ok if a_ok > 0 else None
     result["notes"] = notes

@@ -46,7 +46,7 @@ IMPORTED_PER_DISC = 10.0
 
 #: Stacks with more voxels than this are meshed every 2 voxels by default.
 STEP2_VOXELS = 64_000_000
-#: Default curvature fitting radius in mean edge lengths (docs/benchmarks.md: 5 is noisy).
+#: Default curvature fitting radius in mean edge lengths (docs/validation.md: 5 is noisy).
 CURVATURE_EDGES = 15.0
 #: Default averaging radius in patch radii.
 ORDER_PER_PATCH = 2.5
@@ -62,6 +62,9 @@ def mesh(
     centre: np.ndarray | None = None,
 ) -> tuple[dict[str, trimesh.Trimesh], dict]:
     """Surface reconstruction (method note §2), split into inner/outer walls if configured.
+
+    An object cut by the image border gives an open surface (``border: open``, the default;
+    :func:`nemo.surface.reconstruct`), ``closed`` keeps the flat cap along the border.
 
     The image must hold one object (:func:`nemo.surface.find_objects`: separate surfaces not
     nested in each other, each at least 10 % of the largest one's area; smaller specks are
@@ -85,14 +88,17 @@ def mesh(
         ``whole`` and, when split, ``inner`` and ``outer`` (trimesh.Trimesh, physical x, y, z).
     resolved : dict
         The section with ``step`` and ``sigma`` as numbers, the iso-level used, the image's
-        ``noise`` and ``snr`` (:func:`nemo.surface.image_noise`; None with a mask) and
-        ``n_objects`` (:func:`nemo.surface.find_objects`).
+        ``noise`` and ``snr`` (:func:`nemo.surface.image_noise`; None with a mask),
+        ``n_objects`` (:func:`nemo.surface.find_objects`), ``cap_faces`` (faces where the object
+        meets the image border: removed with ``border: open``) and the open rim of the analysed
+        surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
 
     Raises
     ------
     NemoError
         Bad parameters or image (:func:`nemo.surface.reconstruct`); several objects with a split.
     """
+    from nemo.geometry import rim
     from nemo.surface import default_sigma, image_noise, one_object, reconstruct
 
     p = nconfig.section("mesh", params)
@@ -102,12 +108,19 @@ def mesh(
     if p["sigma"] is None:
         p["sigma"] = default_sigma(spacing, p["step"])
     whole = reconstruct(volume, spacing, sigma=float(p["sigma"]), threshold=p["threshold"], mask=mask,
-                        step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit)
+                        step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit,
+                        border=p["border"])
     whole.metadata["nemo_surface"]["keep"] = p["keep"]
     p["level"] = float(whole.metadata["nemo_surface"]["level"])
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None else {"noise": None, "snr": None})
     whole = one_object(whole, p["split"] != "none", p["keep"])  # several objects: error (split) or largest
     p["n_objects"] = int(whole.metadata["n_objects"])
+    p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
+    info = rim(whole.faces, len(whole.vertices))  # of the analysed surface (after one_object)
+    p["rim_vertices"], p["rim_loops"] = info["n_vertices"], info["n_loops"]
+    if p["rim_loops"]:
+        logger.info("open surface (cut by the image border): %d rim loop(s), %d rim vertices",
+                    p["rim_loops"], p["rim_vertices"])
     return _walls(whole, p, centre), p
 
 

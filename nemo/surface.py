@@ -17,14 +17,25 @@ so that normals point **out of the bright object** (the solid). Steps:
    A numeric threshold is used as the iso-level as given; a mask is blurred by σ and cut at 0.5.
 3. The blurred volume is sampled every ``step`` voxels (the grid scikit-image's marching cubes
    would use with ``step_size=step``) and padded by one sample of its minimum, so that
-   objects touching the image border give **closed** surfaces (flat caps on the border planes); marching
-   cubes then runs with the physical spacing.
+   objects touching the image border give closed surfaces (flat caps on the border planes); marching
+   cubes then runs with the physical spacing. The cap faces (all three vertices on or beyond
+   one border plane, i.e. in the padding) are marked right away.
 4. Connected components: keep the largest by area (``keep="largest"``) or all.
    :func:`find_objects` counts the separate objects: components not nested inside another one
    (a shell's inner wall is part of the shell) with at least :data:`OBJECT_MIN_AREA` (10 %) of
    the largest one's area (smaller ones are noise). :func:`one_object` refuses to split several
    objects into walls and warns when ``keep="largest"`` ignores some (``nemo.stages.mesh``).
 5. Taubin (windowed-sinc) smoothing through PyVista removes the staircase without shrinking.
+6. Open surfaces (``border="open"``, the default): a tissue cut by the field of view (a *Hydra*
+   foot close-up, an organoid taller than the stack) has no surface beyond the image; its cap is
+   fake geometry (fake curvature at its edge, fake topology). The cap faces are dropped after
+   the smoothing, the rim vertices put back on their border plane, and the surface is left open
+   with its outward winding; ``metadata["nemo_surface"]`` counts the ``cap_faces``,
+   ``rim_vertices`` and ``rim_loops``. An object inside the field has no cap and is unchanged.
+   ``border="closed"`` keeps the capped surface. Downstream, curvature fits reaching the rim are
+   NaN (:func:`nemo.morphology.curvature`), defect contours must not reach it
+   (:mod:`nemo.defects`), rays and peeling segments leaving the image are NaN, and renders draw
+   the rim.
 
 :func:`split_mesh` separates two walls (inner/outer, basal/apical) by the sign of
 ``n · (x − centre)`` or ``n · axis``; :func:`fit_sphere` fits a reference sphere.
@@ -50,6 +61,7 @@ from scipy.sparse import csgraph
 from nemo._log import logger
 from nemo._log import step as log_step
 from nemo.errors import NemoError, NemoWarning
+from nemo.geometry import close_rim, rim
 from nemo.io import check_spacing
 from nemo.mesh import (
     face_normals_areas,
@@ -198,14 +210,18 @@ def _winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 
 
 def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -> list[dict]:
-    """The separate objects of a (reconstructed, closed) surface.
+    """The separate objects of a reconstructed surface (closed, or open where the image cuts it).
 
     An object is a connected component that is **not nested** inside another component and
     whose area is at least ``min_fraction`` of the largest component's. A hollow shell's inner
     wall lies inside its outer wall and belongs to the same object; so does anything else
     inside it. Smaller components (noise specks) are not objects. Nesting is tested with the
-    winding number of one vertex of the candidate with respect to the larger components whose
-    bounding box holds its own.
+    winding number of one vertex of the candidate (off its rim when it has one) with respect to
+    the larger components whose bounding box holds its own. An open container (a surface cut
+    by the image border, ``border="open"``) is first closed by a fan over each rim loop
+    (:func:`nemo.geometry.close_rim`): for a rim on a border plane that is the flat cap the
+    open surface lost, so a cut shell's inner wall is still nested in its outer wall and two
+    cut objects side by side stay two objects.
 
     Parameters
     ----------
@@ -229,21 +245,21 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
     comp_area = np.bincount(labels, weights=areas, minlength=n)
     big = np.flatnonzero(comp_area >= min_fraction * comp_area.max())
     big = big[np.argsort(-comp_area[big], kind="stable")]
-    # bounding box of every component (vertices sorted by component label)
+    # bounding box of every component (vertices sorted by component label, rim vertices last)
     vlab = np.full(len(vertices), -1, dtype=np.int64)
     vlab[faces.ravel()] = np.repeat(labels, 3)
-    order = np.argsort(vlab, kind="stable")
+    order = np.lexsort((rim(faces, len(vertices))["vertices"], vlab))
     order = order[vlab[order] >= 0]
     starts = np.searchsorted(vlab[order], np.arange(n))
     lo, hi = np.minimum.reduceat(vertices[order], starts), np.maximum.reduceat(vertices[order], starts)
-    probe = vertices[order[starts]]
+    probe = vertices[order[starts]]  # off the rim where the component has such a vertex
     tol = 1e-9 * max(1.0, float(np.abs(vertices).max()))
     nested = np.zeros(len(big), dtype=bool)
     for j, cj in enumerate(big[:-1]):  # containers: every larger component
         cand = np.arange(j + 1, len(big))
         cand = cand[~nested[cand] & (lo[big[cand]] >= lo[cj] - tol).all(1) & (hi[big[cand]] <= hi[cj] + tol).all(1)]
         if len(cand):
-            nested[cand] |= np.abs(_winding_numbers(probe[big[cand]], vertices, faces[labels == cj])) > 0.5
+            nested[cand] |= np.abs(_winding_numbers(probe[big[cand]], *close_rim(vertices, faces[labels == cj]))) > 0.5
     centroids = vertices[faces].mean(axis=1) * areas[:, None]
     centre = np.stack([np.bincount(labels, weights=centroids[:, k], minlength=n) for k in range(3)], 1)
     return [{"component": int(c), "area": float(comp_area[c]), "radius": float(np.sqrt(comp_area[c] / (4 * np.pi))),
@@ -348,8 +364,10 @@ def _object_with_nested(mesh: trimesh.Trimesh, component: int) -> trimesh.Trimes
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
     labels = face_components(faces, len(vertices))
     first_face = np.unique(labels, return_index=True)[1]
-    probes = vertices[faces[first_face, 0]]  # one vertex of every component
-    inside = np.abs(_winding_numbers(probes, vertices, faces[labels == component])) > 0.5
+    off_rim = ~rim(faces, len(vertices))["vertices"][faces]  # (F, 3)
+    # one vertex of every component, off the rim where its first face has one
+    probes = vertices[faces[first_face, np.argmax(off_rim[first_face], axis=1)]]
+    inside = np.abs(_winding_numbers(probes, *close_rim(vertices, faces[labels == component]))) > 0.5
     inside[component] = True
     return submesh(mesh, inside[labels])
 
@@ -571,6 +589,7 @@ def reconstruct(
     edge: Literal["half", "threshold"] = "half",
     unit: str = "um",
     pass_band: float = 0.1,
+    border: Literal["open", "closed"] = "open",
 ) -> trimesh.Trimesh:
     """Reconstruct the surface of the bright object(s) in a 3-D image as a triangle mesh.
 
@@ -605,12 +624,19 @@ def reconstruct(
         Unit of ``spacing`` (stored in ``mesh.units``).
     pass_band : float
         Pass band of the windowed-sinc filter (0 < pass_band < 2; lower = smoother).
+    border : {"open", "closed"}
+        An object cut by the edge of the image: ``"open"`` (default) removes the flat cap that
+        closes it along the border planes, leaving an open surface whose rim lies on the border
+        (no fake geometry); ``"closed"`` keeps the capped, closed surface. An object inside the
+        field has no cap: both give the same surface.
 
     Returns
     -------
     trimesh.Trimesh
         Vertices (N, 3) in physical x, y, z; faces (F, 3) wound so that normals point out of
-        the object. ``mesh.metadata["nemo_surface"]`` records the iso-level and parameters.
+        the object. ``mesh.metadata["nemo_surface"]`` records the iso-level and parameters,
+        ``border``, ``cap_faces`` (faces on the border planes), ``rim_vertices`` and
+        ``rim_loops`` (the open rim; 0 for a closed surface).
 
     Raises
     ------
@@ -619,6 +645,8 @@ def reconstruct(
         selects no voxel or every voxel.
     """
     (dz, dy, dx), step, sigma = _check_reconstruct_args(spacing, sigma, keep, edge, step, smooth_iter, pass_band)
+    if border not in ("open", "closed"):
+        raise NemoError(f"border must be 'open' or 'closed', got {border!r}")
     source, shape, scale, mask = _source(volume, mask)
 
     sig_vox = (sigma / dz, sigma / dy, sigma / dx)
@@ -636,20 +664,22 @@ def reconstruct(
     del inner
 
     box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
-    vertices, faces = _marching_cubes(padded, level, (dz, dy, dx), step, box)
+    vertices, faces, code = _marching_cubes(padded, level, (dz, dy, dx), step, box)
     del padded
-    mesh = make_mesh(vertices, faces, unit=unit, orient_outward=False)
+    mesh = make_mesh(vertices, faces, unit=unit, fields={_CODE: code}, orient_outward=False)
     if signed_volume(mesh.vertices, mesh.faces) < 0:  # padded => closed => the solid has volume > 0
         mesh.faces = mesh.faces[:, ::-1]
     logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
     mesh = keep_components(mesh, keep)
     if smooth_iter > 0:
         with log_step(f"Taubin smoothing ({smooth_iter} iterations, {len(mesh.vertices)} vertices)"):
-            mesh.vertices = np.clip(_taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band), 0.0, box)
+            smoothed = _taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band)
+            mesh.vertices = np.clip(smoothed, 0.0, box)
+    mesh, rim_info = _apply_border(mesh, border, box)
     mesh.metadata["nemo_surface"] = {
         "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
         "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
-        "spacing": [dz, dy, dx],
+        "spacing": [dz, dy, dx], "border": border, **rim_info,
     }
     mesh.metadata.pop("parent_faces", None)
     mesh.metadata.pop("parent_vertices", None)
@@ -659,6 +689,42 @@ def reconstruct(
 
 #: Samples of padding (the blurred volume's minimum) around the sampled grid: closed surfaces.
 _PAD = 1
+#: Temporary vertex field of :func:`reconstruct`: the border planes a vertex lies on (:func:`_border_code`).
+_CODE = "_nemo_border"
+
+
+def _apply_border(mesh: trimesh.Trimesh, border: str, box: np.ndarray) -> tuple[trimesh.Trimesh, dict]:
+    """Open the surface where the object meets the image border (``border="open"``), or keep the cap.
+
+    The cap faces (:func:`_cap_faces`) were marked right after marching cubes and went through
+    the smoothing with the rest (so the surface next to the rim is smoothed as in the closed
+    surface); the vertices on a border plane are put back on it (the smoothing rounds the
+    cap's edge) and the cap faces are dropped. The winding is unchanged: normals stay outward.
+
+    Returns
+    -------
+    mesh : trimesh.Trimesh
+        Without the temporary border field.
+    info : dict
+        ``cap_faces`` (faces on the border planes: removed with ``"open"``), ``rim_vertices``
+        and ``rim_loops`` of the returned surface (0 for a closed one).
+    """
+    code = np.asarray(mesh.vertex_attributes.pop(_CODE)).astype(np.uint8)
+    cap = _cap_faces(np.asarray(mesh.faces), code) if len(mesh.faces) else np.zeros(0, bool)
+    n_cap = int(cap.sum())
+    if border == "open" and n_cap:
+        if cap.all():
+            raise NemoError("the surface lies entirely on the image border (only cap faces): nothing is left "
+                            "of it with `border` open; use `border` closed or check the threshold")
+        verts = np.array(mesh.vertices, dtype=np.float64)
+        for k in range(3):  # the rim back onto its border plane
+            verts[(code >> (2 * k)) & 1 == 1, k] = 0.0
+            verts[(code >> (2 * k + 1)) & 1 == 1, k] = box[k]
+        mesh.vertices = verts
+        mesh = _with_metadata(submesh(mesh, ~cap), mesh)
+        logger.info("border open: removed %d cap faces where the object meets the image border", n_cap)
+    info = rim(mesh.faces, len(mesh.vertices))
+    return mesh, {"cap_faces": n_cap, "rim_vertices": info["n_vertices"], "rim_loops": info["n_loops"]}
 
 
 def _check_reconstruct_args(spacing, sigma, keep, edge, step, smooth_iter, pass_band):
@@ -778,8 +844,9 @@ def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, thr
 
 
 def _marching_cubes(padded: np.ndarray, level: float, spacing: tuple[float, float, float], step: int,
-                    box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes of the padded field: clean vertices (N, 3) in x, y, z and outward faces (F, 3).
+                    box: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marching cubes of the padded field: clean vertices (N, 3) in x, y, z, outward faces (F, 3)
+    and the border-plane code of every vertex (:func:`_border_code`).
 
     Coincident vertices are merged, cancelling faces and non-manifold vertices repaired, unused
     vertices dropped; the padding is removed from the coordinates and caps on the border are put
@@ -804,13 +871,61 @@ def _marching_cubes(padded: np.ndarray, level: float, spacing: tuple[float, floa
         faces = (np.cumsum(used) - 1)[faces]
         verts_zyx = verts_zyx[used]
     vertices = verts_zyx[:, ::-1] - pad * step * np.array([dx, dy, dz])
+    code = _border_code(vertices, box, np.array([dx, dy, dz]) * step)
     # caps of objects cut by the border lie between the last sample and the pad: put them on
     # the border plane (the image's extent), also after smoothing
     np.clip(vertices, 0.0, box, out=vertices)
     # swapping z and x is a reflection, which reverses the winding; re-reverse it so normals
     # point down the intensity gradient (out of the object).
     faces = np.ascontiguousarray(faces[:, ::-1], dtype=np.int64)
-    return vertices, faces
+    return vertices, faces, code
+
+
+#: Tolerance (in samples) of a marching-cubes vertex on a border plane of the sampled grid.
+_BORDER_TOL = 1e-4
+
+
+def _border_code(vertices: np.ndarray, box: np.ndarray, sample: np.ndarray) -> np.ndarray:
+    """Which border planes of the sampled grid each vertex lies on or beyond (in the padding).
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (N, 3)
+        Physical x, y, z before clipping to the image's extent (the padding lies outside
+        ``[0, box]``).
+    box : ndarray, shape (3,)
+        Position of the last sample along x, y, z.
+    sample : ndarray, shape (3,)
+        Sampling distance along x, y, z (spacing × step).
+
+    Returns
+    -------
+    ndarray of uint8, shape (N,)
+        Bit ``2 k`` set when the vertex lies at or below the plane ``axis k = 0``, bit ``2 k + 1``
+        at or beyond ``axis k = box[k]`` (x, y, z = k 0, 1, 2); 0 for a vertex inside the grid.
+    """
+    tol = _BORDER_TOL * sample
+    code = np.zeros(len(vertices), dtype=np.uint8)
+    for k in range(3):  # six planes
+        code |= (vertices[:, k] <= tol[k]).astype(np.uint8) << (2 * k)
+        code |= (vertices[:, k] >= box[k] - tol[k]).astype(np.uint8) << (2 * k + 1)
+    return code
+
+
+def _cap_faces(faces: np.ndarray, code: np.ndarray) -> np.ndarray:
+    """Faces of the artificial cap: all three vertices on or beyond the same border plane.
+
+    Marching cubes closes an object cut by the image border inside the padding: every triangle
+    of the cells between the last sample and the pad has its vertices on the border plane (the
+    object's cross-section) or in the padding, and no triangle of the object's own surface has
+    all three there (it would lie flat in the border plane).
+
+    Returns
+    -------
+    ndarray of bool, shape (F,)
+    """
+    c = code[faces]
+    return (c[:, 0] & c[:, 1] & c[:, 2]) != 0
 
 
 # --------------------------------------------------------------------------- split
@@ -830,6 +945,8 @@ def split_mesh(
     of its area) goes to that side whole: on a noisy wall, bumps whose faces tilt past the
     radial direction would otherwise punch holes into it. Components that are really split
     (e.g. one open epithelium whose apical and basal sides meet at a rim) keep the per-face rule.
+    A hollow shell cut by the image border (``border="open"``) has lost the cap joining its
+    walls: they are separate open components and each goes whole to its side.
 
     Parameters
     ----------

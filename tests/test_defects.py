@@ -422,7 +422,7 @@ def test_rejection_branches(theta, kwargs, reason):
 
 def test_contour_shrinks_at_an_open_rim():
     """A defect 8 µm from the rim is measured on a contour shrunk off the rim (the default is
-    1.5 × 6 = 9 µm); one 2 µm from the rim has no room for a contour ("no contour")."""
+    1.5 × 6 = 9 µm); one 2 µm from the rim has no room for a contour ("contour leaves the surface")."""
     half = 40.0
     mesh, odf = _planar_case(lambda x, y: 0.5 * np.arctan2(y, x), centre=(half - 8.3, 0.2))
     df = find_defects(mesh, odf, None, avg_radius=6.0)
@@ -431,7 +431,41 @@ def test_contour_shrinks_at_an_open_rim():
     assert df["contour_radius"].iloc[0] < 0.9 * 8.3
     mesh, odf = _planar_case(lambda x, y: 0.5 * np.arctan2(y, x), centre=(half - 2.3, 0.2))
     df = find_defects(mesh, odf, None, avg_radius=6.0)
-    assert len(df) == 0 and df.attrs["parameters"]["rejected"]["no contour"] == 1
+    assert len(df) == 0 and df.attrs["parameters"]["rejected"]["contour leaves the surface"] == 1
+    assert list(candidate_table(df)["reason"]) == ["contour leaves the surface"]
+
+
+def test_open_hemisphere_interior_defects_found_rim_dips_rejected():
+    """An open hemisphere (a surface cut by the field of view) with +1/2, +1 and −1/2 defects inside
+    and a −1/2 and a +1/2 defect 3.5 and 2 µm inside the rim: their S dips reach the rim, so no
+    closed contour on the surface encloses them (a contour through the rim would read the
+    director's turning along the cut as a charge). The interior defects are found with their
+    charges; the rim dips are rejected as "contour leaves the surface", nothing else reported."""
+    from sparse_fields import polar_dirs
+
+    R = 40.0
+    sph = mc_sphere(R, 1.5)
+    sub = sph.submesh([np.flatnonzero(sph.triangles_center[:, 2] > 0.0)], append=True)
+    cap = trimesh.Trimesh(sub.vertices, sub.faces, process=False)
+    assert not cap.is_watertight
+    # inside: +1/2, +1 and a -1/2 15 µm from the rim; at the rim: -1/2 and +1/2 3.5 and 2 µm
+    # inside it
+    dirs = np.vstack([polar_dirs(35, 0), polar_dirs(30, 180), polar_dirs(68, 300), polar_dirs(85, 120),
+                      polar_dirs(87, 270)])
+    charges = [0.5, 1.0, -0.5, -0.5, 0.5]
+    ddf = sample_directors(cap, 3000, lambda p: stereo_director(p, dirs, charges), np.random.default_rng(0), 5.0)
+    df = find_defects(cap, q_average(cap, ddf, 8.0), ddf, avg_radius=8.0)
+    assert len(df) == 3
+    err = match(df, R * dirs[:3])
+    assert err.max() < 1.0, err  # measured 0.2-0.4 µm
+    np.testing.assert_allclose(sorted(df["charge"]), [-0.5, 0.5, 1.0], atol=0.02)
+    assert (df["z"] > 10).all()  # nothing from the rim (z = 0)
+    rejected = df.attrs["parameters"]["rejected"]
+    assert rejected["contour leaves the surface"] == 2
+    cands = candidate_table(df)
+    at_rim = cands[cands["reason"] == "contour leaves the surface"]
+    assert len(at_rim) == 2 and (at_rim["z"] < 4.0).all() and at_rim["charge"].isna().all()
+    assert not df.attrs["euler_check"]["closed"]
 
 
 # ------------------------------------------------------------------------------------------------

@@ -503,3 +503,20 @@ def test_provenance_names_the_mesh(demo, tmp_path):
     fr = load_frame(frame)
     assert fr.layers["o"].surface == "outer" and "intensity (o)" in fr.surfaces["outer"].fields
     assert fr.layers["p"].surface == "inner"  # no provenance: first of inner, mesh, outer
+
+
+def test_open_surface_render_draws_its_rim(tmp_path):
+    """A ball cut by the top of the stack (border open): its rim is drawn in magenta; the
+    closed (capped) surface has none."""
+    from nemo.render import render_surface
+    from nemo.surface import reconstruct
+
+    z, y, x = np.mgrid[0:24, 0:40, 0:40].astype(np.float32)
+    vol = 200.0 * (np.sqrt((x - 20) ** 2 + (y - 20) ** 2 + (z - 16) ** 2) < 12)
+    counts = {}
+    for border in ("open", "closed"):
+        mesh = reconstruct(vol, (1.0, 1.0, 1.0), sigma=1.0, border=border)
+        img = _png(render_surface(tmp_path / f"{border}.png", mesh, scalars=mesh.vertices[:, 2], label="z"))
+        rgb = img[..., :3]
+        counts[border] = int(((rgb[..., 0] > 0.8) & (rgb[..., 1] < 0.3) & (rgb[..., 2] > 0.8)).sum())
+    assert counts["open"] > 500 and counts["closed"] == 0, counts

@@ -283,3 +283,47 @@ def test_cli_mesh_from_mesh(ball_image, tmp_path, run_cli):
     assert m.metadata["nemo_params"]["source"].endswith("s.stl") and len(m.vertices) == 642
     code, _, err = run_cli("mesh", tmp_path / "img.tif", "--mesh-unit", "um", "-o", tmp_path / "x.ply")
     assert code == 2 and "give the surface too" in err
+
+
+# ----------------------------------------------------------------------------- open surfaces
+def _cut_shell(r_in=9.0, r_out=14.0, centre=(22.0, 22.0, 16.0)):
+    """A hollow shell r_in..r_out cut by the top plane z = 23 of a (24, 44, 44) stack (1 µm)."""
+    z, y, x = np.mgrid[0:24, 0:44, 0:44].astype(np.float32)
+    r = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2)
+    edge = lambda d: 0.5 * (1 - np.tanh(d))  # noqa: E731 - 1 inside, 0 outside, 1/2 at d = 0
+    return (200.0 * edge(r - r_out) * edge(r_in - r)).astype(np.float32), np.array(centre)
+
+
+def test_cut_shell_through_the_stages_is_open_and_nan_at_the_rim():
+    """Mesh (border open), curvature, thickness and peel of a shell cut by the top of the stack:
+    the rim is recorded, and curvature, thickness and layer values at the rim are NaN, never
+    the numbers the fake cap of ``border: closed`` gives there."""
+    vol, c = _cut_shell()
+    meshes, p = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
+    assert p["border"] == "open" and p["rim_loops"] == 2 and p["cap_faces"] > 0 and p["n_objects"] == 1
+    inner, outer = meshes["inner"], meshes["outer"]
+    assert not inner.is_watertight and not outer.is_watertight
+    # curvature: NaN where the fitting ball reaches the rim, 1/R elsewhere
+    df, cp = stages.curvature(outer, {"radius": 3.0})
+    z = np.asarray(outer.vertices)[:, 2]
+    assert df["H"][z > 23 - 2.5].isna().all() and df["H"][z < 23 - 3.5].notna().all()
+    assert np.nanmedian(df["H"]) * 14.0 == pytest.approx(1.0, abs=0.03)
+    # thickness inner -> outer: 5 µm where the ray meets the outer wall, NaN where the outer wall
+    # is cut away (inner vertices above z = 16 + 9 × 7/14 = 20.5), never the distance to a cap
+    th, _ = stages.thickness(inner, outer, {"direction": "outward"})
+    zi = np.asarray(inner.vertices)[:, 2]
+    d = th["thickness"].to_numpy()
+    assert np.isnan(d[zi > 21.0]).all() and np.isfinite(d[zi < 20.0]).all()
+    assert np.nanmax(np.abs(d - 5.0)) < 0.35
+    closed, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "border": "closed"})
+    dc, _ = stages.thickness(closed["inner"], closed["outer"], {"direction": "outward"})
+    assert np.nanmin(dc["thickness"]) < 2.0  # the cap: a fake, short thickness at the top
+    # peel outward 0..3 µm from the outer wall: segments that leave the stack are NaN
+    with pytest.warns(Warning, match="outside the image"):
+        layer, _ = stages.peel(vol, (1.0, 1.0, 1.0), outer, {"range": [0.0, 3.0]})
+    val = layer["intensity"].to_numpy()
+    end = np.asarray(outer.vertices) + 3.0 * np.asarray(outer.vertex_normals)  # each segment's end
+    inside = ((end > 0.01) & (end < np.array([43, 43, 23]) - 0.01)).all(axis=1)
+    assert np.isnan(val[end[:, 2] > 23.01]).all() and np.isfinite(val[inside]).all()
+    assert np.isnan(val[z > 22.0]).all()
+

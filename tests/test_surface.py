@@ -181,11 +181,13 @@ def test_keep_largest_drops_small_blob():
     assert len(keep_components(all_, "largest").faces) == len(big.faces)
 
 
-def test_object_touching_the_border_gives_closed_surface():
+def test_object_touching_the_border_gives_closed_surface_with_border_closed():
     vol = ball_volume((30, 30, 30), (1, 1, 1), (5.0, 15.0, 15.0), 10.0)  # cut by the x = 0 plane
     for step in (1, 2, 3):
-        mesh = reconstruct(vol, (1, 1, 1), step=step)
+        mesh = reconstruct(vol, (1, 1, 1), step=step, border="closed")
         assert mesh.is_watertight
+        assert mesh.metadata["nemo_surface"]["cap_faces"] > 0
+        assert mesh.metadata["nemo_surface"]["rim_loops"] == 0
         assert signed_volume(mesh.vertices, mesh.faces) > 0
         assert mesh.vertices[:, 0].min() >= -1e-9  # capped at the border, not beyond
 
@@ -536,3 +538,112 @@ def test_level_on_voxel_values_gives_no_fake_order_or_nan_layer(quantised):
     assert np.isfinite(s).all() and np.median(s) > 0.9 and s.min() > 0.5
     layer = peel(vol, (1.0, 1.0, 1.0), inner.vertices, vertex_normals(inner), 0.0, 2.0, 5)
     assert np.isfinite(layer).all()
+
+
+# ----------------------------------------------------------------------------- open surfaces (border)
+TOP = 23.0  # z of the last plane of a (24, Y, X) stack at 1 µm
+
+
+def _zone_area(radius, z_centre, z_top=TOP):
+    """Area 2πRh of the spherical zone of a sphere below the plane z = z_top."""
+    return 2 * np.pi * radius * (z_top - (z_centre - radius))
+
+
+def _rim_radius(radius, z_centre, z_top=TOP):
+    return np.sqrt(radius**2 - (z_top - z_centre) ** 2)
+
+
+def test_ball_cut_by_the_top_of_the_stack_gives_an_open_zone():
+    """border open: one rim loop on the top plane, the zone's area 2πRh, no cap, outward normals;
+    border closed: today's capped surface (zone + the flat disc of the cut)."""
+    from nemo.geometry import rim
+
+    R, c = 12.0, np.array([20.0, 20.0, 16.0])  # 5 µm of the ball lie above the last plane z = 23
+    vol = ball_volume((24, 40, 40), (1, 1, 1), c, R)
+    opened = reconstruct(vol, (1, 1, 1), step=1)  # the default
+    info = rim(opened.faces, len(opened.vertices), opened.vertices)
+    assert not opened.is_watertight and info["n_loops"] == 1
+    meta = opened.metadata["nemo_surface"]
+    assert meta["border"] == "open" and meta["rim_loops"] == 1 and meta["rim_vertices"] == info["n_vertices"]
+    edge = opened.vertices[info["vertices"]]
+    np.testing.assert_allclose(edge[:, 2], TOP, atol=1e-9)  # the rim lies on the border plane
+    rho = np.linalg.norm(edge[:, :2] - c[:2], axis=1)
+    assert abs(rho.mean() - _rim_radius(R, c[2])) < 0.15  # 9.75 µm
+    assert opened.area == pytest.approx(_zone_area(R, c[2]), rel=0.01)  # measured -0.6 %
+    on_top = np.abs(opened.vertices[:, 2] - TOP) < 1e-6
+    assert not on_top[opened.faces].all(axis=1).any()  # no cap face left
+    assert (_outward(opened, c) > 0).all()  # the winding stayed outward
+    closed = reconstruct(vol, (1, 1, 1), step=1, border="closed")
+    assert closed.is_watertight and closed.metadata["nemo_surface"]["rim_loops"] == 0
+    cap = np.pi * _rim_radius(R, c[2]) ** 2
+    assert closed.area - opened.area == pytest.approx(cap, rel=0.02)
+    assert signed_volume(closed.vertices, closed.faces) > 0
+
+
+def test_object_inside_the_field_is_unchanged_by_the_default_border():
+    vol = shell_volume((40, 40, 40), (1, 1, 1), (20.3, 19.6, 20.1), 9, 14)
+    default = reconstruct(vol, (1, 1, 1), step=1, keep="all")
+    closed = reconstruct(vol, (1, 1, 1), step=1, keep="all", border="closed")
+    assert default.metadata["nemo_surface"]["cap_faces"] == 0
+    assert default.metadata["nemo_surface"]["rim_vertices"] == 0
+    np.testing.assert_array_equal(default.faces, closed.faces)
+    np.testing.assert_array_equal(default.vertices, closed.vertices)
+    assert set(default.vertex_attributes) == set(closed.vertex_attributes) == set()
+
+
+def test_hollow_shell_cut_by_the_top_splits_into_open_walls():
+    """A shell cut by the top plane: two open walls (two rim loops on the plane), one object;
+    split by centre gives the inner and outer zones with normals away from the centre."""
+    from nemo.surface import face_components, find_objects, one_object
+
+    c, r_in, r_out = np.array([22.0, 22.0, 16.0]), 9.0, 14.0  # both walls cut by z = 23 only
+    vol = shell_volume((24, 44, 44), (1, 1, 1), c, r_in, r_out)
+    whole = reconstruct(vol, (1, 1, 1), step=1, keep="all")
+    assert whole.metadata["nemo_surface"]["rim_loops"] == 2
+    assert face_components(whole.faces, len(whole.vertices)).max() == 1  # the walls are apart now
+    objs = find_objects(whole)
+    assert len(objs) == 1  # the inner wall is nested in the (virtually capped) outer wall
+    assert len(one_object(whole, split=True).faces) == len(whole.faces)
+    inner, outer = split_mesh(whole)
+    # measured -1.7 % and -0.1 %: the inner wall of this thin shell sits 0.06 µm inside r_in, as
+    # in the closed shell inside the field (-1.7 % of 4π r_in² there too)
+    assert inner.area == pytest.approx(_zone_area(r_in, c[2]), rel=0.02)
+    assert outer.area == pytest.approx(_zone_area(r_out, c[2]), rel=0.01)
+    assert (_outward(inner, c) > 0).all() and (_outward(outer, c) > 0).all()
+    assert len(keep_components(whole, "largest").faces) == len(outer.faces)
+    closed = reconstruct(vol, (1, 1, 1), step=1, keep="all", border="closed")
+    assert closed.is_watertight and len(find_objects(closed)) == 1
+
+
+def test_two_objects_cut_by_the_border_stay_two_objects():
+    from nemo.surface import find_objects
+
+    vol = (ball_volume((24, 40, 70), (1, 1, 1), (18, 20, 18), 11.0)
+           + ball_volume((24, 40, 70), (1, 1, 1), (50, 20, 18), 10.0))
+    mesh = reconstruct(vol, (1, 1, 1), step=1, keep="all")
+    assert mesh.metadata["nemo_surface"]["rim_loops"] == 2
+    objs = find_objects(mesh)
+    assert len(objs) == 2
+    np.testing.assert_allclose(sorted(o["centre"][0] for o in objs), [18, 50], atol=0.5)
+
+
+def test_bad_border_is_an_error():
+    vol = ball_volume((20, 20, 20), (1, 1, 1), (10, 10, 10), 5.0)
+    with pytest.raises(NemoError, match="border"):
+        reconstruct(vol, (1, 1, 1), border="capped")
+
+
+def test_cli_mesh_border(tmp_path, run_cli):
+    vol = ball_volume((24, 40, 40), (1, 1, 1), (20.0, 20.0, 16.0), 12.0)
+    write_hyperstack(tmp_path / "cut.tif", vol.astype(np.uint8)[None, :, None], (1.0, 1.0, 1.0))
+    areas = {}
+    for border in ("open", "closed"):
+        out = tmp_path / f"{border}.ply"
+        code, _, err = run_cli("mesh", tmp_path / "cut.tif", "-o", out, "--split", "none", "--border", border)
+        assert code == 0, err
+        mesh = load_mesh(out)
+        params = mesh.metadata["nemo_params"]
+        assert params["border"] == border and params["rim_loops"] == (border == "open")
+        assert mesh.is_watertight == (border == "closed")
+        areas[border] = mesh.area
+    assert areas["closed"] > areas["open"] * 1.15

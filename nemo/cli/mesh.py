@@ -18,7 +18,9 @@ Reconstruct the surface of the bright object in one (t, c) stack as a triangle m
 vertices in physical x, y, z (µm) and outward normals (method note §2): Gaussian blur
 (--sigma in µm), threshold (Yen by default; the surface sits half-way between the object and
 background intensities) or a binary --mask, marching cubes every --step voxels, Taubin
-smoothing, largest connected component.
+smoothing, largest connected component. An object cut by the edge of the image gives an open
+surface whose rim lies on the border (--border open, the default); --border closed keeps the
+flat cap that closes it along the border planes.
 
 A hollow object (e.g. a vesicle's fibre shell) has two walls. --split centre writes them as
 MESH.inner.ply and MESH.outer.ply next to MESH.ply (the whole); both halves have normals
@@ -81,6 +83,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mesh-unit", metavar="UNIT",
                         help="unit of the --from-mesh coordinates: um, nm, mm ... or pixel (voxel indices x = "
                              "column, y = row, z = plane); needed unless the file names it (NEMO's PLY)")
+    parser.add_argument("--border", choices=("open", "closed"), default=None,
+                        help="an object cut by the edge of the image: open = drop the flat cap along the "
+                             "border and keep an open surface (default); closed = keep the capped surface")
     parser.add_argument("--step", type=positive(int), default=None, metavar="N",
                         help="marching-cubes step in voxels (default 1; 2 for stacks above 64 M voxels)")
     parser.add_argument("--smooth", type=_nonneg_int, default=None, metavar="ITER",

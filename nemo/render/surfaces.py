@@ -1,8 +1,9 @@
 """Pyvista surface renders: a surface coloured by a field, seen from two opposite sides.
 
 :func:`surface_plotter` builds an off-screen two-view plotter (front and back) with an
-optional colour field, nematic glyphs (headless segments) and defect markers labelled by
-charge; :func:`render_surface` writes it to a PNG. Rendering is off-screen through EGL/OSMesa,
+optional colour field, nematic glyphs (headless segments), defect markers labelled by
+charge and, on an open surface (cut by the image border), its rim as a magenta line;
+:func:`render_surface` writes it to a PNG. Rendering is off-screen through EGL/OSMesa,
 so no X server is needed. pyvista (and VTK) is imported only when a render is made, so that
 importing :mod:`nemo.render` stays light.
 """
@@ -35,6 +36,23 @@ def _polydata(mesh):
                                           np.asarray(mesh.faces, dtype=np.int64))
 
 
+#: Colour of the open rim of a surface cut by the image border (distinct from the colour maps,
+#: the black glyphs and the blue-white-red defect markers).
+RIM_COLOUR = "magenta"
+
+
+def _rim_lines(mesh):
+    """The open rim (boundary edges) of ``mesh`` as pyvista lines, or None for a closed surface."""
+    from nemo.geometry import boundary_edges
+
+    edges = boundary_edges(np.asarray(mesh.faces))
+    if not len(edges):
+        return None
+    pv = _pyvista()
+    lines = np.column_stack([np.full(len(edges), 2), edges]).ravel()
+    return pv.PolyData(np.asarray(mesh.vertices, dtype=np.float64), lines=lines)
+
+
 def surface_plotter(
     mesh,
     scalars: np.ndarray | None = None,
@@ -50,8 +68,13 @@ def surface_plotter(
     title: str = "",
     window_size: tuple[int, int] = (1400, 700),
     view: np.ndarray | None = None,
+    rim_colour: str | None = RIM_COLOUR,
 ):
     """A two-view off-screen pyvista plotter of a surface (front and back).
+
+    An open surface (cut by the image border, ``mesh.border: open``) has its rim (the edges of
+    one face) drawn as a thick line in ``rim_colour``: where the surface ends is visible, and
+    not mistaken for a hole or a shading artefact.
 
     Parameters
     ----------
@@ -67,6 +90,8 @@ def surface_plotter(
         Spheres coloured by charge (bwr, [−1, 1]) labelled with the rounded charge.
     view : ndarray, shape (3,), optional
         Direction from the centre to the first camera (default (1, 0.6, 0.5)).
+    rim_colour : str or None
+        Colour of the open rim (default :data:`RIM_COLOUR`); None draws no rim.
 
     Returns
     -------
@@ -84,6 +109,7 @@ def surface_plotter(
     from nemo.mesh import vertex_normals
 
     normals = np.nan_to_num(vertex_normals(mesh))
+    rim_lines = _rim_lines(mesh) if rim_colour else None
     for col, sign in enumerate((1.0, -1.0)):
         p.subplot(0, col)
         p.set_background("white")
@@ -98,6 +124,8 @@ def surface_plotter(
                        scalar_bar_args=bar if label else None)
         else:
             p.add_mesh(poly.copy(), color="lightgrey", smooth_shading=True)
+        if rim_lines is not None:
+            p.add_mesh(rim_lines, color=rim_colour, line_width=5, render_lines_as_tubes=True)
         if segments is not None and len(segments[0]):
             pos, vec, val = (np.asarray(a, dtype=np.float64) for a in segments)
             _, vidx = cKDTree(np.asarray(mesh.vertices)).query(pos)
