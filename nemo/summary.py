@@ -46,9 +46,9 @@ QC_MIN_THICKNESS_VALID = 0.9
 #: Lowest Euler characteristic that passes: χ = 2 − 2g, so this allows a sphere, a torus and a
 #: double torus; lower values come from porous meshes (holes through a noisy wall).
 QC_MIN_EULER = -2
-#: Most boundary loops (holes) that pass: a wall is closed, and a surface cut by the field of view
-#: has one rim per cut (a tube cut at both ends: two); more mean a porous, torn wall.
-QC_MAX_BOUNDARY_LOOPS = 2
+#: Most holes (boundary loops besides the rims where the image border cuts the object) that pass:
+#: a few from a small tear; more mean a porous, torn wall.
+QC_MAX_HOLES = 2
 #: Largest fraction of a layer's vertices without an intensity (samples outside the image or on
 #: NaN voxels) or without an order value (no tangent plane, no director in reach) that passes.
 QC_MAX_NAN_FRACTION = 0.05
@@ -149,9 +149,9 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         flags.append(f"surface has {measure['n_components']} pieces")
     if closed and np.isfinite(chi) and chi < QC_MIN_EULER:
         flags.append(f"surface χ = {chi:.0f}: holes or handles (porous mesh?)")
-    loops = measure.get("n_boundary_loops") or 0
-    if loops > QC_MAX_BOUNDARY_LOOPS:
-        flags.append(f"surface has {loops} holes in it (a porous or torn wall?)")
+    holes = (measure.get("n_boundary_loops") or 0) - (measure.get("rim_loops") or 0)
+    if holes > QC_MAX_HOLES:
+        flags.append(f"surface has {holes} holes besides its rim on the image border (a porous or torn wall?)")
     valid = row.get("thickness_valid", math.nan)
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID:
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices")

@@ -115,9 +115,10 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"euler_characteristic": -589.0, "charge_sum": 1.5}, CLOSED,
      ["surface χ = -589: holes or handles (porous mesh?)", "Σ charge 1.50 ≠ χ -589 (4 defects)"]),
     ({}, {"n_components": 3, "n_boundary_loops": 0}, ["surface has 3 pieces"]),
-    ({"charge_sum": 0.5}, {"n_components": 1, "n_boundary_loops": 2}, []),   # a tube cut at both ends
-    ({"charge_sum": 0.0}, {"n_components": 1, "n_boundary_loops": 7},
-     ["surface has 7 holes in it (a porous or torn wall?)"]),
+    ({"charge_sum": 0.5}, {"n_components": 1, "n_boundary_loops": 2}, []),   # two small tears
+    ({"charge_sum": 0.0}, {"n_components": 1, "n_boundary_loops": 7, "rim_loops": 7}, []),  # cut by the border
+    ({"charge_sum": 0.0}, {"n_components": 1, "n_boundary_loops": 9, "rim_loops": 2},
+     ["surface has 7 holes besides its rim on the image border (a porous or torn wall?)"]),
     ({"thickness_valid": 0.5}, CLOSED, ["thickness found at 50 % of vertices"]),
     ({"n_directors": 0, "S_mean": NAN}, CLOSED, ["no directors"]),
     ({"peel_nan_fraction": 0.05, "order_nan_fraction": 0.0, "coherency_median": 0.2}, CLOSED, []),
