@@ -32,7 +32,7 @@ from nemo.tables import read_table
 FRAME_COLUMNS = (
     "t", "c", "layer", "surface", "n_objects", "snr", "area", "volume", "euler_characteristic", "H_mean",
     "K_mean",
-    "H_fit_mean", "K_fit_mean", "thickness_mean", "thickness_median", "thickness_valid",
+    "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
     "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
     "qc_pass", "qc_flags",
@@ -49,6 +49,9 @@ QC_MIN_EULER = -2
 #: Most holes (boundary loops besides the rims where the image border cuts the object) that pass:
 #: a few from a small tear; more mean a porous, torn wall.
 QC_MAX_HOLES = 2
+#: Largest fraction of vertices without a curvature fit that passes (an open surface has a band
+#: along its rim where the fit neighbourhood is cut; most of the surface must still be fitted).
+QC_MAX_CURVATURE_NAN = 0.5
 #: Largest fraction of a layer's vertices without an intensity (samples outside the image or on
 #: NaN voxels) or without an order value (no tangent plane, no director in reach) that passes.
 QC_MAX_NAN_FRACTION = 0.05
@@ -152,6 +155,9 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     holes = (measure.get("n_boundary_loops") or 0) - (measure.get("rim_loops") or 0)
     if holes > QC_MAX_HOLES:
         flags.append(f"surface has {holes} holes besides its rim on the image border (a porous or torn wall?)")
+    missing = row.get("curvature_nan_fraction", math.nan)
+    if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:
+        flags.append(f"no curvature at {100 * missing:.0f} % of vertices (the fit radius reaches the rim)")
     valid = row.get("thickness_valid", math.nan)
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID:
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices")
@@ -204,6 +210,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             cur = read_table(r["curvature"], "curvature")
             row["H_fit_mean"] = _finite_mean(cur["H"])
             row["K_fit_mean"] = _finite_mean(cur["K"])
+            row["curvature_nan_fraction"] = _nan_fraction(cur["H"])
         if r.get("thickness"):
             th = read_table(r["thickness"], "thickness")["thickness"].to_numpy(dtype=np.float64)
             row["thickness_mean"] = _finite_mean(th)

@@ -63,7 +63,7 @@ def test_frame_summary_means_ignore_nan(frame_files):
     expected = {
         "t": 1, "c": 0, "layer": "basal", "surface": "inner", "area": 12.5, "volume": 7.0,
         "euler_characteristic": 2.0, "H_mean": 0.1, "K_mean": 0.01,
-        "H_fit_mean": 1.5, "K_fit_mean": 1.0,                        # NaN dropped
+        "H_fit_mean": 1.5, "K_fit_mean": 1.0, "curvature_nan_fraction": 1 / 3,  # NaN dropped
         "thickness_mean": 3.0, "thickness_median": 2.0, "thickness_valid": 0.75,  # 3 of 4 finite
         "intensity_mean": 2.0, "peel_nan_fraction": 1 / 3, "n_directors": 2, "coherency_mean": 0.3,
         "coherency_median": 0.3, "S_mean": 0.4, "S_median": 0.2, "order_nan_fraction": 0.25,
@@ -127,6 +127,8 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"order_nan_fraction": 0.5}, CLOSED,
      ["50 % of vertices have no order value (no tangent plane or director in reach)"]),
     ({"coherency_median": 0.12}, CLOSED, ["median director coherency 0.12: hardly any orientation"]),
+    ({"curvature_nan_fraction": 0.5}, CLOSED, []),
+    ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
     ({"snr": 3.0}, {**CLOSED, "n_objects": 1}, []),
     ({}, {**CLOSED, "n_objects": 3}, ["3 objects in the image (see the mesh step's warning)"]),
