@@ -166,6 +166,7 @@ def write(path: str | os.PathLike, data: np.ndarray, spacing: tuple[float, float
     import shutil
 
     final = Path(path)
+    # a folder, not a file (nemo.atomic.atomic_path): written beside the target, then renamed
     tmp = final.with_name(f".{final.name}.partial{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     try:

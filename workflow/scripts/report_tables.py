@@ -10,6 +10,8 @@ import sys
 
 import pandas as pd
 
+from nemo.atomic import write_text
+
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 
 #: unit of every summary column that has one (lengths in the image's unit, µm)
@@ -76,6 +78,5 @@ with open(sm.log[0], "w") as log:
     sys.stderr = log
     for name in ("frames", "defects", "tracks", "alignment"):
         table = pd.read_parquet(sm.input[name])
-        with open(sm.output[name], "w", encoding="utf-8") as out:
-            out.write(page(name, table, sm.wildcards.dataset, int(sm.params.max_rows)))
+        write_text(sm.output[name], page(name, table, sm.wildcards.dataset, int(sm.params.max_rows)))
         print(f"{name}: {len(table)} rows -> {sm.output[name]}", file=log)
