@@ -186,6 +186,21 @@ def _images(c: Corpus) -> None:
     write_hyperstack(c.add("img.zero", d / "zero.tif"), np.zeros((64, 64, 64), np.uint8), (1.0, 1.0, 1.0),
                      axes="ZYX")
     c["img.missing"] = d / "missing.tif"
+    _zarr_images(c, d, pixels)
+
+
+def _zarr_images(c: Corpus, d: Path, pixels: np.ndarray) -> None:
+    """OME-Zarr: the valid vesicle, a Zarr group without OME metadata, one with damaged chunks."""
+    import zarr
+
+    from nemo import ome_zarr
+
+    ome_zarr.write(c.add("img.zarr", d / "valid.zarr"), pixels, (1.0, 1.0, 1.0), axes="ZYX", levels=2)
+    zarr.open_group(str(c.add("img.zarr_plain", d / "plain.zarr")), mode="w").create_array("0", data=pixels)
+    broken = c.add("img.zarr_chunks", d / "chunks.zarr")
+    ome_zarr.write(broken, pixels, (1.0, 1.0, 1.0), axes="ZYX", chunks=(16, 64, 64))
+    for chunk in (p for p in (broken / "0").iterdir() if p.is_file() and not p.name.startswith(".")):
+        chunk.write_bytes(b"\x00garbage")
 
 
 # --------------------------------------------------------------------------------------------- meshes

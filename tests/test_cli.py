@@ -303,6 +303,24 @@ for name in ("text", "flat", "zero", "png", "empty", "trunc_mid"):
     case(f"mesh:--mask img.{name}", "mesh", "{img.valid}", "--mask", f"{{img.{name}}}", "-o", "{out}/m.ply",
          expect="error")
 case("mesh:--mask img.valid", "mesh", "{img.valid}", "--mask", "{img.valid}", "-o", "{out}/m.ply", outputs=MESH_OUT)
+case("mesh:--mask img.valid --mask-labels 99", "mesh", "{img.valid}", "--mask", "{img.valid}", "--mask-labels", "99",
+     "-o", "{out}/m.ply", expect="error")
+case("mesh:--mask img.valid --mask-threshold 1e9", "mesh", "{img.valid}", "--mask", "{img.valid}",
+     "--mask-threshold", "1e9", "-o", "{out}/m.ply", expect="error")
+# OME-Zarr images: read like the TIFF (level 0 or a level folder); a plain Zarr group or damaged chunks refused
+for name, expect in {"zarr": "ok", "zarr_plain": "error", "zarr_chunks": "error"}.items():
+    case(f"mesh:img.{name}", "mesh", f"{{img.{name}}}", "-o", "{out}/m.ply", expect=expect, outputs=MESH_OUT)
+    case(f"info:img.{name}", "info", f"{{img.{name}}}", expect="ok" if name != "zarr_plain" else "error")
+case("mesh:img.zarr level 1", "mesh", "{img.zarr}/1", "-o", "{out}/m.ply", "--split", "none", expect="ok",
+     outputs=[_out("{out}/m.ply", "mesh")])
+# user surfaces (--from-mesh): NEMO's and unit-named PLYs are read in their unit; broken ones, a mesh off the
+# object (half size) and a foreign unit without --mesh-unit are refused
+for name, expect in {"whole": "ok", "nm": "ok", "half": "error", **{k: "error" for k in BROKEN_MESHES}}.items():
+    split = ["--split", "none"] if name != "whole" else []  # the others are one wall
+    case(f"mesh:--from-mesh mesh.{name}", "mesh", "{img.valid}", "--from-mesh", f"{{mesh.{name}}}", *split, "-o",
+         "{out}/m.ply", expect=expect, outputs=MESH_OUT)
+case("mesh:--from-mesh mesh.nm --mesh-unit um", "mesh", "{img.valid}", "--from-mesh", "{mesh.nm}", "--mesh-unit",
+     "um", "-o", "{out}/m.ply", expect="error")
 for label, opts in {"--spacing 1 1 nan": ["--spacing", "1", "1", "nan"], "--spacing 1 1 inf": ["--spacing", "1", "1", "inf"],
                     "--spacing -1 1 1": ["--spacing", "-1", "1", "1"], "--threshold nan": ["--threshold", "nan"],
                     "--threshold 1e308": ["--threshold", "1e308"], "--step 1000": ["--step", "1000"],
