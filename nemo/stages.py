@@ -415,10 +415,13 @@ def defects(
     extra : DataFrame or None
         The refinement directors (None without a refinement pass).
     resolved : dict
-        The section with the thresholds and radii used (``find_defects``'s parameters).
+        The section with the thresholds and radii used (``find_defects``'s parameters) and
+        ``topology_search``: on a closed surface whose charges do not sum to χ (a missed
+        defect), the search is repeated with the candidate threshold relaxed by
+        :data:`TOPOLOGY_THRESHOLD_STEPS` (unless ``s_threshold`` was given) and the result
+        closest to χ kept; ``passes`` and ``relaxed_s_threshold`` (None: the first pass) say
+        what happened. A frame that still misses χ is flagged by the summary's quality control.
     """
-    from nemo.defects import find_defects, refine_with_directors
-
     p = nconfig.section("defects", params)
     if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
         raise NemoError("defects.curvature_source is 'table' but no curvature table was given")
@@ -428,20 +431,52 @@ def defects(
         contour_radius=p["contour_radius"], curvature_correction=bool(p["curvature_correction"]),
         avg_radius=avg_radius, winding_field=p["winding_field"], refine=p["refine"],
     )
-    df = find_defects(mesh, order_df, directors_df, **kwargs)
-    extra = None
-    refine = (p["refine_directors"] > 0 and p["refine"] == "model" and len(df)
-              and intensity is not None and director_params is not None)
-    if refine:
-        df, extra = refine_with_directors(mesh, df, order_df, directors_df, intensity, director_params,
-                                          fraction=float(p["refine_directors"]),
-                                          seed=int(director_params.get("seed", 0)), **kwargs)
+    args = (mesh, order_df, directors_df, p, intensity, director_params)
+    df, extra = _find_and_refine(*args, kwargs)
+    search = {"passes": 1, "relaxed_s_threshold": None}
+    if p["s_threshold"] is None and _topology_mismatch(df) > TOPOLOGY_TOLERANCE:
+        for factor in TOPOLOGY_THRESHOLD_STEPS:  # a missed defect: its S dip was above the threshold
+            relaxed = dict(kwargs, s_threshold=factor * float(df.attrs["parameters"]["s_threshold"]))
+            again, extra_again = _find_and_refine(*args, relaxed)
+            search["passes"] += 1
+            if _topology_mismatch(again) < _topology_mismatch(df):
+                df, extra, search["relaxed_s_threshold"] = again, extra_again, relaxed["s_threshold"]
+            if _topology_mismatch(df) <= TOPOLOGY_TOLERANCE:
+                break
+    p["topology_search"] = search
     found = df.attrs["parameters"]
     p.update({k: found[k] for k in ("s_threshold", "min_distance", "contour_radius", "avg_radius") if k in found})
     p["n_refine_directors"] = 0 if extra is None else int(len(extra))
     logger.info("defects: %d found (Σ charge %.3f, χ = %s)", len(df), df.attrs["euler_check"]["sum_charge"],
                 df.attrs["euler_check"]["euler_characteristic"])
     return df, extra, p
+
+
+#: Largest |Σ charge − χ| of a closed surface's defects accepted without a second search (a
+#: missed or spurious ±½ defect changes the sum by 0.5).
+TOPOLOGY_TOLERANCE = 0.25
+#: Factors on the candidate threshold tried, in turn, when the charges do not sum to χ.
+TOPOLOGY_THRESHOLD_STEPS = (1.5, 2.0)
+
+
+def _topology_mismatch(df: pd.DataFrame) -> float:
+    """|Σ charge − χ| on a closed surface; 0 on an open one (no constraint there)."""
+    check = df.attrs["euler_check"]
+    return abs(check["sum_charge"] - check["euler_characteristic"]) if check["closed"] else 0.0
+
+
+def _find_and_refine(mesh, order_df, directors_df, p, intensity, director_params, kwargs):
+    """One defect search: :func:`nemo.defects.find_defects`, then the refinement-director pass."""
+    from nemo.defects import find_defects, refine_with_directors
+
+    df = find_defects(mesh, order_df, directors_df, **kwargs)
+    refine = (p["refine_directors"] > 0 and p["refine"] == "model" and len(df)
+              and intensity is not None and director_params is not None)
+    if not refine:
+        return df, None
+    return refine_with_directors(mesh, df, order_df, directors_df, intensity, director_params,
+                                 fraction=float(p["refine_directors"]), seed=int(director_params.get("seed", 0)),
+                                 **kwargs)
 
 
 def tracking_distance(params: dict | None, defects_params: list[dict], n_defects: int | None = None) -> dict:

@@ -327,3 +327,31 @@ def test_cut_shell_through_the_stages_is_open_and_nan_at_the_rim():
     assert np.isnan(val[end[:, 2] > 23.01]).all() and np.isfinite(val[inside]).all()
     assert np.isnan(val[z > 22.0]).all()
 
+
+# ----------------------------------------------------------------------- topology as a guide
+def test_defects_search_again_when_the_charges_miss_chi():
+    """Four +½ defects on a sphere (Σ = χ = 2); the S dip at one of them is lifted to 0.6 of the
+    90th percentile, above the default candidate threshold (0.5 of it): the first pass finds 3
+    (Σ = 1.5), the stage searches again with the threshold relaxed and finds all 4. A threshold
+    given by the user is respected: no second search."""
+    from sparse_fields import stereo_field
+
+    tetra = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / np.sqrt(3)
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=60.0)
+    v = np.asarray(mesh.vertices)[::3]
+    n = stereo_field(v, tetra, [0.5] * 4)
+    ddf = pd.DataFrame({"vertex": np.arange(0, len(mesh.vertices), 3), "x": v[:, 0], "y": v[:, 1], "z": v[:, 2],
+                        "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], "coherency": 1.0})
+    odf, _ = stages.order(mesh, ddf, {"radius": 15.0})
+    s = odf["S"].to_numpy().copy()
+    near = np.linalg.norm(np.asarray(mesh.vertices) - 60.0 * tetra[0], axis=1) < 20.0
+    s[near] = np.maximum(s[near], 0.6 * np.nanpercentile(s, 90))
+    odf["S"] = s
+    df, _, p = stages.defects(mesh, odf, ddf, {"refine": "none"}, avg_radius=15.0)
+    assert p["topology_search"]["passes"] >= 2 and p["topology_search"]["relaxed_s_threshold"] is not None
+    assert len(df) == 4 and df["charge"].sum() == pytest.approx(2.0, abs=0.1)
+    err = np.linalg.norm(df[["x", "y", "z"]].to_numpy()[:, None] - 60.0 * tetra[None], axis=2).min(axis=0)
+    assert err.max() < 6.0, err  # the lifted core is localised within its flattened dip
+    first = 0.5 * np.nanpercentile(s, 90)
+    fixed, _, q = stages.defects(mesh, odf, ddf, {"refine": "none", "s_threshold": first}, avg_radius=15.0)
+    assert q["topology_search"] == {"passes": 1, "relaxed_s_threshold": None} and len(fixed) == 3
