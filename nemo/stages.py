@@ -374,6 +374,8 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
     """S and the averaged director (method note §6); radius default 2.5 × the patch radius.
 
     ``patch_radius`` is the directors' (nominal) patch radius, needed only for the default.
+    ``weights`` (``coherency``, the default, or ``none`` = the paper's plain mean) is kept in the resolved
+    parameters, so the order table's provenance records it.
     """
     from nemo.order import order as q_average
 
@@ -383,7 +385,7 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
             raise NemoError("order.radius is not given and the directors' patch radius is unknown: "
                             "give the averaging radius (e.g. 2.5 × the patch radius)")
         p["radius"] = ORDER_PER_PATCH * float(patch_radius)
-    return q_average(mesh, directors_df, float(p["radius"]), targets=p["targets"]), p
+    return q_average(mesh, directors_df, float(p["radius"]), targets=p["targets"], weights=p["weights"]), p
 
 
 def defects(

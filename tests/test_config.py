@@ -43,7 +43,7 @@ def test_every_problem_is_listed_with_its_dotted_key():
 
 
 def test_section_merges_over_defaults_and_names_unknown_keys():
-    assert config.section("order", {"radius": 30}) == {"radius": 30, "targets": "all"}
+    assert config.section("order", {"radius": 30}) == {"radius": 30, "targets": "all", "weights": "none"}
     assert config.section("order", {"radius": None})["radius"] is None  # None = the default
     with pytest.raises(NemoError, match="'order.radus'"):
         config.section("order", {"radus": 3})

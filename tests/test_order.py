@@ -318,3 +318,117 @@ def test_cli_order_refuses_directors_from_another_mesh(meshed_shell, tmp_path, r
     code, _, err = run_cli("order", shell / "m.inner.ply", tmp_path / "d_inner.parquet", "-o",
                            tmp_path / "o.parquet", "--radius", "5")
     assert code == 0, err
+
+
+# ----------------------------------------------------------------------------- coherency weights
+
+
+def plane_mesh(size=40.0, step=1.0):
+    """Flat square grid in z = 0 (normals +z, one tangent frame everywhere)."""
+    g = np.arange(0.0, size + 1e-9, step)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    from scipy.spatial import Delaunay
+
+    return make_mesh(np.c_[xy, np.zeros(len(xy))], Delaunay(xy).simplices, orient_outward=False)
+
+
+def planar_table(mesh, vertices, theta, coherency):
+    n = np.c_[np.cos(theta), np.sin(theta), np.zeros(len(theta))]
+    table = directors_table(mesh, vertices, n)
+    table["coherency"] = coherency
+    return table
+
+
+@pytest.mark.parametrize("f, w", [(0.25, 0.0), (0.4, 0.1), (0.5, 0.3), (0.75, 0.2)])
+def test_coherency_weights_of_a_mixture_match_the_prediction_exactly(f, w):
+    """Aligned directors (coherency 1) and a fraction f of evenly spread ones (coherency w) at one
+    point: the spread ones sum to a zero tensor, so S = 1 − f unweighted and
+    (1 − f) / (1 − f + f w) weighted, exactly; the director stays the aligned one."""
+    mesh = plane_mesh(10.0)
+    centre = int(np.argmin(np.linalg.norm(mesh.vertices - [5, 5, 0], axis=1)))
+    n_all = 120
+    n_rand = int(round(f * n_all))
+    theta = np.r_[np.full(n_all - n_rand, 0.3), np.pi * np.arange(n_rand) / n_rand]
+    coh = np.r_[np.ones(n_all - n_rand), np.full(n_rand, w)]
+    table = planar_table(mesh, np.full(n_all, centre), theta, coh)
+    plain = order(mesh, table, radius=1.5, targets=np.array([centre]))
+    weighted = order(mesh, table, radius=1.5, targets=np.array([centre]), weights="coherency")
+    assert plain["S"].iloc[0] == pytest.approx(1 - f, abs=1e-12)
+    assert weighted["S"].iloc[0] == pytest.approx((1 - f) / (1 - f + f * w), abs=1e-12)
+    assert weighted["count"].iloc[0] == plain["count"].iloc[0] == n_all
+    ref = np.array([[np.cos(0.3), np.sin(0.3), 0.0]])
+    for out in (plain, weighted):
+        assert nematic_angle_deg(out[["nx", "ny", "nz"]].to_numpy(), ref)[0] < 1e-6
+
+
+def test_coherency_weights_keep_a_noisy_uniform_field_ordered(rng):
+    """A uniform field with a fraction f = 0.4 of random directors of coherency w = 0.1 mixed in
+    at random vertices: the weighted S stays near the clean 1 (prediction 0.6 / 0.64 = 0.94),
+    the unweighted one drops to 1 − f = 0.6 (plus the sampling bias of ~ 120 random tensors)."""
+    f, w = 0.4, 0.1
+    mesh = plane_mesh(60.0)
+    nv = len(mesh.vertices)
+    vert = np.arange(nv)
+    noisy = rng.random(nv) < f
+    theta = np.where(noisy, rng.uniform(0, np.pi, nv), 0.3)
+    table = planar_table(mesh, vert, theta, np.where(noisy, w, 1.0))
+    inner = np.all(np.abs(mesh.vertices[:, :2] - 30.0) < 15.0, axis=1)
+    kw = dict(radius=10.0, targets=vert[inner])
+    clean = order(mesh, planar_table(mesh, vert, np.full(nv, 0.3), 1.0), **kw)
+    plain = order(mesh, table, **kw)
+    weighted = order(mesh, table, weights="coherency", **kw)
+    assert clean["S"].min() == pytest.approx(1.0, abs=1e-9)
+    # finite-sample bias: |Σ random tensors| ~ sqrt(π/4 · f N) / 2 over N ≈ 310 directors
+    assert np.median(plain["S"]) == pytest.approx(1 - f, abs=0.03)
+    assert np.median(weighted["S"]) == pytest.approx((1 - f) / (1 - f + f * w), abs=0.01)
+    assert np.median(weighted["S"]) > 0.92 and weighted["S"].min() > 0.9
+
+
+def test_weights_none_is_the_plain_mean_and_ignores_coherency(rng):
+    """weights='none' (the library's default) is the paper's mean: the coherency changes nothing, and the
+    coherency weights with every coherency 1 give the same numbers exactly."""
+    mesh = sphere_mesh()
+    vert = np.arange(len(mesh.vertices))
+    table = directors_table(mesh, vert, tangent_angle_field(mesh, vert, rng.uniform(0, 0.8, len(vert))))
+    base = order(mesh, table, radius=5.0)
+    assert order(mesh, table, radius=5.0, weights="none").equals(base)
+    assert order(mesh, table, radius=5.0, weights="coherency").equals(base)  # every coherency 1
+    varied = table.assign(coherency=rng.uniform(0, 1, len(vert)))
+    assert order(mesh, varied, radius=5.0).equals(base)
+    assert not order(mesh, varied, radius=5.0, weights="coherency")["S"].equals(base["S"])
+
+
+def test_zero_weights_give_nan_and_bad_weights():
+    mesh = plane_mesh(20.0)
+    vert = np.arange(len(mesh.vertices))
+    west = mesh.vertices[:, 0] < 10.0
+    coh = np.where(west, 0.0, 0.8)
+    coh[np.flatnonzero(west)[:3]] = np.nan  # unknown coherency: weight 0 as well
+    table = planar_table(mesh, vert, np.full(len(vert), 0.3), coh)
+    with pytest.warns(NemoWarning, match="weight 0"):
+        out = order(mesh, table, radius=2.0, weights="coherency")
+    far_west = mesh.vertices[:, 0] < 7.5
+    assert out["S"][far_west].isna().all() and out[["nx", "ny", "nz"]][far_west].isna().all().all()
+    assert (out["count"][far_west] > 0).all()
+    np.testing.assert_allclose(out["S"][~far_west], 1.0, atol=1e-9)  # any weight > 0 gives S = 1
+    assert order(mesh, table, radius=2.0)["S"].notna().all()  # unweighted: no NaN
+    with pytest.raises(NemoError, match="weights"):
+        order(mesh, table, radius=2.0, weights="intensity")
+    with pytest.warns(NemoWarning, match="no `coherency` column"):
+        plain = order(mesh, table.drop(columns="coherency"), radius=2.0, weights="coherency")
+    assert plain["S"].notna().all()
+
+
+def test_cli_order_weights_are_recorded(tmp_path, run_cli):
+    mesh = sphere_mesh()
+    mpath, dpath, out = tmp_path / "s.ply", tmp_path / "d.parquet", tmp_path / "o.parquet"
+    save_mesh(mesh, mpath)
+    vert = np.arange(0, len(mesh.vertices), 2)
+    table = directors_table(mesh, vert, e_phi(mesh.vertices[vert] + [1e-3, 0, 0]))
+    write_table(table.assign(coherency=np.linspace(0.2, 1.0, len(vert))), dpath)
+    for weights in ("none", "coherency"):
+        code, _, err = run_cli("order", mpath, dpath, "-o", out, "--radius", "5", "--weights", weights)
+        assert code == 0, err
+        assert read_provenance(out)["parameters"]["weights"] == weights
+    code, _, err = run_cli("order", mpath, dpath, "-o", out, "--radius", "5")  # the config's default
+    assert code == 0 and read_provenance(out)["parameters"]["weights"] == "none"

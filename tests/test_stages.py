@@ -328,6 +328,26 @@ def test_cut_shell_through_the_stages_is_open_and_nan_at_the_rim():
     assert np.isnan(val[z > 22.0]).all()
 
 
+def test_order_weights_reach_the_average_and_the_parameters():
+    """order.weights (default none, the paper's mean): the stage passes it to the Q average and
+    returns it for the provenance."""
+    m = sphere(30.0, 3)
+    v = np.asarray(m.vertices)
+    t = np.cross(v, [0.31, 0.52, 0.79])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    rng = np.random.default_rng(1)
+    noisy = rng.random(len(v)) < 0.5
+    t[noisy] = np.cross(v[noisy], rng.standard_normal((int(noisy.sum()), 3)))  # random tangents
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    dirs = pd.DataFrame({"vertex": np.arange(len(v)), "x": v[:, 0], "y": v[:, 1], "z": v[:, 2], "nx": t[:, 0],
+                         "ny": t[:, 1], "nz": t[:, 2], "coherency": np.where(noisy, 0.05, 1.0)})
+    plain, p = stages.order(m, dirs, {"radius": 8.0})
+    assert p["weights"] == "none"  # the default
+    weighted, p = stages.order(m, dirs, {"radius": 8.0, "weights": "coherency"})
+    assert p["weights"] == "coherency"
+    assert np.nanmedian(weighted["S"]) > np.nanmedian(plain["S"]) + 0.2
+
+
 # ----------------------------------------------------------------------- topology as a guide
 def test_defects_search_again_when_the_charges_miss_chi():
     """Four +½ defects on a sphere (Σ = χ = 2); the S dip at one of them is lifted to 0.6 of the

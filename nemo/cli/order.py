@@ -8,12 +8,15 @@ HELP = "tangential Q-tensor average: order parameter S and averaged director"
 DESCRIPTION = """\
 Lift every director to the tangential tensor n nᵀ − ½(I − N Nᵀ), average the tensors of the
 directors within --radius of each target vertex, project onto the target's tangent plane,
-remove the trace and diagonalise: S = 2 λ_max, averaged director = its eigenvector. Writes an
+remove the trace and diagonalise: S = 2 λ_max, averaged director = its eigenvector
+(by default each tensor weighted by the director's coherency; --weights none: the paper's
+plain mean). Writes an
 order table: vertex, S, nx, ny, nz, x, y, z, count (directors averaged; S is NaN where 0).
 
 examples:
   nemo order inner.ply directors.parquet -o order.parquet --radius 50
-  nemo order inner.ply directors.parquet -o order_at_directors.parquet --radius 50 --targets directors"""
+  nemo order inner.ply directors.parquet -o order_at_directors.parquet --radius 50 --targets directors
+  nemo order inner.ply directors.parquet -o order_paper.parquet --radius 50 --weights none"""
 
 
 def add_arguments(parser) -> None:
@@ -26,15 +29,18 @@ def add_arguments(parser) -> None:
                              "blur on larger scales")
     parser.add_argument("--targets", choices=("all", "directors"),
                         help="average at every vertex (default) or at the directors' vertices")
+    parser.add_argument("--weights", choices=("none", "coherency"),
+                        help="weight of each director in the average: coherency = weighted by its "
+                             "coherency, so noisy, incoherent patches count less (default); none = "
+                             "the paper's unweighted mean")
     add_common(parser, output_help="order table (.parquet)")
 
 
 def run(args) -> int:
     import numpy as np
 
-    from nemo.cli.common import mesh_and_table
     from nemo import stages
-    from nemo.cli.common import section_params
+    from nemo.cli.common import mesh_and_table, section_params
     from nemo.tables import read_provenance, write_table
 
     out = output_path(args.output)
