@@ -31,9 +31,21 @@ Images
 seeds, RK2 on the sphere), rasterises them at the physical voxel size (anisotropic allowed) on a
 sphere of radius ``R + depth`` (a *layer*), adds a constant background in the shell
 ``R <= r <= R + shell_thickness`` (blurred analytically, so its inner edge sits exactly at ``R``
-at half the background level), blurs with a Gaussian of ``blur`` µm, scales to 0-255, adds
-optional noise and stores uint8 ``(T, Z, C, Y, X)``. :func:`write_vesicle` writes an ImageJ
-hyperstack plus a sidecar ``NAME.truth.json``.
+at half the background level), blurs with a Gaussian of ``blur`` µm (one sigma, or
+``(sigma_z, sigma_y, sigma_x)`` for a confocal-like PSF elongated along z), scales to 0-255,
+adds optional shot noise (Poisson, ``photons`` at the 255 level) and Gaussian noise, optionally
+cuts the stack above the centre (``cut_top``: an open surface) and stores uint8
+``(T, Z, C, Y, X)``. :func:`write_vesicle` writes an ImageJ hyperstack plus a sidecar
+``NAME.truth.json``.
+
+Signal-to-noise ratio
+---------------------
+One definition throughout (:func:`snr`, recorded in the truth): ``SNR = (signal - background) /
+sigma(background)`` on the 0-255 scale, where ``sigma(I)^2 = noise^2 + 255 I / photons`` is the
+noise std at intensity ``I`` (Poisson variance of ``I / 255 * photons`` counts, rescaled). For a
+vesicle the signal is the peak of an isolated fibre in its dimmest orientation,
+``255 * (background + fibre_intensity)``, standing on the shell background ``255 * background``;
+``snr_wall`` is the shell against the empty inside (``255 * background / noise``).
 """
 
 from __future__ import annotations
@@ -66,7 +78,10 @@ __all__ = [
     "parse_defects",
     "preset_defects",
     "projection_pole",
+    "add_noise",
+    "psf_sigmas",
     "read_truth",
+    "snr",
     "trace_fibres",
     "truth_directors",
     "truth_path",
@@ -490,6 +505,69 @@ def _ball_blur(r: np.ndarray, a: float, s: float) -> np.ndarray:
     )
 
 
+def _ball_blur_along(r: np.ndarray, a: float, s: np.ndarray) -> np.ndarray:
+    """:func:`_ball_blur` with a per-point std ``s`` (> 0): a ball blurred by an anisotropic
+    Gaussian, using at each point the std along its radial direction (the edge's normal). Exact
+    for a plane edge; the error of the curved edge is O(sigma^2 / a)."""
+    r = np.maximum(r, 1e-9)
+    k = np.sqrt(2.0) * s
+    return 0.5 * (erf((a - r) / k) + erf((a + r) / k)) + s / (r * np.sqrt(2 * np.pi)) * (
+        np.exp(-((a + r) ** 2) / (2 * s * s)) - np.exp(-((a - r) ** 2) / (2 * s * s))
+    )
+
+
+def psf_sigmas(blur: float | Sequence[float]) -> tuple[float, float, float]:
+    """The Gaussian PSF's ``(sigma_z, sigma_y, sigma_x)`` (µm) from one sigma or three.
+
+    Raises
+    ------
+    NemoError
+        Not one or three finite numbers >= 0.
+    """
+    b = np.atleast_1d(np.asarray(blur, dtype=float)).reshape(-1)
+    if b.size == 1:
+        b = np.repeat(b, 3)
+    if b.size != 3 or not np.all(np.isfinite(b)) or np.any(b < 0):
+        raise NemoError(f"blur must be one sigma or three (sigma_z, sigma_y, sigma_x) >= 0 µm, got {blur!r}")
+    return float(b[0]), float(b[1]), float(b[2])
+
+
+def snr(signal: float, background: float, noise: float = 0.0, photons: float | None = None) -> float | None:
+    """Signal-to-noise ratio of NEMO's synthetic images: ``(signal - background) / sigma(background)``.
+
+    Parameters
+    ----------
+    signal, background : float
+        Intensities on the 0-255 scale (noise-free).
+    noise : float
+        Std of the additive Gaussian noise (0-255 scale).
+    photons : float, optional
+        Photons at the 255 level: Poisson noise of variance ``255 I / photons`` at intensity ``I``.
+
+    Returns
+    -------
+    float or None
+        None without noise (infinite SNR).
+    """
+    var = float(noise) ** 2 + (255.0 * max(float(background), 0.0) / float(photons) if photons else 0.0)
+    return None if var <= 0 else (float(signal) - float(background)) / float(np.sqrt(var))
+
+
+def add_noise(img: np.ndarray, photons: float | None, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """Shot noise then Gaussian noise on a float32 image (0-255 scale).
+
+    ``photons`` at the 255 level: the image becomes ``Poisson(I / 255 * photons) * 255 / photons``
+    (mean ``I``, variance ``255 I / photons``); then ``noise`` (std) is added. Returns the noisy
+    image (a new array with shot noise, else ``img`` changed in place). Not clipped.
+    """
+    if photons:
+        lam = np.clip(img, 0.0, None).astype(np.float64) * (float(photons) / 255.0)
+        img = (rng.poisson(lam) * (255.0 / float(photons))).astype(np.float32)
+    if noise > 0:
+        img += np.float32(noise) * rng.standard_normal(img.shape, dtype=np.float32)
+    return img
+
+
 # --------------------------------------------------------------------------------------------
 # vesicle
 # --------------------------------------------------------------------------------------------
@@ -562,8 +640,10 @@ def vesicle(
     shell_thickness: float = 10.0,
     background: float = 0.25,
     fibre_intensity: float = 0.6,
-    blur: float = 1.0,
+    blur: float | Sequence[float] = 1.0,
     noise: float = 0.0,
+    photons: float | None = None,
+    cut_top: float | None = None,
     layer_depth: float = 3.0,
     second_layer_depth: float | None = None,
     second_layer_rotation: float = 90.0,
@@ -618,11 +698,22 @@ def vesicle(
     fibre_intensity : float
         Peak intensity of an isolated blurred fibre (fraction of 255); overlapping fibres add
         up and the total is clipped at 255.
-    blur : float
-        Gaussian sigma in µm (isotropic in physical space; per-axis sigma in voxels follows the
-        spacing). 0 = no blur.
+    blur : float or (sigma_z, sigma_y, sigma_x)
+        Gaussian PSF sigma in µm: one value (isotropic in physical space) or three (a
+        confocal-like PSF, e.g. ``(2.5, 1, 1)``); per-axis sigma in voxels follows the spacing.
+        0 = no blur. With an anisotropic PSF ``fibre_intensity`` is the peak of a fibre in its
+        dimmest orientation (normalised by the two largest sigmas; fibres along the sharpest
+        axis are brighter, as in a microscope), and the shell's edge is blurred with the sigma
+        along its normal.
     noise : float
         Standard deviation of additive Gaussian noise on the 0-255 scale.
+    photons : float, optional
+        Shot noise before the Gaussian noise: Poisson noise with ``photons`` photons at the 255
+        level (variance ``255 I / photons`` at intensity ``I``). The truth records the
+        resulting :func:`snr`.
+    cut_top : float, optional
+        Cut the stack this many µm above the centre (the top of the field of view): an open
+        vesicle. The truth marks the defects above the cut ``in_view: false``.
     layer_depth : float
         Depth (µm) of the (first) fibre layer outside the inner surface: fibres lie on the
         sphere of radius ``R + layer_depth``.
@@ -678,13 +769,16 @@ def vesicle(
     params = {k: v for k, v in locals().items()}
     R, fibre_length, sp, frames = _check_vesicle_numbers(
         radius, spacing, fibre_spacing, fibre_length, shell_thickness, background, fibre_intensity, blur,
-        noise, frames)
+        noise, frames, photons, cut_top)
+    sigmas = psf_sigmas(blur)
+    iso = sigmas[0] == sigmas[1] == sigmas[2]
+    blur_max = max(sigmas)
     d0, m0, g = _defect_set(defects, charges, rotate)
     specs = _layer_specs(layers, layer_depth, second_layer_depth, second_layer_rotation,
                          second_layer_channel, second_layer_defects, second_layer_charges, phase)
     _place_layer_defects(specs, d0, m0, g)
     channels = _check_channels(specs, channels)
-    shape, centre_zyx, margin = _volume_shape(R, specs, shell_thickness, blur, sp, margin, size)
+    shape, centre_zyx, margin = _volume_shape(R, specs, shell_thickness, blur_max, sp, margin, size)
     _check_memory(shape, frames, channels)
     centre = centre_zyx[::-1].copy()  # physical (x, y, z)
 
@@ -697,20 +791,51 @@ def vesicle(
     layer_rngs = [np.random.default_rng(s) for s in fibre_ss.spawn(len(specs))]
     traced = _trace_layers(specs, R, fibre_spacing, fibre_length, step_um, layer_rngs)
 
-    shell_prof = _shell_profile(shape, sp, R, shell_thickness, blur, background)
+    # isotropic PSF: the exact blurred shell, tabulated; anisotropic: evaluated per voxel
+    shell_prof = (_shell_profile(shape, sp, R, shell_thickness, sigmas[0], background) if iso
+                  else (R, shell_thickness, sigmas, background))
     noise_rngs = [np.random.default_rng(s) for s in noise_ss.spawn(frames * channels)]
-    data = _rasterise(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um, blur,
-                      fibre_intensity, noise, shell_prof, noise_rngs)
+    data = _rasterise(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um,
+                      sigmas[0] if iso else sigmas, fibre_intensity, noise, shell_prof, noise_rngs,
+                      photons)
+    z_max = None
+    if cut_top is not None:
+        z_max = centre_zyx[0] + float(cut_top)
+        keep = int(np.floor(z_max / sp[0] + 1e-9)) + 1
+        if not 2 <= keep <= shape[0]:
+            raise NemoError(f"cut_top {cut_top:g} µm leaves {keep} of the {shape[0]} slices: "
+                            f"give a height between {-centre_zyx[0] + sp[0]:g} and {centre_zyx[0]:g} µm")
+        data = np.ascontiguousarray(data[:, :keep])
+        shape = (keep, shape[1], shape[2])
+        z_max = (keep - 1) * sp[0]
 
     params.update(fibre_length=fibre_length, step_size=step_um, margin=margin, size=list(shape),
                   channels=channels, frames=frames)
     truth = _make_truth(R, centre, sp, shape, frames, channels, specs, frame_rot, g,
                         shell_thickness, params)
+    level = 255.0 * background
+    truth["psf"] = {"sigma_zyx": list(sigmas), "unit": "um",
+                    "model": "Gaussian" + ("" if iso else " (anisotropic: shell edge blurred with "
+                                                          "the sigma along its normal)")}
+    truth["noise"] = {
+        "photons": None if not photons else float(photons), "gaussian_std": float(noise),
+        "shell_level": level, "fibre_peak": level + 255.0 * fibre_intensity,
+        "noise_std_shell": float(np.sqrt(noise**2 + (255.0 * level / photons if photons else 0.0))),
+        "snr": snr(level + 255.0 * fibre_intensity, level, noise, photons),
+        "snr_wall": snr(level, 0.0, noise, photons),
+        "definition": "SNR = (signal - background) / sigma(background), sigma(I)^2 = gaussian_std^2 "
+                      "+ 255 I / photons (0-255 scale); snr: the peak of an isolated fibre in its "
+                      "dimmest orientation on the shell; snr_wall: the shell on the empty inside",
+    }
+    if z_max is not None:
+        truth["field_of_view"] = {"z_max": z_max, "cut_top": float(cut_top), "open": True}
+        for rec in truth["defects"]:
+            rec["in_view"] = bool(rec["z"] <= z_max)
     return data, truth
 
 
 def _check_vesicle_numbers(radius, spacing, fibre_spacing, fibre_length, shell_thickness, background,
-                           fibre_intensity, blur, noise, frames):
+                           fibre_intensity, blur, noise, frames, photons=None, cut_top=None):
     """Checked radius R, fibre length (default R / 2), spacing and number of frames."""
     R = float(radius)
     if not np.isfinite(R) or R <= 0:
@@ -722,9 +847,14 @@ def _check_vesicle_numbers(radius, spacing, fibre_spacing, fibre_length, shell_t
         if not (np.isfinite(val) and val > 0):
             raise NemoError(f"{name} must be > 0 µm, got {val!r}")
     for name, val in (("shell_thickness", shell_thickness), ("background", background),
-                      ("fibre_intensity", fibre_intensity), ("blur", blur), ("noise", noise)):
+                      ("fibre_intensity", fibre_intensity), ("noise", noise)):
         if not (np.isfinite(val) and val >= 0):
             raise NemoError(f"{name} must be >= 0, got {val!r}")
+    psf_sigmas(blur)
+    if photons is not None and not (np.isfinite(photons) and photons > 0):
+        raise NemoError(f"photons must be > 0 (photons at the 255 level), got {photons!r}")
+    if cut_top is not None and not np.isfinite(cut_top):
+        raise NemoError(f"cut_top must be a number of µm above the centre, got {cut_top!r}")
     if int(frames) != frames or frames < 1:
         raise NemoError(f"frames must be an integer >= 1, got {frames!r}")
     return R, fibre_length, sp, int(frames)
@@ -868,9 +998,15 @@ def _shell_profile(shape, sp, R, shell_thickness, blur, background) -> np.ndarra
 
 
 def _rasterise(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um, blur,
-               fibre_intensity, noise, shell_prof, noise_rngs) -> np.ndarray:
+               fibre_intensity, noise, shell_prof, noise_rngs, photons=None) -> np.ndarray:
     """The uint8 image (T, Z, C, Y, X): per frame and channel, the channel's fibres splatted and
-    blurred, plus the shell profile and noise, slab by slab."""
+    blurred, plus the shell profile and noise, slab by slab.
+
+    ``blur`` is one sigma (``shell_prof`` the tabulated radial profile) or ``(sz, sy, sx)``
+    (``shell_prof`` = ``(R, shell_thickness, sigmas, background)``, evaluated per voxel)."""
+    if np.ndim(blur):
+        return _rasterise_aniso(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um,
+                                blur, fibre_intensity, noise, shell_prof, noise_rngs, photons)
     frames = len(frame_rot)
     data = np.zeros((frames, shape[0], channels, shape[1], shape[2]), np.uint8)
     # trilinear splatting already spreads a fibre by a hat kernel of variance d^2/6 per axis:
@@ -905,8 +1041,58 @@ def _rasterise(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels
                     img = shell_prof[i] * (1 - fr) + shell_prof[i + 1] * fr
                     if mine:
                         img += vol[z]
-                    if noise > 0:
+                    if photons:
+                        img = add_noise(img, photons, noise, nrng)
+                    elif noise > 0:
                         img += np.float32(noise) * nrng.standard_normal(img.shape, dtype=np.float32)
+                    np.clip(img, 0.0, 255.0, out=img)
+                    data[t, z, c] = np.rint(img).astype(np.uint8)
+    return data
+
+
+def _rasterise_aniso(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um, sigmas,
+                     fibre_intensity, noise, shell, noise_rngs, photons) -> np.ndarray:
+    """:func:`_rasterise` with an anisotropic Gaussian PSF ``sigmas`` = (sz, sy, sx) µm."""
+    R, thick, _, background = shell
+    frames = len(frame_rot)
+    data = np.zeros((frames, shape[0], channels, shape[1], shape[2]), np.uint8)
+    s = np.asarray(sigmas, float)
+    sigma_vox = tuple(np.sqrt(max(b * b - d * d / 6.0, 0.0)) / d for b, d in zip(s, sp))
+    s1, s2 = np.sort(s)[::-1][:2]  # a fibre's peak: 1 / (2 pi s_a s_b) over its normal plane
+    norm = 2 * np.pi * s1 * s2 if s2 > 0 else float(np.prod(sp)) ** (2.0 / 3.0)
+    weight = step_um / float(np.prod(sp))
+    zz = np.arange(shape[0]) * sp[0] - centre_zyx[0]
+    yy = (np.arange(shape[1]) * sp[1] - centre_zyx[1])[:, None]
+    xx = (np.arange(shape[2]) * sp[2] - centre_zyx[2])[None, :]
+    rho2 = yy**2 + xx**2
+    ys2 = (s[1] ** 2 * yy**2 + s[2] ** 2 * xx**2)
+    scale = np.float32(255.0 * fibre_intensity * norm)
+    vol = np.zeros(shape, np.float32) if any(sp_["channel"] < channels for sp_ in specs) else None
+    tiny = 1e-6 * max(float(s.max()), 1e-3)
+    shell_slabs = []
+    for z in range(shape[0]):  # the shell, once: each voxel blurred with the sigma along its normal
+        r = np.sqrt(rho2 + zz[z] ** 2)
+        sn = np.sqrt((ys2 + s[0] ** 2 * zz[z] ** 2) / np.maximum(r * r, 1e-18))
+        sn = np.maximum(sn, tiny)
+        shell_slabs.append((255.0 * background * (_ball_blur_along(r, R + thick, sn)
+                                                  - _ball_blur_along(r, R, sn))).astype(np.float32))
+    for t in range(frames):
+        for c in range(channels):
+            mine = [i for i, sp_ in enumerate(specs) if sp_["channel"] == c]
+            with step(f"frame {t + 1}/{frames} channel {c + 1}/{channels}: rasterising {len(mine)} layer(s)"):
+                if mine:
+                    vol[...] = 0.0
+                    for i in mine:
+                        _splat(traced[i] @ frame_rot[t].T + centre, weight, shape, sp, vol)
+                    if max(sigma_vox) > 0:
+                        ndimage.gaussian_filter(vol, sigma_vox, output=vol, mode="constant", truncate=4.0)
+                    vol *= scale
+                nrng = noise_rngs[t * channels + c]
+                for z in range(shape[0]):
+                    img = shell_slabs[z].copy()
+                    if mine:
+                        img += vol[z]
+                    img = add_noise(img, photons, noise, nrng)
                     np.clip(img, 0.0, 255.0, out=img)
                     data[t, z, c] = np.rint(img).astype(np.uint8)
     return data

@@ -161,7 +161,8 @@ def test_mesh_keep_largest_of_two_balls_warns_and_keeps_one():
     from nemo.errors import NemoWarning
 
     vol = _balls((40, 40, 76), [(20, 20, 20, -1, 14), (56, 20, 20, -1, 9)])
-    with pytest.warns(NemoWarning, match=r"2 objects.*ignoring 1 other.*radius of equal area 8\.\d+ um\) centred at \(56, 20, 20\)"):
+    warning = r"2 objects.*ignoring 1 other.*radius of equal area 8\.\d+ um\) centred at \(56, 20, 20\)"
+    with pytest.warns(NemoWarning, match=warning):
         meshes, p = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "none", "keep": "largest"})
     whole = meshes["whole"]
     assert whole.euler_number == 2 and whole.is_watertight

@@ -495,3 +495,133 @@ def test_cli_errors(tmp_path, run_cli, args, message):
 def test_cli_bad_suffix(tmp_path, run_cli):
     code, _, err = run_cli("synth", tmp_path / "v.png", "--radius", "15")
     assert code == 2 and ".tif" in err
+
+
+# ---------------------------------------------------------------------------------------------
+# realistic images: anisotropic PSF, shot noise, SNR, open (cut) vesicles
+# ---------------------------------------------------------------------------------------------
+#: md5 of vesicle(**_PINNED) computed by the generator before the PSF/shot-noise options existed:
+#: the defaults must keep producing the same bytes.
+_PINNED = dict(radius=20, spacing=(2, 2, 2), noise=5, seed=1)
+_PINNED_MD5 = "23b028170489405a50d5a11f44b78e80"
+
+
+def test_defaults_keep_their_bytes():
+    import hashlib
+
+    data, truth = vesicle(**_PINNED)
+    assert hashlib.md5(data.tobytes()).hexdigest() == _PINNED_MD5
+    assert truth["psf"]["sigma_zyx"] == [1.0, 1.0, 1.0] and truth["noise"]["photons"] is None
+    assert "field_of_view" not in truth and all("in_view" not in r for r in truth["defects"])
+
+
+def _edge_width(profile, step):
+    """Std of an error-function edge rising along ``profile``: half the 15.9 % -> 84.1 % distance."""
+    top = profile.max()
+
+    def crossing(level):
+        i = int(np.argmax(profile >= level))
+        return (i - 1 + (level - profile[i - 1]) / (profile[i] - profile[i - 1])) * step
+
+    return (crossing(0.8413 * top) - crossing(0.1587 * top)) / 2
+
+
+@pytest.mark.parametrize("sigmas", [(2.0, 0.8, 0.8), (1.2, 1.2, 1.2)])
+def test_anisotropic_psf_edge_width_is_sigma_along_each_axis(sigmas):
+    # the shell alone (no fibres), 255 inside the shell: the inner edge along z is an error
+    # function of std sigma_z, along x of std sigma_x
+    data, truth = vesicle(radius=25, spacing=(0.5, 0.5, 0.5), blur=sigmas, fibre_intensity=0.0,
+                          background=1.0, shell_thickness=12)
+    vol = data[0, :, 0].astype(float)
+    cz, cy, cx = (np.array(vol.shape) - 1) // 2
+    along_z = vol[cz:, cy, cx]  # from the centre outwards: 0 inside, the shell's inner edge at R
+    along_x = vol[cz, cy, cx:]
+    assert _edge_width(along_z, 0.5) == pytest.approx(sigmas[0], rel=0.06)
+    assert _edge_width(along_x, 0.5) == pytest.approx(sigmas[2], rel=0.06)
+    assert truth["psf"]["sigma_zyx"] == list(sigmas)
+    # the half-intensity level sits at R along every axis, up to the blurred sphere's own inward
+    # shift (about sigma^2 / R: 0.16 µm for sigma 2 µm at R = 25 µm)
+    for prof, c, sg in ((along_z, truth["centre"][2] - cz * 0.5, sigmas[0]),
+                        (along_x, truth["centre"][0] - cx * 0.5, sigmas[2])):
+        i = int(np.argmax(prof >= 127.5))
+        half = (i - 1 + (127.5 - prof[i - 1]) / (prof[i] - prof[i - 1])) * 0.5
+        assert half - c == pytest.approx(25.0, abs=0.05 + sg**2 / 25)
+
+
+def test_fibres_blurred_along_z_by_sigma_z():
+    # at the top pole the fibre layer (r = R + 3) is a horizontal sheet of fibres: its profile
+    # along z is a Gaussian of std sigma_z (the sphere's sag over the 2 µm patch is 0.1 µm)
+    sig = (2.0, 0.7, 0.7)
+    clean, truth = vesicle(radius=20, spacing=(0.5, 0.5, 0.5), blur=sig, background=0.0, fibre_intensity=0.3)
+    vol = clean[0, :, 0].astype(float)
+    cz, cy, cx = (np.array(vol.shape) - 1) // 2
+    zl = cz + int(round(23 / 0.5))  # the layer's top
+    prof = vol[zl - 16:zl + 17, cy - 4:cy + 5, cx - 4:cx + 5].mean(axis=(1, 2))
+    z = (np.arange(len(prof)) - 16) * 0.5
+    mu = (prof * z).sum() / prof.sum()
+    assert mu == pytest.approx(0.0, abs=0.3)
+    assert np.sqrt((prof * (z - mu) ** 2).sum() / prof.sum()) == pytest.approx(sig[0], rel=0.1)
+
+
+def test_shot_noise_variance_is_photon_scaled_mean_plus_gaussian():
+    # a flat region (the shell, no fibres): variance = 255 * mean / photons + sigma^2 (+ 1/12 rounding)
+    kw = dict(radius=20, spacing=(1, 1, 1), fibre_intensity=0.0, background=0.25, shell_thickness=14)
+    clean, _ = vesicle(**kw)
+    for photons, noise in ((100.0, 5.0), (30.0, 0.0)):
+        noisy, truth = vesicle(**kw, photons=photons, noise=noise, seed=3)
+        flat = clean[0, :, 0] == 64  # interior of the shell: 63.75 before rounding
+        vals = noisy[0, :, 0][flat].astype(float)
+        assert flat.sum() > 50_000
+        assert vals.mean() == pytest.approx(63.75, abs=0.15)
+        expect = 255 * 63.75 / photons + noise**2 + 1 / 12
+        assert vals.var() == pytest.approx(expect, rel=0.03)
+        assert truth["noise"]["noise_std_shell"] ** 2 == pytest.approx(expect - 1 / 12, rel=1e-9)
+        assert truth["noise"]["photons"] == photons and truth["noise"]["gaussian_std"] == noise
+    # outside the vesicle (intensity 0) shot noise is zero: only the (clipped) Gaussian remains
+    noisy, _ = vesicle(**kw, photons=30.0, seed=3)
+    assert noisy[0, 0, 0].max() == 0
+
+
+def test_snr_definition():
+    from nemo.synthetic import snr
+
+    assert snr(216.75, 63.75, noise=15.3) == pytest.approx(10.0)
+    assert snr(216.75, 63.75, noise=0.0, photons=255 * 63.75 / 15.3**2) == pytest.approx(10.0)
+    assert snr(200, 20, noise=3.0, photons=255 * 20 / 16) == pytest.approx(180 / 5)
+    assert snr(216.75, 63.75) is None
+    _, truth = vesicle(**SMALL, noise=10.0, photons=50.0)
+    n = truth["noise"]
+    assert n["snr"] == pytest.approx(153 / np.sqrt(100 + 255 * 63.75 / 50))
+    assert n["snr_wall"] == pytest.approx(6.375)
+
+
+def test_cut_top_opens_the_vesicle():
+    full, t_full = vesicle(radius=20, spacing=(2, 1, 1), rotate=5)
+    cut, t_cut = vesicle(radius=20, spacing=(2, 1, 1), rotate=5, cut_top=10.0)
+    z_max = t_cut["field_of_view"]["z_max"]
+    nz = cut.shape[1]
+    assert z_max == pytest.approx((nz - 1) * 2.0) and z_max <= t_cut["centre"][2] + 10.0
+    assert t_cut["shape"]["Z"] == nz < full.shape[1]
+    np.testing.assert_array_equal(cut, full[:, :nz])  # the same image, cut
+    assert t_cut["centre"] == t_full["centre"]
+    assert [r["in_view"] for r in t_cut["defects"]] == [r["z"] <= z_max for r in t_cut["defects"]]
+    assert cut[0, -1, 0].max() > 0  # the top slice cuts through the shell
+    with pytest.raises(NemoError, match="cut_top"):
+        vesicle(radius=20, spacing=(2, 1, 1), cut_top=-100.0)
+
+
+def test_cli_psf_and_shot_noise(tmp_path, run_cli):
+    common = ["--radius", "15", "--spacing", "2", "1", "1", "--photons", "60", "--noise", "4"]
+    code, out, err = run_cli("synth", tmp_path / "a.tif", *common, "--blur", "2.5", "1", "1")
+    assert code == 0 and "SNR" in out, err
+    code, _, err = run_cli("synth", tmp_path / "b.tif", *common, "--blur", "1", "--blur-z", "2.5")
+    assert code == 0, err
+    np.testing.assert_array_equal(read_stack(tmp_path / "a.tif")[0], read_stack(tmp_path / "b.tif")[0])
+    truth = read_truth(tmp_path / "a.tif")
+    assert truth["psf"]["sigma_zyx"] == [2.5, 1.0, 1.0]
+    assert truth["noise"]["photons"] == 60 and truth["noise"]["snr"] == pytest.approx(
+        153 / np.sqrt(16 + 255 * 63.75 / 60))
+    code, out, err = run_cli("synth", tmp_path / "c.tif", "--radius", "15", "--cut-top", "5")
+    assert code == 0 and "defects in view" in out, err
+    code, _, err = run_cli("synth", tmp_path / "d.tif", "--radius", "15", "--blur", "1", "2")
+    assert code == 2 and "--blur" in err

@@ -225,6 +225,58 @@ def test_expand_cases():
         V.expand_cases({})
 
 
+def test_expand_cases_points_set_by_several_options():
+    section = {"base": {"synth": {"radius": 60, "noise": 5}}, "rotations": [1],
+               "sweeps": {"snr": {"key": "snr", "set": {"synth.blur": [2.5, 1, 1]},
+                                  "values": [{"value": float("inf"), "set": {"synth.noise": 0}},
+                                             {"value": 5, "set": {"synth.photons": 34.72, "synth.noise": 21.64}}]}},
+               "cases": {"open": {"synth": {"cut_top": 30}}}}
+    cases = V.expand_cases(section)
+    assert set(cases) == {"snr-inf-r1", "snr-5-r1", "open-r1"}
+    assert cases["snr-5-r1"]["synth"] == {"radius": 60, "noise": 21.64, "photons": 34.72, "blur": [2.5, 1, 1],
+                                          "seed": 1, "rotate_random": 1}
+    assert cases["snr-inf-r1"]["synth"]["noise"] == 0 and cases["snr-5-r1"]["parameter"] == "snr"
+    assert cases["open-r1"]["synth"]["cut_top"] == 30
+    with pytest.raises(NemoError, match="label"):
+        V.expand_cases({"sweeps": {"snr": {"key": "snr", "values": [5]}}})
+    with pytest.raises(NemoError, match="'value'"):
+        V.expand_cases({"sweeps": {"snr": {"key": "snr", "values": [{"set": {}}]}}})
+
+
+def test_shape_volume_anisotropic_psf_and_noise():
+    sig = [2.5, 1.0, 1.0]
+    spec = {"kind": "ellipsoid", "axes": [14, 14, 14], "spacing": [0.5, 0.5, 0.5], "blur": sig}
+    vol, truth = V.shape_volume(spec)
+    assert truth["blur_zyx"] == sig and truth["snr"] is None
+    c = np.asarray(truth["centre"])[::-1]  # z, y, x
+    iz, iy, ix = np.rint(c / 0.5).astype(int)
+    for line, s in ((vol[iz:, iy, ix].astype(float), sig[0]), (vol[iz, iy, ix:].astype(float), sig[2])):
+        # falling edge 200 -> 20: the mid level at the surface, the 84 -> 16 % distance = 2 sigma
+        def at(level, line=line):
+            i = np.nonzero(line < level)[0][0]
+            return (i - 1 + (line[i - 1] - level) / (line[i - 1] - line[i])) * 0.5
+        assert at(110) == pytest.approx(14.0, abs=0.1)
+        assert (at(20 + 0.1587 * 180) - at(20 + 0.8413 * 180)) / 2 == pytest.approx(s, rel=0.05)
+    noisy, t2 = V.shape_volume({**spec, "photons": 10.0, "noise": 3.0}, rng=1)
+    bg = noisy[vol == 20].astype(float)
+    assert t2["snr"] == pytest.approx(180 / np.sqrt(9 + 255 * 20 / 10))
+    assert bg.var() == pytest.approx(9 + 255 * 20 / 10 + 1 / 12, rel=0.05)
+
+
+def test_score_vesicle_open_counts_the_defects_in_view(small_truth):
+    truth = json.loads(json.dumps(small_truth))
+    z_top = truth["centre"][2] + 0.2 * truth["radius"]
+    for d in truth["defects"]:
+        d["in_view"] = d["z"] <= z_top
+    tdf = V.truth_defects(truth)
+    seen = tdf[tdf["in_view"]]
+    assert 0 < len(seen) < len(tdf)
+    found = seen[["x", "y", "z", "charge"]].assign(charge_rounded=seen["charge"])
+    s = V.score_vesicle(truth, found)
+    assert s["detection_rate"] == 1.0 and s["false_positives"] == 0 and s["all_found"]
+    assert s["n_true"] == len(seen) and s["n_out_of_view"] == len(tdf) - len(seen)
+
+
 def test_aggregate_writes_tables_and_plots(tmp_path):
     scores = []
     for i, (noise, det) in enumerate([(0, 1.0), (0, 1.0), (20, 0.5), (20, 0.75)]):
@@ -319,5 +371,13 @@ def test_ci_variant_through_snakemake(tmp_path):
     assert {"mesh", "directors", "order", "defects"} <= set(stages["stage"])
     assert (stages["s"] > 0).all()
     assert (summ / "validation.md").read_text().count("\n|") > 10
-    for png in ("error_vs_noise.png", "error_vs_anisotropy.png", "time_per_stage.png"):
+    # realistic images: SNR recorded per case (defaults are measured, not asserted), the open
+    # vesicle scored against the defects in the field of view
+    assert cases.loc["snr-5-r1", "snr"] == pytest.approx(5.0, abs=0.01)
+    assert cases.loc["snr-5-r1", "blur_z"] == 2.5 and cases.loc["snr-5-r1", "photons"] == pytest.approx(34.72)
+    assert cases.loc["open-r1", "open"] and cases.loc["open-r1", "n_out_of_view"] >= 0
+    psf = shapes.set_index("shape").loc["spheres_psf"]
+    assert psf["snr"] == pytest.approx(5.0, abs=0.01) and psf["blur_z"] == 2.5
+    for png in ("error_vs_noise.png", "error_vs_anisotropy.png", "error_vs_snr.png", "shapes_vs_snr.png",
+                "time_per_stage.png"):
         assert (summ / "plots" / png).stat().st_size > 1000

@@ -11,18 +11,25 @@ HELP = "generate a synthetic nematic vesicle (TZCYX hyperstack + ground-truth JS
 DESCRIPTION = """\
 Generate the paper's synthetic vesicle (method note §8): a sphere of radius R carrying a
 tangential film of fibres that follow an analytic nematic field with known defects (default
-4 x +1/2 at the vertices of a regular tetrahedron), in a shell of constant background, blurred,
-scaled to 0-255 (uint8). Writes an ImageJ TZCYX hyperstack with calibration and the ground
-truth OUT.truth.json (radius, centre, spacing, layer depths/channels, defect positions in
-physical x, y, z per frame and layer, charges, parameters).
+4 x +1/2 at the vertices of a regular tetrahedron), in a shell of constant background, blurred
+by a Gaussian PSF (isotropic, or elongated along z as in a confocal), scaled to 0-255 (uint8),
+with optional shot (--photons) and Gaussian (--noise) noise. Writes an ImageJ TZCYX hyperstack
+with calibration and the ground truth OUT.truth.json (radius, centre, spacing, layer
+depths/channels, defect positions in physical x, y, z per frame and layer, charges, PSF, noise
+and SNR, parameters).
 
 Defects: --preset tetrahedron (4 x +1/2), five-one (5 x +1/2 + 1 x -1/2), two-plus-one
 (2 x +1), or --defects "x,y,z:charge;..." (directions from the centre; charges multiples of
 1/2 that sum to 2).
 
+SNR (recorded in the truth as noise.snr): (fibre peak - shell) / noise std at the shell level,
+the noise std being sqrt(noise^2 + 255 * shell / photons) on the 0-255 scale.
+
 examples:
   nemo synth vesicle.tif                                   # the paper's R = 200 µm, 450^3 vesicle
   nemo synth small.tif --radius 60 --spacing 2 1 1 --noise 10 --rotate-random 3
+  nemo synth confocal.tif --radius 80 --spacing 2.5 1 1 --blur 2.5 1 1 --photons 70 --noise 15
+  nemo synth open.tif --radius 80 --cut-top 40               # cut by the top of the stack
   nemo synth two.tif --radius 100 --second-layer-depth 9 --second-layer-rotation 90
   nemo synth movie.tif --radius 100 --frames 5 --frame-rotation 6 --channels 2 \\
       --second-layer-depth 9 --second-layer-channel 1
@@ -67,10 +74,19 @@ def add_arguments(parser) -> None:
                    help="shell background as a fraction of 255 (default 0.25)")
     f.add_argument("--fibre-intensity", type=_nonneg, default=0.6, metavar="F",
                    help="peak of an isolated fibre as a fraction of 255 (default 0.6)")
-    f.add_argument("--blur", type=_nonneg, default=1.0, metavar="UM",
-                   help="Gaussian blur sigma in µm (default 1)")
+    f.add_argument("--blur", type=_nonneg, nargs="+", default=[1.0], metavar="UM",
+                   help="Gaussian PSF sigma in µm: one value, or three SZ SY SX for a confocal-like "
+                        "PSF elongated along z, e.g. 2.5 1 1 (default 1)")
+    f.add_argument("--blur-z", type=_nonneg, metavar="UM",
+                   help="PSF sigma along z in µm (default: as --blur); --blur 1 --blur-z 2.5 = --blur 2.5 1 1")
+    f.add_argument("--photons", type=positive(), metavar="N",
+                   help="shot noise: Poisson noise with N photons at the 255 level, before --noise "
+                        "(variance 255 I / N at intensity I; default none)")
     f.add_argument("--noise", type=_nonneg, default=0.0, metavar="STD",
                    help="additive Gaussian noise std on the 0-255 scale (default 0)")
+    f.add_argument("--cut-top", type=number, metavar="UM",
+                   help="end the stack this many µm above the centre: the vesicle is cut open by the top "
+                        "of the field of view (default: the whole vesicle)")
     f.add_argument("--layer-depth", type=_nonneg, default=3.0, metavar="UM",
                    help="depth of the fibre layer outside R in µm (default 3, inside a [0, 5] peel)")
     f.add_argument("--second-layer-depth", type=_nonneg, metavar="UM",
@@ -98,6 +114,12 @@ def run(args) -> int:
         raise NemoError(f"output {args.output} should end in .tif")
     if args.size is not None and len(args.size) not in (1, 3):
         raise NemoError("--size takes one number N or three numbers NZ NY NX")
+    if len(args.blur) not in (1, 3):
+        raise NemoError("--blur takes one sigma or three (SZ SY SX) in µm")
+    blur = args.blur[0] if len(args.blur) == 1 else tuple(args.blur)
+    if args.blur_z is not None:
+        sz, sy, sx = (blur,) * 3 if len(args.blur) == 1 else blur
+        blur = (args.blur_z, sy, sx)
     kw = {}
     if args.defects:
         kw["defects"], kw["charges"] = parse_defects(args.defects)
@@ -109,8 +131,8 @@ def run(args) -> int:
         size=None if args.size is None else (args.size[0] if len(args.size) == 1 else tuple(args.size)),
         shell_thickness=args.shell_thickness, rotate=args.rotate_random,
         fibre_spacing=args.fibre_spacing, fibre_length=args.fibre_length,
-        background=args.background, fibre_intensity=args.fibre_intensity, blur=args.blur,
-        noise=args.noise, layer_depth=args.layer_depth,
+        background=args.background, fibre_intensity=args.fibre_intensity, blur=blur,
+        noise=args.noise, photons=args.photons, cut_top=args.cut_top, layer_depth=args.layer_depth,
         second_layer_depth=args.second_layer_depth, second_layer_rotation=args.second_layer_rotation,
         second_layer_channel=args.second_layer_channel, frames=args.frames,
         frame_rotation=args.frame_rotation, frame_axis=tuple(args.frame_axis),
@@ -121,6 +143,14 @@ def run(args) -> int:
           f"spacing {truth['spacing']} µm, R = {truth['radius']:g} µm, centre "
           f"({', '.join(f'{v:g}' for v in truth['centre'])})")
     n_def = sum(1 for r in truth["defects"] if r["t"] == 0 and r["layer"] == 0)
+    nz = truth["noise"]
+    if nz["snr"] is not None:
+        print(f"SNR {nz['snr']:.2f} (fibres on the shell), {nz['snr_wall']:.2f} (shell on the inside); "
+              f"noise std {nz['noise_std_shell']:.2f} at the shell level")
+    if "field_of_view" in truth:
+        vis = sum(1 for r in truth["defects"] if r["t"] == 0 and r["layer"] == 0 and r["in_view"])
+        print(f"open: the stack ends at z = {truth['field_of_view']['z_max']:g} µm; {vis} of {n_def} "
+              "defects in view")
     print(f"ground truth: {truth_path(args.output)} "
           f"({len(truth['layers'])} layer(s), {n_def} defects per layer and frame)")
     return 0

@@ -191,8 +191,12 @@ def _score(args) -> None:
     sc = score_vesicle(truth, defects, directors, order, curvature, ordered_distance=args.ordered_distance,
                        match_radius=args.match_radius)
     sc.update(stage_record(args.stage_files, args.defects))
+    noise = truth.get("noise") or {}
+    psf = (truth.get("psf") or {}).get("sigma_zyx") or [truth.get("parameters", {}).get("blur", 1.0)] * 3
     sc.update(radius=truth["radius"], dz_dx=truth["spacing"][0] / truth["spacing"][2],
-              noise=truth.get("parameters", {}).get("noise"))
+              noise=truth.get("parameters", {}).get("noise"), photons=noise.get("photons"),
+              snr=noise.get("snr"), snr_wall=noise.get("snr_wall"), blur_z=psf[0], blur_xy=psf[2],
+              open="field_of_view" in truth)
     atomic.make_folder(Path(args.output).parent)
     atomic.write_json(args.output, {**case, **sc}, indent=1)
 

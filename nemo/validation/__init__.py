@@ -7,7 +7,9 @@ and scores what the analysis finds against it:
   swept over image quality (noise, voxel anisotropy) and over the analysis parameters
   (marching-cubes step, director patch radius and scale, averaging radius, curvature radius),
   each with several random rotations of the defect set — scored for defect detection,
-  localisation and charge, director angle, order parameter and curvature;
+  localisation and charge, director angle, order parameter and curvature; realistic images add
+  a confocal-like PSF (σz > σxy), shot + Gaussian noise at a stated SNR
+  (``nemo.synthetic.snr``) and vesicles cut open by the top of the stack;
 * analytic solids (ellipsoid, torus, concentric shells) written as blurred stacks — scored for
   curvature and thickness against their closed-form values.
 

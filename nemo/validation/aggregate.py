@@ -26,9 +26,9 @@ def read_snakemake_benchmark(path: str | os.PathLike) -> dict:
 
 #: Score columns summarised per sweep value (mean over rotations).
 SWEEP_COLUMNS = [
-    "detection_rate", "false_positives", "loc_err_mean", "loc_err_max", "charge_err_mean",
-    "charge_correct", "all_found", "angle_err_median", "angle_err_p90", "angle_err_ordered_median",
-    "S_ordered_median", "H_relerr_median", "K_relerr_median", "n_vertices", "time_total_s",
+    "snr", "detection_rate", "false_positives", "loc_err_mean", "loc_err_median", "loc_err_max",
+    "charge_err_mean", "charge_err_max", "charge_correct", "all_found", "angle_err_median", "angle_err_p90",
+    "angle_err_ordered_median", "S_ordered_median", "H_relerr_median", "K_relerr_median", "n_vertices", "time_total_s",
     "peak_rss_mb",
 ]
 
@@ -99,7 +99,7 @@ def aggregate(
     for name, df in (("cases", cases_out), ("sweeps", sweeps), ("shapes", shapes), ("stages", stages)):
         write_table(df, out / f"{name}.parquet", kind=f"validation-{name}")
     atomic.write_text(out / "validation.md", markdown(cases, sweeps, shapes, stages))
-    plot(cases, stages, out / "plots")
+    plot(cases, stages, out / "plots", shapes)
     return {"cases": cases, "sweeps": sweeps, "shapes": shapes, "stages": stages}
 
 
@@ -154,6 +154,7 @@ def markdown(cases: pd.DataFrame, sweeps: pd.DataFrame, shapes: pd.DataFrame, st
                   "time = the frame's per-stage jobs of the workflow, summed (s); RSS = largest job's peak "
                   "memory (MB).", "",
                   _table(sweeps, [("sweep", "sweep", -1), ("value_label", "value", -1), ("n_cases", "n", 0),
+                                  ("snr", "SNR", 1),
                                   ("detection_rate", "detection", 2), ("false_positives", "FP", 2),
                                   ("loc_err_mean", "loc (µm)", 2), ("loc_err_max", "loc max", 2),
                                   ("charge_err_mean", "|Δq|", 3), ("charge_correct", "q right", 2),
@@ -166,7 +167,8 @@ def markdown(cases: pd.DataFrame, sweeps: pd.DataFrame, shapes: pd.DataFrame, st
         parts += ["## Analytic shapes: curvature and thickness", "",
                   "errors |est − exact| / RMS(exact) over the vertices (relative error for a "
                   "sphere); thickness error in µm along the inner wall's normals.", "",
-                  _table(shapes, [("shape", "shape", -1), ("dz_dx", "dz/dx", 0), ("n_vertices", "vertices", 0),
+                  _table(shapes, [("shape", "shape", -1), ("dz_dx", "dz/dx", 1), ("blur_z", "σz (µm)", 1),
+                                  ("snr", "SNR", 1), ("n_vertices", "vertices", 0),
                                   ("radius_edges", "radius (edges)", 1), ("curvature_radius", "radius (µm)", 1),
                                   ("H_err_median", "H med", 4), ("H_err_p90", "H P90", 4),
                                   ("K_err_median", "K med", 4), ("K_err_p90", "K P90", 4),
@@ -187,8 +189,84 @@ def markdown(cases: pd.DataFrame, sweeps: pd.DataFrame, shapes: pd.DataFrame, st
     return "\n".join(parts) + "\n"
 
 
-def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike) -> list[Path]:
-    """Error vs noise, error vs anisotropy, errors vs analysis parameters, time per stage (PNG)."""
+def _snr_x(v) -> float:
+    """Plot position of an SNR: the noise-free case (None/NaN/inf) at 30, drawn as ∞."""
+    v = np.nan if v is None else float(v)
+    return 30.0 if not np.isfinite(v) else v
+
+
+def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, plt) -> list[Path]:
+    """Defects (vesicles of the ``snr`` sweep) and curvature/thickness (analytic shapes) against SNR."""
+    written = []
+    sub = cases[cases["sweep"] == "snr"].copy() if len(cases) and "sweep" in cases else pd.DataFrame()
+    if len(sub) and "snr" in sub:
+        sub["x"] = sub["snr"].map(_snr_x)
+        metrics = [("detection_rate", "detection rate", None), ("false_positives", "false positives / case", None),
+                   ("loc_err_median", "localisation error (µm)", "loc_err_max"),
+                   ("charge_err_max", "charge error |Δq| (max)", None),
+                   ("H_relerr_median", "H error, median (sphere)", None)]
+        fig, axes = plt.subplots(1, len(metrics), figsize=(3.6 * len(metrics), 3.2))
+        for (col, label, col2), ax in zip(metrics, axes):
+            if col not in sub:
+                continue
+            g = sub.groupby("x")[col]
+            ax.plot(g.mean().index, g.mean().values, "o-", label="mean over rotations" if col2 is None else "median")
+            ax.scatter(sub["x"], sub[col], s=10, alpha=0.4)
+            if col2 and col2 in sub:
+                g2 = sub.groupby("x")[col2]
+                ax.plot(g2.max().index, g2.max().values, "s--", label="max")
+                ax.legend(fontsize=7)
+            ax.set_xscale("log")
+            ax.set_xlim(2.5, 40)
+            ax.set_xticks([3, 5, 10, 30], ["3", "5", "10", "∞"])
+            ax.minorticks_off()
+            ax.set_xlabel("SNR")
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+        fig.suptitle("vesicles R = 80 µm, dz = 2.5 dx (dx = 1 µm), PSF σ 2.5 / 1 / 1 µm", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(outdir / "error_vs_snr.png", dpi=110)
+        plt.close(fig)
+        written.append(outdir / "error_vs_snr.png")
+    if shapes is not None and len(shapes) and "snr" in shapes and "blur_z" in shapes:
+        sh = shapes[shapes["blur_z"] != shapes["blur_xy"]].copy()
+        if len(sh):
+            sh["x"] = sh["snr"].map(_snr_x)
+            sh["family"] = sh["shape"].str.replace(r"_snr\d+$", "", regex=True)
+            fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
+            for fam, ss in sh.groupby("family"):
+                for r, rr in ss.groupby("radius_edges"):
+                    rr = rr.sort_values("x")
+                    if fam.startswith(("ellipsoid_", "torus")):
+                        axes[0].plot(rr["x"], 100 * rr["H_err_median"], "o-", label=f"{fam}, {r:g} edges")
+                        axes[1].plot(rr["x"], 100 * rr["K_err_median"], "o-", label=f"{fam}, {r:g} edges")
+                if "thickness_err_median" in ss and ss["thickness_err_median"].notna().any():
+                    t = ss.drop_duplicates("x").sort_values("x")
+                    axes[2].plot(t["x"], t["thickness_err_median"], "o-", label=fam)
+            for ax, label in zip(axes, ("H error, median (%)", "K error, median (%)", "thickness error, median (µm)")):
+                ax.set_xscale("log")
+                ax.set_xlim(2.5, 40)
+                ax.set_xticks([3, 5, 10, 30], ["3", "5", "10", "∞"])
+                ax.minorticks_off()
+                ax.set_xlabel("SNR")
+                ax.set_ylabel(label)
+                if any(np.nan_to_num(np.asarray(ln.get_ydata(), float)).max(initial=0) > 0 for ln in ax.get_lines()):
+                    ax.set_yscale("log")
+                ax.grid(alpha=0.3)
+                if ax.get_legend_handles_labels()[0]:
+                    ax.legend(fontsize=6)
+            fig.suptitle("analytic shapes, PSF σ 2.5 / 1 / 1 µm", fontsize=9)
+            fig.tight_layout()
+            fig.savefig(outdir / "shapes_vs_snr.png", dpi=110)
+            plt.close(fig)
+            written.append(outdir / "shapes_vs_snr.png")
+    return written
+
+
+def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike,
+         shapes: pd.DataFrame | None = None) -> list[Path]:
+    """Error vs noise, vs SNR, vs anisotropy, vs analysis parameters; analytic shapes vs SNR;
+    time per stage (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -233,6 +311,7 @@ def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike) -
                                    "error_vs_patch_radius.png"),
                                   ("run.order.radius", "averaging radius (µm)", "error_vs_averaging_radius.png")):
             sweep_plot(par == key, label, fname)
+    written += _plot_snr(cases, shapes, outdir, plt)
     if len(stages):
         run = stages[stages["source"] == "workflow"]
         smk = stages[stages["source"] == "snakemake"]

@@ -43,6 +43,19 @@ def volume_id(synth: dict) -> str:
     return "v" + hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
+def _sweep_point(name: str, key: str, item: Any, settable: bool) -> tuple[Any, dict]:
+    """A sweep value and the extra options of that point (``{value: V, set: {...}}``)."""
+    if isinstance(item, dict):
+        if "value" not in item:
+            raise NemoError(f"validation.sweeps.{name}: a value given as a mapping needs 'value' "
+                            "(and 'set': the options of that point)")
+        return item["value"], dict(item.get("set") or {})
+    if not settable:
+        raise NemoError(f"validation.sweeps.{name}: key {key!r} is a label (not synth.* or run.*): "
+                        "give each value as {value: V, set: {...}}")
+    return item, {}
+
+
 def expand_cases(section: dict) -> dict[str, dict]:
     """Expand a ``validation:`` config section into cases.
 
@@ -51,7 +64,9 @@ def expand_cases(section: dict) -> dict[str, dict]:
     section : dict
         ``base`` (``synth``: ``nemo synth`` options, ``run``: overrides of the analysis sections),
         ``rotations`` (seeds of random rotations of the defect set; also the fibre/noise seed),
-        ``sweeps`` (name -> ``{key: "synth.noise", values: [...], set: {dotted: value}}``) and
+        ``sweeps`` (name -> ``{key: "synth.noise", values: [...], set: {dotted: value}}``; a
+        value may be ``{value: V, set: {dotted: ...}}``, the options of that point, and then
+        ``key`` may be a plain label such as ``snr``) and
         ``cases`` (name -> ``{synth: ..., run: ..., rotations: [...]}`` or
         ``{dataset: NAME, run: ...}`` to analyse a workflow dataset's image as one point).
 
@@ -84,12 +99,16 @@ def expand_cases(section: dict) -> dict[str, dict]:
     for name, sw in (section.get("sweeps") or {}).items():
         if "key" not in sw or not sw.get("values"):
             raise NemoError(f"validation.sweeps.{name} needs 'key' (e.g. synth.noise) and 'values'")
-        for value in sw["values"]:
+        settable = str(sw["key"]).startswith(("synth.", "run."))
+        for item in sw["values"]:
+            # a value, or {value: V, set: {dotted: ...}} (a point set by several options, e.g.
+            # an SNR reached by photons and Gaussian noise; then 'key' may be a plain label)
+            value, extra = _sweep_point(name, sw["key"], item, settable)
             for rot in sw.get("rotations", rotations):
                 spec = copy.deepcopy(base)
-                for k, v in (sw.get("set") or {}).items():
+                sets = {**(sw.get("set") or {}), **extra, **({sw["key"]: value} if settable else {})}
+                for k, v in sets.items():
                     _set_dotted(spec, k, v)
-                _set_dotted(spec, sw["key"], value)
                 add(f"{name}-{_slug(value)}-r{rot}", name, sw["key"], value, rot, spec)
     for name, c in (section.get("cases") or {}).items():
         spec = copy.deepcopy(base)

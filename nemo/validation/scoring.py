@@ -26,6 +26,11 @@ def _norm_err(est: np.ndarray, exact: np.ndarray) -> np.ndarray:
     return np.abs(est - exact) / np.sqrt(np.mean(exact**2))
 
 
+def _pct(a: np.ndarray, q: float) -> float:
+    """Percentile ``q`` of ``a``; NaN when empty (no finite estimate: a shredded noisy surface)."""
+    return float(np.percentile(a, q)) if len(a) else np.nan
+
+
 def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
     """Curvature and thickness of a reconstructed analytic shape against the exact values.
 
@@ -48,8 +53,11 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
     c = np.asarray(truth["centre"], float)
     kind = truth["kind"]
     rows = []
+    blur = truth.get("blur_zyx") or [truth.get("blur", truth["spacing"][2])] * 3
     base = {"shape": truth.get("name", kind), "kind": kind,
-            "dz_dx": truth["spacing"][0] / truth["spacing"][2], "dx": truth["spacing"][2]}
+            "dz_dx": truth["spacing"][0] / truth["spacing"][2], "dx": truth["spacing"][2],
+            "blur_z": float(blur[0]), "blur_xy": float(blur[2]),
+            "snr": np.nan if truth.get("snr") is None else float(truth["snr"])}
     outer = None
     if kind == "shells":
         surf, outer = split_mesh(mesh, by="centre", centre=c)
@@ -91,9 +99,10 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
         rows.append({
             **base, "n_vertices": len(surf.vertices), "mean_edge": edge,
             "radius_edges": float(fac), "curvature_radius": radius,
-            "H_err_median": float(np.median(eh)), "H_err_p90": float(np.percentile(eh, 90)),
-            "K_err_median": float(np.median(ek)), "K_err_p90": float(np.percentile(ek, 90)),
-            "K_sign_agreement": float(np.mean(np.sign(K[ok & strong]) == np.sign(K0[ok & strong]))),
+            "H_err_median": _pct(eh, 50), "H_err_p90": _pct(eh, 90),
+            "K_err_median": _pct(ek, 50), "K_err_p90": _pct(ek, 90),
+            "K_sign_agreement": (float(np.mean(np.sign(K[ok & strong]) == np.sign(K0[ok & strong])))
+                                 if (ok & strong).any() else np.nan),
             "gauss_bonnet_ratio": float(m.get("gauss_bonnet_ratio", np.nan) or np.nan),
             "integral_K": float(m.get("integral_K", np.nan)),
             "euler_characteristic": int(m.get("euler_characteristic", 0)),
@@ -228,7 +237,9 @@ def score_vesicle(
     Returns
     -------
     dict
-        :func:`score_defects` plus ``angle_err_median/p90`` (raw directors, all),
+        :func:`score_defects` (against the defects in the field of view when the truth marks
+        ``in_view``: an open vesicle cut by the stack; ``n_out_of_view`` the others) plus
+        ``angle_err_median/p90`` (raw directors, all),
         ``angle_err_ordered_median/p90`` (raw directors in the ordered region),
         ``avg_angle_err_ordered_median`` (averaged field), ``S_ordered_median/p10``,
         ``H_relerr_median/p90``, ``K_relerr_median/p90`` (sphere of radius R).
@@ -237,7 +248,12 @@ def score_vesicle(
 
     R = float(truth["radius"])
     tdf = truth_defects(truth, t, layer)
+    hidden = 0
+    if "in_view" in tdf:  # an open (cut) vesicle: defects above the field of view cannot be found
+        hidden = int((~tdf["in_view"].astype(bool)).sum())
+        tdf = tdf[tdf["in_view"].astype(bool)].reset_index(drop=True)
     out = score_defects(defects, tdf, match_radius or MATCH_FRACTION * R)
+    out["n_out_of_view"] = hidden
     out["charge_sum"] = float(defects["charge"].sum()) if len(defects) else 0.0
     dist = ordered_distance or 0.25 * R
     tx = tdf[["x", "y", "z"]].to_numpy() if len(tdf) else np.zeros((0, 3))

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.special import erf
 
 from nemo.errors import NemoError
+from nemo.synthetic import add_noise, psf_sigmas, snr
 
 SHAPES = ("ellipsoid", "torus", "shells")
 
@@ -62,8 +63,10 @@ def shape_volume(spec: dict, rng: np.random.Generator | int | None = None) -> tu
         ``kind``: ``ellipsoid`` (``axes`` [a, b, c] µm along x, y, z), ``torus`` (``major``,
         ``minor`` µm, axis z) or ``shells`` (solid between the ellipsoids ``inner`` and ``outer``,
         [a, b, c] each; equal axes = concentric spheres); ``spacing`` [dz, dy, dx] µm; optional
-        ``blur`` (µm, default one lateral voxel: an error-function edge), ``margin`` (µm),
-        ``noise`` (std, 0-255 scale), ``foreground``/``background`` intensities.
+        ``blur`` (µm, default one lateral voxel: an error-function edge; three values
+        [sz, sy, sx] = an anisotropic Gaussian PSF, the edge blurred with the sigma along the
+        surface normal), ``margin`` (µm), ``photons`` (shot noise, photons at the 255 level) and
+        ``noise`` (Gaussian std, 0-255 scale), ``foreground``/``background`` intensities.
     rng : Generator or int, optional
         For the noise.
 
@@ -71,7 +74,9 @@ def shape_volume(spec: dict, rng: np.random.Generator | int | None = None) -> tu
     -------
     volume : ndarray of uint8, shape (Z, Y, X)
     truth : dict
-        The spec plus ``centre`` (physical x, y, z) and ``threshold`` (mid intensity).
+        The spec plus ``centre`` (physical x, y, z), ``threshold`` (mid intensity), ``blur_zyx``
+        and ``snr`` (``nemo.synthetic.snr``: (foreground − background) / noise std at the
+        background; None without noise).
     """
     need = {"ellipsoid": ("axes",), "torus": ("major", "minor"), "shells": ("inner", "outer")}
     if spec.get("kind") not in need:
@@ -82,7 +87,10 @@ def shape_volume(spec: dict, rng: np.random.Generator | int | None = None) -> tu
     sp = np.asarray(spec.get("spacing", [1.0, 1.0, 1.0]), float)
     if sp.shape != (3,) or np.any(sp <= 0):
         raise NemoError(f"shape spacing must be [dz, dy, dx] > 0, got {spec.get('spacing')}")
-    blur = float(spec.get("blur", sp[2]))
+    sig = np.asarray(psf_sigmas(spec.get("blur", sp[2])))  # (sz, sy, sx)
+    if np.any(sig <= 0):
+        raise NemoError(f"shape blur must be > 0 µm (one sigma or sz, sy, sx), got {spec.get('blur')}")
+    blur = float(sig.max())
     fg, bg = float(spec.get("foreground", 200)), float(spec.get("background", 20))
     ext = _extent(spec)
     margin = float(spec.get("margin", 4 * blur + 3 * sp.max()))
@@ -96,13 +104,25 @@ def shape_volume(spec: dict, rng: np.random.Generator | int | None = None) -> tu
     for i, zi in enumerate(z):  # plane by plane: bounded memory (not a hot path)
         p = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.full((1, 1), zi)), -1)
         d = shape_sdf(spec, p)
-        vol[i] = bg + (fg - bg) * 0.5 * (1 - erf(d / (np.sqrt(2) * blur)))
-    if spec.get("noise"):
+        if sig[0] == sig[1] == sig[2]:
+            s = blur
+        else:  # the sigma along the edge's normal (the sdf's gradient, central differences)
+            h = 0.25 * float(sp.min())
+            g = np.stack([(shape_sdf(spec, p + h * e) - shape_sdf(spec, p - h * e)) for e in np.eye(3)], -1)
+            g /= np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
+            s = np.sqrt((g**2 * (sig[::-1] ** 2)).sum(-1))  # p, g are (x, y, z); sig is (z, y, x)
+            s = np.where(s > 0, s, blur)  # no gradient (a centre): any sigma, far from the edge
+        vol[i] = bg + (fg - bg) * 0.5 * (1 - erf(d / (np.sqrt(2) * s)))
+    photons, noise = spec.get("photons"), float(spec.get("noise") or 0.0)
+    if photons:
+        vol = add_noise(vol, float(photons), noise, np.random.default_rng(rng))
+    elif noise:
         gen = np.random.default_rng(rng)
-        vol += gen.normal(0, float(spec["noise"]), vol.shape).astype(np.float32)
+        vol += gen.normal(0, noise, vol.shape).astype(np.float32)
     vol = np.clip(np.rint(vol), 0, 255).astype(np.uint8)
     truth = dict(spec)
-    truth.update(centre=centre.tolist(), threshold=(fg + bg) / 2, spacing=sp.tolist())
+    truth.update(centre=centre.tolist(), threshold=(fg + bg) / 2, spacing=sp.tolist(),
+                 blur_zyx=sig.tolist(), snr=snr(fg, bg, noise, photons))
     return vol, truth
 
 
