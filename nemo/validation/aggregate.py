@@ -195,6 +195,18 @@ def _snr_x(v) -> float:
     return 30.0 if not np.isfinite(v) else v
 
 
+
+def _snr_axis(ax, label: str) -> None:
+    """A logarithmic SNR axis (noise-free plotted at 30, labelled ∞) with ``label`` on y."""
+    ax.set_xscale("log")
+    ax.set_xlim(2.5, 40)
+    ax.set_xticks([3, 5, 10, 30], ["3", "5", "10", "∞"])
+    ax.minorticks_off()
+    ax.set_xlabel("SNR")
+    ax.set_ylabel(label)
+    ax.grid(alpha=0.3)
+
+
 def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, plt) -> list[Path]:
     """Defects (vesicles of the ``snr`` sweep) and curvature/thickness (analytic shapes) against SNR."""
     written = []
@@ -216,13 +228,7 @@ def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, pl
                 g2 = sub.groupby("x")[col2]
                 ax.plot(g2.max().index, g2.max().values, "s--", label="max")
                 ax.legend(fontsize=7)
-            ax.set_xscale("log")
-            ax.set_xlim(2.5, 40)
-            ax.set_xticks([3, 5, 10, 30], ["3", "5", "10", "∞"])
-            ax.minorticks_off()
-            ax.set_xlabel("SNR")
-            ax.set_ylabel(label)
-            ax.grid(alpha=0.3)
+            _snr_axis(ax, label)
         fig.suptitle("vesicles R = 80 µm, dz = 2.5 dx (dx = 1 µm), PSF σ 2.5 / 1 / 1 µm", fontsize=9)
         fig.tight_layout()
         fig.savefig(outdir / "error_vs_snr.png", dpi=110)
@@ -244,15 +250,9 @@ def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, pl
                     t = ss.drop_duplicates("x").sort_values("x")
                     axes[2].plot(t["x"], t["thickness_err_median"], "o-", label=fam)
             for ax, label in zip(axes, ("H error, median (%)", "K error, median (%)", "thickness error, median (µm)")):
-                ax.set_xscale("log")
-                ax.set_xlim(2.5, 40)
-                ax.set_xticks([3, 5, 10, 30], ["3", "5", "10", "∞"])
-                ax.minorticks_off()
-                ax.set_xlabel("SNR")
-                ax.set_ylabel(label)
+                _snr_axis(ax, label)
                 if any(np.nan_to_num(np.asarray(ln.get_ydata(), float)).max(initial=0) > 0 for ln in ax.get_lines()):
                     ax.set_yscale("log")
-                ax.grid(alpha=0.3)
                 if ax.get_legend_handles_labels()[0]:
                     ax.legend(fontsize=6)
             fig.suptitle("analytic shapes, PSF σ 2.5 / 1 / 1 µm", fontsize=9)
