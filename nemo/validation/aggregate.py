@@ -196,6 +196,13 @@ def _snr_x(v) -> float:
 
 
 
+
+def _save(fig, path: Path) -> None:
+    """Write a plot atomically (a temporary file beside it, renamed when complete)."""
+    with atomic.atomic_path(path, keep_suffix=True) as tmp:
+        fig.savefig(tmp, dpi=110)
+
+
 def _snr_axis(ax, label: str) -> None:
     """A logarithmic SNR axis (noise-free plotted at 30, labelled ∞) with ``label`` on y."""
     ax.set_xscale("log")
@@ -231,7 +238,7 @@ def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, pl
             _snr_axis(ax, label)
         fig.suptitle("vesicles R = 80 µm, dz = 2.5 dx (dx = 1 µm), PSF σ 2.5 / 1 / 1 µm", fontsize=9)
         fig.tight_layout()
-        fig.savefig(outdir / "error_vs_snr.png", dpi=110)
+        _save(fig, outdir / "error_vs_snr.png")
         plt.close(fig)
         written.append(outdir / "error_vs_snr.png")
     if shapes is not None and len(shapes) and "snr" in shapes and "blur_z" in shapes:
@@ -257,7 +264,7 @@ def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, pl
                     ax.legend(fontsize=6)
             fig.suptitle("analytic shapes, PSF σ 2.5 / 1 / 1 µm", fontsize=9)
             fig.tight_layout()
-            fig.savefig(outdir / "shapes_vs_snr.png", dpi=110)
+            _save(fig, outdir / "shapes_vs_snr.png")
             plt.close(fig)
             written.append(outdir / "shapes_vs_snr.png")
     return written
@@ -297,7 +304,7 @@ def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike,
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=7)
         fig.tight_layout()
-        fig.savefig(outdir / fname, dpi=110)
+        _save(fig, outdir / fname)
         plt.close(fig)
         written.append(outdir / fname)
 
@@ -333,7 +340,7 @@ def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike,
                 if np.isfinite(rss):
                     axes[1].text(sv, i, f" {rss:.0f} MB", va="center", fontsize=7)
         fig.tight_layout()
-        fig.savefig(outdir / "time_per_stage.png", dpi=110)
+        _save(fig, outdir / "time_per_stage.png")
         plt.close(fig)
         written.append(outdir / "time_per_stage.png")
     return written
