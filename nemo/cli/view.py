@@ -59,7 +59,10 @@ def run(args) -> int:
                   spacing=args.spacing, max_vectors=args.max_vectors)
     viewer = open_viewer(args.results, show=True, **kwargs)
     if args.screenshot:
-        viewer.screenshot(args.screenshot, canvas_only=True)
+        from nemo.atomic import atomic_path
+
+        with atomic_path(args.screenshot, keep_suffix=True) as tmp:
+            viewer.screenshot(str(tmp), canvas_only=True)
         viewer.close()
         print(args.screenshot)
         return 0
