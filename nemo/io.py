@@ -71,11 +71,13 @@ class ImageInfo:
     unit: str
     calibrated: bool = True
     _normalised_axes: str = field(default="", repr=False)
+    _described: dict | None = field(default=None, repr=False)  # OME-Zarr metadata, read once
 
     def to_json(self) -> dict:
         """The public description: ``axes``, ``shape``, ``dtype``, ``spacing``, ``unit``."""
         d = asdict(self)
         d.pop("_normalised_axes")
+        d.pop("_described")
         d["spacing"] = list(self.spacing)
         return d
 
@@ -368,7 +370,7 @@ def _info_from_zarr(path: str | os.PathLike) -> ImageInfo:
     spacing, unit, calibrated = _calibration(list(d["spacing"]), d["units"])
     return ImageInfo(path=str(path), axes=d["axes"], shape={a: int(d["shape"].get(a, 1)) for a in AXES},
                      dtype=d["dtype"], spacing=spacing, unit=unit, calibrated=calibrated,
-                     _normalised_axes=axes)
+                     _normalised_axes=axes, _described=d)
 
 
 def read_info(path: str | os.PathLike) -> ImageInfo:
@@ -438,7 +440,8 @@ def read_stack(
         info = _info_from_zarr(path)
         axes = info._normalised_axes
         _check_index(info, path, t, c)
-        data = ome_zarr.read(path, {a: int(i) for a, i in (("T", t), ("C", c)) if a in axes})
+        data = ome_zarr.read(path, {a: int(i) for a, i in (("T", t), ("C", c)) if a in axes},
+                             described=info._described)
     else:
         with _open_tiff(path) as tif:
             info = _info_from_tiff(tif, str(path))

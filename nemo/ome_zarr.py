@@ -126,7 +126,7 @@ def levels(path: str | os.PathLike) -> list[dict]:
     return out
 
 
-def read(path: str | os.PathLike, key: dict[str, int]) -> np.ndarray:
+def read(path: str | os.PathLike, key: dict[str, int], described: dict | None = None) -> np.ndarray:
     """The pixels of one (t, c) selection, in the stored axis order without T and C.
 
     Parameters
@@ -135,8 +135,10 @@ def read(path: str | os.PathLike, key: dict[str, int]) -> np.ndarray:
         The OME-Zarr group or one of its level arrays.
     key : dict
         Index per axis letter to select (``{"T": 2, "C": 0}``); other axes are read whole.
+    described : dict, optional
+        :func:`describe`'s answer for ``path`` when the caller has it (the metadata is not read again).
     """
-    d = describe(path)
+    d = described or describe(path)
     array = _open_group(d["group"])[d["level"]]
     index = tuple(key.get(a, slice(None)) for a in d["axes"])
     try:

@@ -139,7 +139,7 @@ def _check_imports_outside(sections: dict, final: Path, dataset: str | None, t: 
 
 def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: int, c: int) -> dict:
     """The body of :func:`run_frame`: files written into ``out``, provenance naming ``final``."""
-    from nemo.io import read_mask, read_stack
+    from nemo.io import read_stack
 
     timings: dict[str, float] = {}
     start = time.perf_counter()
@@ -154,11 +154,7 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     with timed("read"):
         volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    mask = read_mask(frame["mask"], t, frame["seg"], volume.shape, labels=frame["mask_labels"],
-                     threshold=frame["mask_threshold"]) if frame["mask"] else None
-    if frame["surface_mesh"]:
-        sections["mesh"] = {**sections["mesh"], "surface_mesh": layout.surface_mesh_path(frame["surface_mesh"], t),
-                            "mesh_unit": frame["mesh_unit"]}
+    mask = _mesh_source(frame, t, volume.shape, sections)
     summary = {"image": frame["image"], "dataset": frame["dataset"], "t": t, "c": c,
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
                "outdir": str(final)}
@@ -199,8 +195,9 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     sections = nconfig.analysis(cfg, frame["dataset"])
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    meshes, sections["mesh"] = stages.mesh(volume, info.spacing, sections["mesh"], unit=info.unit)
-    del volume
+    mask = _mesh_source(frame, t, volume.shape, sections)  # the same mesh source as run_frame
+    meshes, sections["mesh"] = _mesh_or_import(volume, info, mask, sections["mesh"])
+    del volume, mask
     if sections["curvature"] is not None:
         sections["curvature"] = {s: stages.curvature_defaults(meshes[s], sections["curvature"])
                                  for s in sections["surfaces"]}
@@ -218,6 +215,19 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
                                                         [v["defects"] for v in per_layer.values()])
     sections.update(image=frame["image"], t=t, c=c, spacing=list(info.spacing), unit=info.unit)
     return json.loads(json.dumps(sections, default=atomic.json_default))
+
+
+def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict):
+    """The frame's mask (or None); a user's surface is noted in ``sections["mesh"]``."""
+    from nemo.io import read_mask
+
+    if frame["surface_mesh"]:
+        sections["mesh"] = {**sections["mesh"], "surface_mesh": layout.surface_mesh_path(frame["surface_mesh"], t),
+                            "mesh_unit": frame["mesh_unit"]}
+    if not frame["mask"]:
+        return None
+    return read_mask(frame["mask"], t, frame["seg"], shape, labels=frame["mask_labels"],
+                     threshold=frame["mask_threshold"])
 
 
 def _mesh_or_import(volume, info, mask, section: dict):

@@ -349,6 +349,10 @@ def test_run_frame_with_user_surfaces_per_time_point(ball_and_labels):
     assert summary["mesh"]["source"].endswith("surface_t0.stl") and summary["mesh"]["mesh_unit"] == "nm"
     m = json.loads((d / "out" / "measure_whole.json").read_text())
     assert m["area"] == pytest.approx(sphere.area * 1e-6, rel=1e-4)
+    from nemo.pipeline import resolved_config
+
+    printed = resolved_config(None, cfg, dataset="d")  # --print-config meshes the frame the same way
+    assert printed["mesh"]["source"].endswith("surface_t0.stl") and printed["mesh"]["mesh_unit"] == "nm"
     cfg["datasets"]["d"]["mesh_unit"] = None
     with pytest.raises(NemoError, match="does not say in which unit"):
         run_frame(None, d / "out2", cfg, dataset="d")
