@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nemo import atomic, layout, stages
+from nemo import atomic, layout, objects, stages
 from nemo import config as nconfig
 from nemo._log import logger, step
 from nemo.errors import NemoError
@@ -246,7 +246,6 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
     """
     final = final or out
     from nemo.mesh import load_mesh, save_mesh
-    from nemo.morphology import measure
     from nemo.tables import write_table
 
     with timed("mesh"):
@@ -259,7 +258,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
         meshes = {name: load_mesh(out / layout.MESH[name]) for name in meshes}
     for surface in sections["measure"]["surfaces"] or sections["surfaces"]:
         with timed("measure"):
-            atomic.write_json(out / layout.measure_file(surface), measure(meshes[surface]))
+            atomic.write_json(out / layout.measure_file(surface), stages.measure(meshes[surface]))
         written.append(layout.measure_file(surface))
     if sections["curvature"] is not None:
         for surface in sections["surfaces"]:
@@ -321,7 +320,7 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
         dir_path = save("directors", ddf, parameters=dp)
     ddf, dp = read_table(dir_path, "directors", n_vertices=n), read_provenance(dir_path)["parameters"]
     with timed("order"):
-        odf, op = stages.order(mesh, ddf, sections["order"], patch_radius=dp.get("nominal_radius"))
+        odf, op = stages.order(mesh, ddf, sections["order"], patch_radius=objects.values(dp, "nominal_radius"))
     order_path = save("order", odf, parameters=op, radius=op["radius"])
     odf = read_table(order_path, "order", n_vertices=n)
     k = None
@@ -330,7 +329,7 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
         k = field_on_vertices(read_table(out / layout.curvature_file(surface), "curvature", n_vertices=n), "K",
                               n, layout.curvature_file(surface), exact=True)
     with timed("defects"):
-        fdf, extra, fp = stages.defects(mesh, odf, ddf, dsec, avg_radius=op["radius"], curvature=k,
+        fdf, extra, fp = stages.defects(mesh, odf, ddf, dsec, avg_radius=objects.values(op, "radius"), curvature=k,
                                         intensity=intensity, director_params=dp)
     save("defects", fdf, euler_check=fdf.attrs["euler_check"], parameters=fp,
          find_parameters=fdf.attrs["parameters"])

@@ -34,11 +34,12 @@ import pandas as pd
 import trimesh
 
 from nemo import config as nconfig
+from nemo import objects
 from nemo._log import logger
 from nemo.errors import NemoError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
 
-__all__ = ["object_radius", "mesh", "curvature", "curvature_defaults", "thickness", "peel", "directors",
+__all__ = ["object_radius", "mesh", "measure", "curvature", "curvature_defaults", "thickness", "peel", "directors",
            "directors_defaults", "import_directors", "order", "defects", "tracking_distance"]
 
 #: Imported directors per default averaging disc (``order.radius`` of an imported layer).
@@ -66,10 +67,12 @@ def mesh(
     An object cut by the image border gives an open surface (``border: open``, the default;
     :func:`nemo.surface.reconstruct`), ``closed`` keeps the flat cap along the border.
 
-    The image must hold one object (:func:`nemo.surface.find_objects`: separate surfaces not
-    nested in each other, each at least 10 % of the largest one's area; smaller specks are
-    noise). Several objects are an error when splitting (their walls would mix); without a
-    split, ``keep: largest`` analyses the largest and warns about the others.
+    Objects (:func:`nemo.surface.find_objects`) are separate surfaces not nested in each other,
+    each at least 10 % of the largest one's area (smaller specks are noise). With several,
+    ``keep: largest`` analyses the largest (with the walls nested in it) and warns about the
+    others; ``keep: all`` keeps every object, labels each vertex with its object (largest = 0;
+    :mod:`nemo.objects`) and splits each about its own centre, so later steps analyse them
+    one by one.
 
     Parameters
     ----------
@@ -96,10 +99,11 @@ def mesh(
     Raises
     ------
     NemoError
-        Bad parameters or image (:func:`nemo.surface.reconstruct`); several objects with a split.
+        Bad parameters or image (:func:`nemo.surface.reconstruct`); ``keep: all`` with a split
+        and no object that has two walls.
     """
     from nemo.geometry import rim
-    from nemo.surface import default_sigma, image_noise, one_object, reconstruct
+    from nemo.surface import default_sigma, find_objects, image_noise, one_object, reconstruct
 
     p = nconfig.section("mesh", params)
     shape = (volume if volume is not None else mask).shape
@@ -113,15 +117,36 @@ def mesh(
     whole.metadata["nemo_surface"]["keep"] = p["keep"]
     p["level"] = float(whole.metadata["nemo_surface"]["level"])
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None else {"noise": None, "snr": None})
-    whole = one_object(whole, p["split"] != "none", p["keep"])  # several objects: error (split) or largest
-    p["n_objects"] = int(whole.metadata["n_objects"])
+    found = find_objects(whole) if p["keep"] == "all" else []
+    if len(found) > 1:  # keep: all -> every object, labelled, each split about its own centre
+        meshes = _object_walls(whole, found, p)
+    else:
+        whole = one_object(whole, p["split"] != "none", p["keep"])  # several objects: the largest
+        meshes = _walls(whole, p, centre)
+    p["n_objects"] = len(found) if len(found) > 1 else int(whole.metadata["n_objects"])
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
-    info = rim(whole.faces, len(whole.vertices))  # of the analysed surface (after one_object)
+    info = rim(meshes["whole"].faces, len(meshes["whole"].vertices))  # of the analysed surface
     p["rim_vertices"], p["rim_loops"] = info["n_vertices"], info["n_loops"]
     if p["rim_loops"]:
         logger.info("open surface (cut by the image border): %d rim loop(s), %d rim vertices",
                     p["rim_loops"], p["rim_vertices"])
-    return _walls(whole, p, centre), p
+    return meshes, p
+
+
+def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[str, trimesh.Trimesh]:
+    """Every object of ``whole`` (``keep: all``), labelled (:mod:`nemo.objects`), split if configured."""
+    from nemo import objects
+
+    pieces = objects.object_meshes(whole, found)
+    unit = getattr(whole, "units", None) or "um"
+    logger.info("keeping all %d objects: %s", len(found), "; ".join(
+        f"object {k}: area {o['area']:.4g} {unit}², centre ({o['centre'][0]:.4g}, {o['centre'][1]:.4g}, "
+        f"{o['centre'][2]:.4g})" for k, o in enumerate(found)))
+    if p["split"] == "none":
+        return {"whole": objects.concatenate(pieces, range(len(pieces)))}
+    if p["split"] != "centre" and p["split"] != "axis":
+        raise NemoError(f"mesh.split must be none, centre or axis, got {p['split']!r}")
+    return objects.split_objects(pieces, p["split"], p["axis"])
 
 
 def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[str, trimesh.Trimesh]:
@@ -234,10 +259,35 @@ def _check_extent(mesh: trimesh.Trimesh, volume: np.ndarray, spacing, path, mesh
 
 
 # ----------------------------------------------------------------------------- morphology
+def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> dict:
+    """Global morphology of a surface (:func:`nemo.morphology.measure`) with its ``centre``.
+
+    ``centre`` is the area-weighted centroid (x, y, z) of the surface. On a mesh of several
+    objects (:mod:`nemo.objects`) ``objects`` holds the same record for each, with its ``object``
+    label, so the summary can give each object its own row.
+    """
+    from nemo.mesh import face_normals_areas
+    from nemo.morphology import measure as measure_surface
+
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    areas = face_normals_areas(vertices, faces)[1]
+    result = measure_surface(mesh, curvature_df)
+    result["centre"] = ((vertices[faces].mean(axis=1) * areas[:, None]).sum(axis=0) / max(areas.sum(), 1e-300)).tolist()
+    split = objects.parts(mesh)
+    if split:
+        result["objects"] = [dict(measure(part.mesh, None if curvature_df is None
+                                          else objects.local_table(curvature_df, part)), object=part.label)
+                             for part in split]
+    return result
+
+
 def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:
     """The ``curvature`` section with its radius resolved on ``mesh``."""
     from nemo.mesh import mean_edge_length
 
+    split = objects.parts(mesh)
+    if split:  # each object its own radius
+        return objects.combine_params([curvature_defaults(part.mesh, params) for part in split], split)
     p = nconfig.section("curvature", params)
     if p["radius"] is None:
         p["radius"] = min(CURVATURE_EDGES * mean_edge_length(mesh), 0.5 * object_radius(mesh))
@@ -248,6 +298,9 @@ def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.Dat
     """H, K at every vertex (method note §3); radius default ``15 edge`` ≤ ``0.5 R_obj``."""
     from nemo.morphology import curvature as fit_curvature
 
+    split = objects.parts(mesh)
+    if split:  # each object on its own: no fit reaches across objects
+        return _combined([curvature(part.mesh, params) for part in split], split)
     p = curvature_defaults(mesh, params)
     df = fit_curvature(mesh, float(p["radius"]), n_samples=p["samples"], fraction=p["fraction"],
                        k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"])
@@ -262,7 +315,7 @@ def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
 
     p = nconfig.section("thickness", params)
     d = ray_thickness(mesh_from, mesh_to, direction=p["direction"], max_distance=p["max_distance"])
-    return pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d}), p
+    return _labelled(pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d}), mesh_from), p
 
 
 # ----------------------------------------------------------------------------- nematics
@@ -294,7 +347,7 @@ def peel(
                     n_samples=int(p["samples"]), reduce=p["reduce"], interp=p["interp"], shift=offset,
                     return_profile=return_profile)
     intensity = result[0] if return_profile else result
-    df = pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity})
+    df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity}), mesh)
     return (df, p, result[1], result[2]) if return_profile else (df, p)
 
 
@@ -303,6 +356,9 @@ def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
     from nemo.directors import default_n_patches, default_patch_radius, default_pixel, nominal_radius
     from nemo.mesh import mean_edge_length
 
+    split = objects.parts(mesh)
+    if split:  # each object its own patch radius, pixel and patch count
+        return objects.combine_params([directors_defaults(part.mesh, params) for part in split], split)
     p = nconfig.section("directors", params)
     edge = mean_edge_length(mesh)
     if p["patch_k"] is not None and params and params.get("patch_radius") is not None:
@@ -327,6 +383,10 @@ def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
     """Tangential directors at random patch centres (method note §5)."""
     from nemo.directors import directors as measure_directors
 
+    split = objects.parts(mesh)
+    if split:  # patches never reach across objects
+        intensity = np.asarray(intensity)
+        return _combined([directors(part.mesh, intensity[part.vertices], params) for part in split], split)
     p = directors_defaults(mesh, params)
     df = measure_directors(mesh, intensity, patch_radius=p["patch_radius"], patch_k=p["patch_k"],
                            n_patches=int(p["n_patches"]), pixel=float(p["pixel"]), sigma=p["sigma"],
@@ -364,6 +424,7 @@ def import_directors(mesh: trimesh.Trimesh, points: pd.DataFrame, params: dict |
     spacing = float(np.sqrt(float(mesh.area) / max(len(df), 1)))
     p["nominal_radius"] = float(np.sqrt(IMPORTED_PER_DISC / np.pi) * spacing / ORDER_PER_PATCH)
     p.update(counts)
+    df = _labelled(df, mesh)
     logger.info("directors import: %d points -> %d directors (%d far, %d nearly normal)", counts["n_points"],
                 counts["n_directors"], counts["n_far"], counts["n_nearly_normal"])
     return df, p
@@ -373,12 +434,17 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
           patch_radius: float | None = None) -> tuple[pd.DataFrame, dict]:
     """S and the averaged director (method note §6); radius default 2.5 × the patch radius.
 
-    ``patch_radius`` is the directors' (nominal) patch radius, needed only for the default.
+    ``patch_radius`` is the directors' (nominal) patch radius, needed only for the default (one
+    per object, :func:`nemo.objects.values`, on a mesh of several objects).
     ``weights`` (``coherency``, the default, or ``none`` = the paper's plain mean) is kept in the resolved
     parameters, so the order table's provenance records it.
     """
     from nemo.order import order as q_average
 
+    split = objects.parts(mesh)
+    if split:  # each object's directors averaged on it alone; patch_radius: one or one per object
+        return _combined([order(part.mesh, objects.local_table(directors_df, part), params,
+                                objects.value_for(patch_radius, k)) for k, part in enumerate(split)], split)
     p = nconfig.section("order", params)
     if p["radius"] is None:
         if not patch_radius:
@@ -402,8 +468,9 @@ def defects(
 
     Parameters
     ----------
-    avg_radius : float, optional
-        The order table's averaging radius (estimated from S when None).
+    avg_radius : float or list of float, optional
+        The order table's averaging radius (estimated from S when None); one per object on a mesh
+        of several objects (:func:`nemo.objects.values`), each searched on its own.
     curvature : ndarray, shape (N,), optional
         Per-vertex K, used when ``defects.curvature_source`` is ``table``.
     intensity, director_params : optional
@@ -424,6 +491,10 @@ def defects(
         closest to χ kept; ``passes`` and ``relaxed_s_threshold`` (None: the first pass) say
         what happened. A frame that still misses χ is flagged by the summary's quality control.
     """
+    split = objects.parts(mesh)
+    if split:
+        return _defects_by_object(split, order_df, directors_df, params, avg_radius, curvature, intensity,
+                                  director_params)
     p = nconfig.section("defects", params)
     if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
         raise NemoError("defects.curvature_source is 'table' but no curvature table was given")
@@ -452,6 +523,47 @@ def defects(
     logger.info("defects: %d found (Σ charge %.3f, χ = %s)", len(df), df.attrs["euler_check"]["sum_charge"],
                 df.attrs["euler_check"]["euler_characteristic"])
     return df, extra, p
+
+
+def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvature, intensity, director_params):
+    """:func:`defects` on each object of a labelled mesh; one table, Euler checks per object and summed."""
+    found, extras, resolved = [], [], []
+    for k, part in enumerate(split):  # a loop over objects
+        v = part.vertices
+        df, extra, p = defects(part.mesh, objects.local_table(order_df, part), objects.local_table(directors_df, part),
+                               params, objects.value_for(avg_radius, k), None if curvature is None else curvature[v],
+                               None if intensity is None else np.asarray(intensity)[v],
+                               objects.pick(director_params, k))
+        found.append(df)
+        extras.append(extra)
+        resolved.append(p)
+    out = objects.combine_tables(found, split, sort=False)
+    checks = [df.attrs["euler_check"] for df in found]
+    out.attrs["euler_check"] = {
+        "sum_charge": float(sum(c["sum_charge"] for c in checks)),
+        "sum_charge_rounded": float(sum(c["sum_charge_rounded"] for c in checks)),
+        "euler_characteristic": int(sum(c["euler_characteristic"] for c in checks)),
+        "closed": all(c["closed"] for c in checks), "matches": all(c["matches"] for c in checks),
+        "objects": [dict(c, object=part.label) for c, part in zip(checks, split)],
+    }
+    out.attrs["parameters"] = objects.combine_params([df.attrs["parameters"] for df in found], split)
+    out.attrs["candidates"] = [dict(r, object=part.label) for df, part in zip(found, split)
+                               for r in df.attrs.get("candidates", [])]
+    pieces = [(e, part) for e, part in zip(extras, split) if e is not None]
+    extra = objects.combine_tables([e for e, _ in pieces], [q for _, q in pieces], sort=False) if pieces else None
+    return out, extra, objects.combine_params(resolved, split)
+
+
+def _combined(results: list[tuple[pd.DataFrame, dict]], split: list) -> tuple[pd.DataFrame, dict]:
+    """One table and one resolved record from a step's per-object results (:mod:`nemo.objects`)."""
+    return (objects.combine_tables([df for df, _ in results], split),
+            objects.combine_params([p for _, p in results], split))
+
+
+def _labelled(df: pd.DataFrame, mesh: trimesh.Trimesh) -> pd.DataFrame:
+    """``df`` with the ``object`` column when ``mesh`` holds several objects (else as is)."""
+    labels = objects.vertex_labels(mesh)
+    return objects.with_object(df, labels) if len(np.unique(labels)) > 1 else df
 
 
 #: Largest |Σ charge − χ| of a closed surface's defects accepted without a second search (a

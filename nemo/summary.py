@@ -3,7 +3,7 @@
 The workflow writes one folder per time point and channel (``results/{dataset}/t{t}/c{c}/``);
 these functions collect the per-frame tables into ``results/{dataset}/summary/``:
 
-* :func:`frame_summary` -> ``frames.parquet``: one row per (t, c, layer) with the objects found
+* :func:`frame_summary` -> ``frames.parquet``: one row per (t, c, layer, object) with the objects found
   and signal-to-noise ratio of the image, the surface's area, volume, Euler characteristic, mean
   H and K, mean thickness, mean layer intensity, director count and coherency, mean S, number of
   defects, their total charge and the frame's quality control (``qc_pass``, ``qc_flags``);
@@ -30,8 +30,8 @@ from nemo.tables import read_table
 
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
-    "t", "c", "layer", "surface", "n_objects", "snr", "area", "volume", "euler_characteristic", "H_mean",
-    "K_mean",
+    "t", "c", "layer", "object", "surface", "n_objects", "centre_x", "centre_y", "centre_z", "snr", "area",
+    "volume", "euler_characteristic", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
     "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
@@ -62,7 +62,7 @@ QC_MIN_COHERENCY = 0.2
 #: range is 3-10; below 3 the surface itself is uncertain).
 QC_MIN_SNR = 3.0
 #: Columns of defects.parquet before tracking (``nemo track`` appends ``track_id``).
-DEFECT_COLUMNS = ("t", "c", "layer", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
+DEFECT_COLUMNS = ("t", "c", "layer", "object", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
                   "charge_winding", "charge_curvature")
 #: Columns of alignment.parquet.
 ALIGN_COLUMNS = ("t", "c", "layer_a", "layer_b", "n", "c_mean", "c_median", "c_std",
@@ -101,20 +101,43 @@ def _num(value) -> float:
     return float(value) if value is not None else math.nan
 
 
-def _layer_columns(r: Mapping) -> dict:
+#: Per-frame tables a record may name, with their kind (:mod:`nemo.tables`).
+_TABLES = {"curvature": "curvature", "thickness": "thickness", "layer_table": "layer", "directors": "directors",
+           "order": "order", "defects": "defects"}
+
+
+def _read_tables(r: Mapping) -> dict[str, pd.DataFrame]:
+    """The tables a record names (an imported layer has no ``layer_table``; morphology has no layer)."""
+    return {key: read_table(r[key], kind) for key, kind in _TABLES.items() if r.get(key)}
+
+
+def _of_object(tables: Mapping[str, pd.DataFrame], label: int) -> dict[str, pd.DataFrame]:
+    """The rows of object ``label`` (tables of a single object have no ``object`` column: all rows)."""
+    return {key: df[df["object"].to_numpy() == label] if "object" in df.columns else df for key, df in tables.items()}
+
+
+def _objects(m: Mapping) -> list[tuple[int, Mapping]]:
+    """(label, measure record) of each object of a surface's measure record (one: itself)."""
+    if m.get("objects"):
+        # several objects kept on purpose (mesh.keep: all): not a reason to flag any of them
+        return [(int(o["object"]), {**o, "n_objects": None}) for o in m["objects"]]
+    return [(0, m)]
+
+
+def _layer_columns(tables: Mapping[str, pd.DataFrame]) -> dict:
     # an imported layer (directors_from) has no peeled intensity
-    intensity = read_table(r["layer_table"], "layer")["intensity"] if r.get("layer_table") else None
+    intensity = tables["layer_table"]["intensity"] if "layer_table" in tables else None
     row = {"intensity_mean": _finite_mean(intensity) if intensity is not None else math.nan,
            "peel_nan_fraction": _nan_fraction(intensity) if intensity is not None else math.nan}
-    d = read_table(r["directors"], "directors")
+    d = tables["directors"]
     row["n_directors"] = len(d)
     row["coherency_mean"] = _finite_mean(d["coherency"])
     row["coherency_median"] = _finite_median(d["coherency"])
-    s = read_table(r["order"], "order")["S"]
+    s = tables["order"]["S"]
     row["S_mean"] = _finite_mean(s)
     row["S_median"] = _finite_median(s)
     row["order_nan_fraction"] = _nan_fraction(s)
-    df = read_table(r["defects"], "defects")
+    df = tables["defects"]
     row["n_defects"] = len(df)
     row["charge_sum"] = float(df["charge"].sum())
     row["charge_rounded_sum"] = float(df["charge_rounded"].sum())
@@ -180,7 +203,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
 
 
 def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
-    """One row per (t, c, layer) from the per-frame files.
+    """One row per (t, c, layer, object) from the per-frame files.
 
     Parameters
     ----------
@@ -193,39 +216,52 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     Returns
     -------
     DataFrame, shape (n_records, len(FRAME_COLUMNS))
-        Sorted by t, c, layer. Means ignore NaN (e.g. thickness rays that hit nothing);
+        Sorted by t, c, layer, object. ``object`` is 0 for a frame of one object; with
+        ``mesh.keep: all`` every object has its row (:mod:`nemo.objects`), with its centre
+        (``centre_x/y/z``, the area-weighted centroid of its surface). Means ignore NaN (e.g. thickness rays that hit nothing);
         ``thickness_valid`` is the fraction of vertices with a finite thickness;
         ``qc_pass`` and ``qc_flags`` are the frame's quality control (:func:`quality_flags`).
     """
     rows = []
     for r in records:
         m = _read_measure(r["measure"])
-        row = {"t": int(r["t"]), "c": int(r["c"]), "layer": str(r["layer"]),
-               "surface": str(r["surface"]), "area": _num(m.get("area")),
-               "volume": _num(m.get("volume")),
-               "euler_characteristic": _num(m.get("euler_characteristic")),
-               "n_objects": m.get("n_objects"), "snr": _num(m.get("snr")),
-               "H_mean": _num(m.get("mean_H")), "K_mean": _num(m.get("mean_K"))}
-        if r.get("curvature"):
-            cur = read_table(r["curvature"], "curvature")
-            row["H_fit_mean"] = _finite_mean(cur["H"])
-            row["K_fit_mean"] = _finite_mean(cur["K"])
-            row["curvature_nan_fraction"] = _nan_fraction(cur["H"])
-        if r.get("thickness"):
-            th = read_table(r["thickness"], "thickness")["thickness"].to_numpy(dtype=np.float64)
-            row["thickness_mean"] = _finite_mean(th)
-            row["thickness_median"] = _finite_median(th)
-            row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
-        if r.get("directors"):  # a morphology-only record has no layer tables
-            row.update(_layer_columns(r))
-        flags = quality_flags(row, m)
-        row["qc_pass"] = not flags
-        row["qc_flags"] = "; ".join(flags)
-        rows.append(row)
+        tables = _read_tables(r)
+        for label, mo in _objects(m):  # a loop over objects (one row each)
+            row = _frame_row(r, m, mo, _of_object(tables, label))
+            row["object"] = label
+            rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
-    out = out.astype({"t": "int64", "c": "int64", "n_directors": "Int64", "n_defects": "Int64",
+    out = out.astype({"t": "int64", "c": "int64", "object": "int64", "n_directors": "Int64", "n_defects": "Int64",
                       "qc_pass": "bool", "qc_flags": "str"})
-    return out.sort_values(["t", "c", "layer"], kind="stable").reset_index(drop=True)
+    return out.sort_values(["t", "c", "layer", "object"], kind="stable").reset_index(drop=True)
+
+
+def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.DataFrame]) -> dict:
+    """One row of ``frames.parquet``: the record ``r``, the surface's measure ``m``, the object's ``mo``."""
+    centre = mo.get("centre") or [math.nan] * 3
+    row = {"t": int(r["t"]), "c": int(r["c"]), "layer": str(r["layer"]),
+           "surface": str(r["surface"]), "area": _num(mo.get("area")),
+           "volume": _num(mo.get("volume")),
+           "euler_characteristic": _num(mo.get("euler_characteristic")),
+           "n_objects": m.get("n_objects"), "snr": _num(m.get("snr")),
+           "centre_x": _num(centre[0]), "centre_y": _num(centre[1]), "centre_z": _num(centre[2]),
+           "H_mean": _num(mo.get("mean_H")), "K_mean": _num(mo.get("mean_K"))}
+    if "curvature" in tables:
+        cur = tables["curvature"]
+        row["H_fit_mean"] = _finite_mean(cur["H"])
+        row["K_fit_mean"] = _finite_mean(cur["K"])
+        row["curvature_nan_fraction"] = _nan_fraction(cur["H"])
+    if "thickness" in tables:
+        th = tables["thickness"]["thickness"].to_numpy(dtype=np.float64)
+        row["thickness_mean"] = _finite_mean(th)
+        row["thickness_median"] = _finite_median(th)
+        row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
+    if "directors" in tables:  # a morphology-only record has no layer tables
+        row.update(_layer_columns(tables))
+    flags = quality_flags(row, mo)
+    row["qc_pass"] = not flags
+    row["qc_flags"] = "; ".join(flags)
+    return row
 
 
 def collect_defects(records: Iterable[Mapping]) -> pd.DataFrame:
@@ -249,6 +285,8 @@ def collect_defects(records: Iterable[Mapping]) -> pd.DataFrame:
         df = read_table(r["defects"], "defects")
         params = read_provenance(r["defects"]).get("parameters") or {}
         df["min_distance"] = float(params.get("min_distance") or math.nan)  # tracking's default
+        if "object" not in df.columns:  # one object: 0
+            df.insert(0, "object", np.zeros(len(df), dtype=np.int64))
         df.insert(0, "layer", str(r["layer"]))
         df.insert(0, "c", int(r["c"]))
         df.insert(0, "t", int(r["t"]))

@@ -145,16 +145,63 @@ def test_mesh_split_of_two_objects_keeps_the_largest_or_refuses_to_mix_them():
     for wall, radius in (("inner", 10), ("outer", 14)):  # the larger shell's walls, nothing of the other
         assert measure(meshes[wall])["euler_characteristic"] == 2
         assert stages.object_radius(meshes[wall]) == pytest.approx(radius, abs=0.6)
-    vol = _balls((40, 40, 76), TWO_SHELLS)
-    with pytest.raises(NemoError, match="2 objects") as err:
-        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
-    msg = str(err.value)
-    radii = [float(r) for r in re.findall(r"radius of equal area ([\d.]+) um", msg)]
-    assert radii == pytest.approx([14, 14], abs=0.3)
-    assert "(20, 20, 20)" in msg and "(56, 20, 20)" in msg
-    assert "`mask`" in msg and "`keep` largest" in msg
-    with pytest.raises(NemoError, match="2 objects"):
-        stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "axis", "axis": [0, 0, 1], "keep": "all"})
+
+
+def test_mesh_keep_all_splits_every_object_about_its_own_centre():
+    """Two shells of different sizes (keep: all): each object's walls, labelled, with the right radii."""
+    from nemo import objects
+
+    vol = _balls((40, 40, 76), [(20, 20, 20, 10, 14), (56, 20, 20, 7, 10)])
+    for split in ("centre", "axis"):  # an axis split is about each object's centre too
+        meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": split, "axis": [0, 0, 1], "keep": "all"})
+        assert params["n_objects"] == 2
+        for wall, radii in (("inner", (10, 7)), ("outer", (14, 10))):
+            if split == "axis":
+                continue  # the halves of an axis split are not spheres
+            parts = objects.parts(meshes[wall])
+            assert [p.label for p in parts] == [0, 1]
+            for part, radius in zip(parts, radii):
+                assert part.mesh.euler_number == 2
+                assert stages.object_radius(part.mesh) == pytest.approx(radius, abs=0.6)
+        assert sorted(set(objects.vertex_labels(meshes["whole"]))) == [0, 1]
+        assert meshes["whole"].euler_number == 8  # two shells, two walls each
+
+
+def test_mesh_keep_all_leaves_a_droplet_out_of_the_walls():
+    """A shell and a filled ball (one wall): the ball has no inner wall, and a warning says so."""
+    from nemo import objects
+    from nemo.errors import NemoWarning
+
+    vol = _balls((40, 40, 76), [(20, 20, 20, 10, 14), (56, 20, 20, -1, 12)])
+    with pytest.warns(NemoWarning, match="object 1 is not split into walls"):
+        meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
+    assert params["n_objects"] == 2
+    assert set(objects.vertex_labels(meshes["inner"])) == {0} and set(objects.vertex_labels(meshes["whole"])) == {0, 1}
+    assert stages.object_radius(meshes["inner"]) == pytest.approx(10, abs=0.6)
+    with pytest.raises(NemoError, match="no object of the image has an inner and an outer wall"):
+        stages.mesh(_balls((40, 40, 76), [(20, 20, 20, -1, 14), (56, 20, 20, -1, 9)]), (1.0, 1.0, 1.0),
+                    {"split": "centre", "keep": "all"})
+
+
+def test_curvature_and_measure_per_object_follow_each_objects_size():
+    """Two spheres, R = 14 and 9: each object its own default radius and H = 1/R; measure per object."""
+    from nemo import objects
+
+    vol = _balls((40, 40, 76), [(20, 20, 20, -1, 14), (56, 20, 20, -1, 9)])
+    meshes, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "none", "keep": "all"})
+    df, p = stages.curvature(meshes["whole"], {"radius": None})
+    radii = objects.values(p, "radius")
+    assert len(radii) == 2 and radii[1] < radii[0]  # the smaller object gets the smaller fit
+    labels = objects.vertex_labels(meshes["whole"])
+    np.testing.assert_array_equal(df["object"], labels[df["vertex"]])
+    for label, radius in ((0, 14.0), (1, 9.0)):
+        h = df.loc[df["object"] == label, "H"]
+        assert np.nanmedian(h) == pytest.approx(1 / radius, rel=0.05)
+    m = stages.measure(meshes["whole"], df)
+    assert [o["object"] for o in m["objects"]] == [0, 1] and m["euler_characteristic"] == 4
+    for o, (radius, cx) in zip(m["objects"], ((14.0, 20.0), (9.0, 56.0))):
+        assert o["euler_characteristic"] == 2 and o["centre"][0] == pytest.approx(cx, abs=0.1)
+        assert o["area"] == pytest.approx(4 * np.pi * radius**2, rel=0.05)
 
 
 def test_mesh_keep_largest_of_two_balls_warns_and_keeps_one():
@@ -184,22 +231,6 @@ def test_mesh_of_one_shell_neither_warns_nor_fails(speck, recwarn):
     # a droplet (one wall) without a split: no warning either
     meshes, _ = stages.mesh(_balls((30, 30, 30), [(15, 15, 15, -1, 9)]), (1.0, 1.0, 1.0), {"split": "none"})
     assert meshes["whole"].euler_number == 2 and not [w for w in recwarn if "object" in str(w.message)]
-
-
-def test_cli_run_on_two_objects_is_a_clean_error(tmp_path, capsys):
-    from nemo.cli import main
-    from nemo.io import write_hyperstack
-
-    tif = tmp_path / "two.tif"
-    write_hyperstack(tif, _balls((40, 40, 76), TWO_SHELLS).astype(np.uint8)[None, :, None], spacing=(1, 1, 1))
-    cfg = tmp_path / "all.yaml"
-    cfg.write_text("mesh: {keep: all}\n")
-    code = main(["run", str(tif), "--config", str(cfg), "-o", str(tmp_path / "out")])
-    err = capsys.readouterr().err
-    assert code == 2
-    assert "nemo run: error:" in err and "2 objects" in err and "Traceback" not in err
-    assert "mesh.keep: largest" in err and "--keep" not in err  # nemo run is configured by keys, not flags
-    assert not (tmp_path / "out").exists()
 
 
 # ------------------------------------------------------------------------ user meshes

@@ -65,6 +65,20 @@ def add_arguments(parser) -> None:
     add_common(parser, output_help="output defects table (.parquet)")
 
 
+def _averaging_radius(order_path: str) -> float | list[float] | None:
+    """The order table's averaging radius from its provenance (one per object on a mesh of several)."""
+    from nemo import objects
+    from nemo.tables import read_provenance
+
+    prov = read_provenance(order_path)
+    params = prov.get("parameters") or {}
+    radius = objects.values(params, "radius") if params else prov.get("radius")
+    radii = radius if isinstance(radius, list) else [radius]
+    if not all(isinstance(r, (int, float)) and r > 0 for r in radii):
+        return None  # estimated from S
+    return [float(r) for r in radii] if isinstance(radius, list) else float(radius)
+
+
 def run(args) -> int:
     from nemo import stages
     from nemo.cli.common import section_params
@@ -78,11 +92,7 @@ def run(args) -> int:
     n = len(mesh.vertices)
     odf = read_table(args.order, kind="order", n_vertices=n)
     ddf = read_table(args.directors, kind="directors", n_vertices=n)
-    avg = args.avg_radius
-    if avg is None:
-        oprov = read_provenance(args.order)
-        radius = (oprov.get("parameters") or {}).get("radius", oprov.get("radius"))
-        avg = float(radius) if isinstance(radius, (int, float)) and radius > 0 else None
+    avg = args.avg_radius if args.avg_radius is not None else _averaging_radius(args.order)
     k = None
     if args.curvature:
         cdf = read_table(args.curvature, kind="curvature", n_vertices=n)

@@ -33,7 +33,7 @@ def _fmt(x, spec=".6g") -> str:
 
 def run(args) -> int:
     from nemo.mesh import load_mesh
-    from nemo.morphology import measure
+    from nemo.stages import measure
     from nemo.tables import read_table
 
     mesh = load_mesh(args.mesh, manifold=False)  # measure reports a non-manifold surface in its notes

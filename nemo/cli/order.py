@@ -39,7 +39,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from nemo import stages
+    from nemo import objects, stages
     from nemo.cli.common import mesh_and_table, section_params
     from nemo.tables import read_provenance, write_table
 
@@ -47,7 +47,7 @@ def run(args) -> int:
     mesh, dirs, prov = mesh_and_table(args.mesh, args.directors, "directors")
     dparams = read_provenance(args.directors).get("parameters") or {}
     df, params = stages.order(mesh, dirs, section_params(args, "order"),
-                              patch_radius=dparams.get("nominal_radius"))
+                              patch_radius=objects.values(dparams, "nominal_radius"))
     write_table(df, out, command="order", directors=str(args.directors), **prov, parameters=params,
                 radius=params["radius"])
     s = df["S"].to_numpy()
