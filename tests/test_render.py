@@ -397,6 +397,22 @@ def test_frames_figure_marks_flagged_frames():
                 if not p.get_x() < 1 < p.get_x() + p.get_width()]
 
 
+def test_frames_figure_draws_a_line_per_object():
+    """frames.parquet of two objects (mesh.keep: all): each object its own line, not a zigzag."""
+    one = _frames_table()
+    two = pd.concat([one.assign(object=0), one.assign(object=1, S_mean=0.5)], ignore_index=True)
+    fig = frames_figure(two)
+    lines = _axis(fig, "nematic order").get_lines()
+    assert len(lines) == 8  # 2 layers x 2 objects x (mean, median)
+    for ln in lines:  # every line runs over t once, at its object's constant value
+        np.testing.assert_allclose(ln.get_xdata(), [0, 1, 2], atol=0.2)  # lines are dodged a little in t
+        assert np.ptp(ln.get_ydata()) == 0
+    assert sum(np.allclose(ln.get_ydata(), 0.5) for ln in lines) == 2
+    legend = " ".join(t.get_text() for a in fig.axes for lg in [a.get_legend()] if lg for t in lg.get_texts())
+    legend += " ".join(t.get_text() for lg in fig.legends for t in lg.get_texts())
+    assert "object 1" in legend
+
+
 def test_frame_qc_without_qc_columns():
     df = _frames_table().drop(columns=["qc_pass", "qc_flags"])
     df.loc[1, "charge_sum"] = 1.5

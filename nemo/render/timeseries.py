@@ -287,13 +287,20 @@ def _frame_groups(frames: pd.DataFrame) -> tuple[dict, dict]:
 
     cs = frames["c"] if "c" in frames.columns else pd.Series(0, index=frames.index)
     lay = frames["layer"].astype(str) if "layer" in frames.columns else pd.Series("", index=frames.index)
-    layers = {label(c, L, "layer " if L else "all"): g.sort_values("t")
-              for (c, L), g in frames.groupby([cs, lay], sort=True)}
+    # several objects (mesh.keep: all): a line per object
+    obj = frames["object"] if "object" in frames.columns else pd.Series(0, index=frames.index)
+    several = obj.nunique() > 1
+
+    def tag(o) -> str:
+        return f" object {o}" if several else ""
+
+    layers = {label(c, L, "layer " if L else "all") + tag(o): g.sort_values("t")
+              for (c, L, o), g in frames.groupby([cs, lay, obj], sort=True)}
     if "surface" not in frames.columns:
         return layers, layers
     surf = frames["surface"].astype(str)
-    surfaces = {label(c, f"{S} surface", ""): g.sort_values("t").drop_duplicates("t")
-                for (c, S), g in frames.groupby([cs, surf], sort=True)}
+    surfaces = {label(c, f"{S} surface", "") + tag(o): g.sort_values("t").drop_duplicates("t")
+                for (c, S, o), g in frames.groupby([cs, surf, obj], sort=True)}
     return layers, surfaces
 
 
