@@ -91,7 +91,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--smooth", type=_nonneg_int, default=None, metavar="ITER",
                         help="Taubin smoothing iterations (default 10; 0 = none)")
     parser.add_argument("--keep", choices=("largest", "all"), default=None,
-                        help="keep the largest connected component (of each half with --split; default) or all")
+                        help="several objects in the image: analyse the largest (default) or all, each labelled "
+                             "(vertex field 'object', 0 = the largest) and split about its own centre")
     parser.add_argument("--split", choices=("centre", "center", "axis", "none"), default=None,
                         help="also write MESH.inner.ply and MESH.outer.ply, split by the sign of "
                              "n·(x - centre) or n·axis (default centre; none = one surface)")
