@@ -366,25 +366,11 @@ def read_mesh_centre(path):
 
 # ----------------------------------------------------------------------------- several objects
 @pytest.fixture(scope="module")
-def two_vesicles(tmp_path_factory):
+def two_vesicles(tmp_path_factory, write_two_vesicles):
     """Two synthetic vesicles side by side (R = 30 and 22 µm, 1.5 µm voxels, the second turned at
     random), analysed with ``mesh.keep: all``; truth: each one's defects in the joint image."""
-    from nemo.io import write_hyperstack
-    from nemo.synthetic import vesicle
-
     d = tmp_path_factory.mktemp("two_vesicles")
-    sp = 1.5
-    a, ta = vesicle(radius=30, spacing=(sp,) * 3, seed=1)
-    b, tb = vesicle(radius=22, spacing=(sp,) * 3, rotate=5, seed=2)
-    a, b = a[0, :, 0], b[0, :, 0]
-    vol = np.zeros((a.shape[0], a.shape[1], a.shape[2] + b.shape[2]), a.dtype)
-    vol[:, :, :a.shape[2]] = a
-    vol[:b.shape[0], :b.shape[1], a.shape[2]:] = b
-    write_hyperstack(d / "two.tif", vol[None, :, None], spacing=(sp,) * 3)
-    offset = np.array([a.shape[2] * sp, 0.0, 0.0])
-    truth = [{"centre": np.asarray(t["centre"]) + o,
-              "defects": np.array([[q["x"], q["y"], q["z"]] for q in t["defects"]]) + o}
-             for t, o in ((ta, np.zeros(3)), (tb, offset))]
+    truth = write_two_vesicles(d / "two.tif")
     config = {"mesh": {"keep": "all", "split": "centre"},
               "layers": {"film": {"surface": "inner", "range": [0, 4]}}}
     summary = run_frame(d / "two.tif", d / "out", config=config)
