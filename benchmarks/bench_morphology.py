@@ -1,7 +1,9 @@
 """Benchmark of the morphology stage: curvature and thickness on a ~500k-vertex mesh.
 
 Targets (issue 3): curvature with 20 000 fitted samples + interpolation to every vertex
-≤ 5 s; thickness (one ray per vertex, Embree) for 500k vertices ≤ 3 s. Also times measure.
+≤ 5 s; thickness (one ray per vertex, Embree) for 500k vertices ≤ 3 s. Also times measure,
+and (issue 12) the default fitting radius (``default_radius``: pilot fits) against the fit at
+that radius; ``--vertices 200000`` is the paper's scale.
 Wall and CPU seconds are printed with the load average: on a shared machine the CPU time is
 the figure that does not depend on the other jobs.
 
@@ -11,6 +13,7 @@ thickness rays. Building the meshes is not timed.
 
     . .venv/bin/activate && python benchmarks/bench_morphology.py
     python benchmarks/bench_morphology.py --vertices 1000000 --radius 5 --samples 20000
+    python benchmarks/bench_morphology.py --vertices 200000 --only-default-radius
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import numpy as np
 from skimage.measure import marching_cubes
 
 from nemo.mesh import make_mesh
-from nemo.morphology import curvature, measure, thickness
+from nemo.morphology import curvature, default_radius, measure, thickness
 
 
 def bumpy_sphere(radius: float, offset: float = 0.0):
@@ -68,6 +71,7 @@ def main() -> None:
     ap.add_argument("--radius", type=float, default=4.0, help="curvature fitting radius (µm)")
     ap.add_argument("--samples", type=int, default=20_000, help="fitted vertices")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--only-default-radius", action="store_true", help="time the default radius only")
     args = ap.parse_args()
     print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
@@ -79,6 +83,10 @@ def main() -> None:
     print(f"meshes: {len(inner.vertices)} and {len(outer.vertices)} vertices (R ≈ {R:.0f} µm, 1 µm voxels), "
           f"built in {time.perf_counter() - t0:.1f} s (not timed)")
     inner.vertex_normals  # noqa: B018  (cached by trimesh; part of loading a mesh, not of the step)
+
+    bench_default_radius(inner, R, args)
+    if args.only_default_radius:
+        return
 
     for fit in ("quadratic", "quartic"):
         df, _ = timed(f"curvature {fit:9s} r={args.radius:g} µm, {args.samples} samples + IDW",
@@ -96,6 +104,18 @@ def main() -> None:
     res, _ = timed(f"measure (area, volume, χ, ∫K dA, mean H), {len(inner.faces)} faces",
                    lambda: measure(inner), 2)
     print(f"{'':58s} χ = {res['euler_characteristic']}, Gauss–Bonnet ratio {res['gauss_bonnet_ratio']:.6f}")
+
+
+def bench_default_radius(mesh, R: float, args) -> None:
+    """Issue 12: the default radius (pilot fits) against the fit it is for."""
+    (radius, info), _ = timed("default_radius (pilot passes of 2000 quartic fits)",
+                              lambda: default_radius(mesh), args.repeat)
+    print(f"{'':58s} radius {radius:.2f} µm = {info['radius_edges']:.1f} edges, limited by "
+          f"{info['limited_by']}, R_c {info['curvature_radius']:.1f} µm (object R ≈ {R:.0f}), "
+          f"pilot radii {', '.join(f'{r:.2f}' for r in info['pilot_radii'])}")
+    df, _ = timed(f"curvature auto at that radius, {args.samples} samples + IDW",
+                  lambda: curvature(mesh, radius, n_samples=args.samples, rng=0), args.repeat)
+    print(f"{'':58s} fit {df.attrs['fit']}, median H = {np.nanmedian(df['H']):.5f} 1/µm (1/R = {1 / R:.5f})")
 
 
 if __name__ == "__main__":

@@ -7,6 +7,9 @@ Method note §3, paper methods "Morphological analysis".
   vertices, inverse-distance interpolated to every vertex (paper eq. ``mesh-interpolation``).
   On an open surface (cut by the image border) vertices within the radius of the rim are NaN:
   a fit there sees the surface on one side only.
+* :func:`default_radius` -- the fitting radius from the surface itself: 15 mean edges at most,
+  0.6 × the radius of curvature of the most curved quarter (pilot fits) at most, 4 edges at
+  least, and on an open surface half the largest distance to the rim at most.
 * :func:`thickness` -- distance along the vertex normal from one surface to another, by ray
   casting (Embree through trimesh when available); NaN where the ray finds nothing.
 * :func:`measure` -- area, enclosed volume, Euler characteristic, genus, components, discrete
@@ -79,6 +82,22 @@ AUTO_QUARTIC_NEIGHBOURS = 60
 #: warns that the fits average over too much of the surface (the quadric/quadratic fits are
 #: biased by ~(r k)²/4 there; the quartic fit, without that bias, is warned at twice the value).
 LARGE_RADIUS_RK = 0.5
+#: Default fitting radius (:func:`default_radius`): at most this many mean edge lengths (the
+#: fit averages the mesh's roughness over ~800 neighbours; more only blurs the shape).
+DEFAULT_RADIUS_EDGES = 15.0
+#: ... and at least this many (~60 neighbours: enough for a quartic fit), whatever the curvature.
+DEFAULT_MIN_EDGES = 4.0
+#: ... and at most this fraction of the surface's radius of curvature (the quartic fit of a
+#: sphere is biased by −0.4 / −1 / −2 % at r = 0.5 / 0.6 / 0.7 R); quadric and quadratic fits,
+#: biased by ~(r/R)²/4, get :data:`DEFAULT_FRACTION_QUADRATIC`.
+DEFAULT_FRACTION = 0.6
+DEFAULT_FRACTION_QUADRATIC = 0.25
+#: The radius of curvature is this quantile of 1/|k|max over the pilot fits: the most curved
+#: quarter of the surface sets the radius (robust to noise and outliers, unlike the minimum).
+DEFAULT_CURVATURE_QUANTILE = 0.25
+#: Vertices fitted by each pilot pass of :func:`default_radius`, and the most passes.
+PILOT_SAMPLES = 2000
+PILOT_PASSES = 5
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -256,6 +275,160 @@ def _fit_chunk(
     nrm = unit_vectors(np.cross(e1, e2))
     dir2 = np.cross(nrm, dir1)
     return H, K, k1, k2, dir1, dir2, count
+
+
+def default_radius(
+    mesh: trimesh.Trimesh,
+    fit: FitKind = "auto",
+    edges: float = DEFAULT_RADIUS_EDGES,
+    min_edges: float = DEFAULT_MIN_EDGES,
+    fraction: float | None = None,
+    quantile: float = DEFAULT_CURVATURE_QUANTILE,
+    n_probe: int = PILOT_SAMPLES,
+    rng: np.random.Generator | int | None = 0,
+) -> tuple[float, dict]:
+    """Default fitting radius of :func:`curvature`, from the surface itself.
+
+    ``radius = min(max(min(edges × h, fraction × R_c), min_edges × h), ½ d_rim)``: as many
+    mesh edges (h: the mean edge length) as averages the mesh's roughness away, but at most a
+    fraction of the surface's radius of curvature R_c, and never fewer than ``min_edges``
+    edges; on an open surface at most half the largest distance of a vertex to the rim
+    (a larger radius leaves no vertex whose fit stays off the rim: every H would be NaN).
+
+    R_c comes from pilot passes: the :func:`curvature` fit (quartic) at up to ``n_probe``
+    random vertices (away from the rim) at the current radius, R_c = the ``quantile`` of
+    1/|k|max over them. The first pass is at ``min_edges × h``; each next pass at the radius
+    the previous one gave, until it changes by less than 10 % (at most :data:`PILOT_PASSES`).
+    The passes go up from the smallest radius because a fit is trustworthy only below ~0.7 R
+    (beyond, the quartic underestimates |k|: on a sphere 1/|k| = 1.08 R at r = 0.9 R, 1.5 R at
+    1.2 R, meaningless beyond), while a small radius errs on the safe side (roughness raises
+    |k|). The object's size does not enter: a piece cut by the field of view (short stack,
+    cap) gets the radius of the whole object, unless the rim cap is smaller.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Surface with outward normals, vertices in physical units; closed or open.
+    fit : {"auto", "quadric", "quadratic", "quartic"}
+        The fit the radius is for: the default ``fraction`` is :data:`DEFAULT_FRACTION` for
+        ``auto``/``quartic`` and :data:`DEFAULT_FRACTION_QUADRATIC` for ``quadric`` and
+        ``quadratic`` (biased by ~(r/R)²/4).
+    edges, min_edges : float
+        Largest and smallest radius in mean edge lengths (:data:`DEFAULT_RADIUS_EDGES`,
+        :data:`DEFAULT_MIN_EDGES`).
+    fraction : float, optional
+        Largest radius as a fraction of the radius of curvature R_c, in (0, 2].
+    quantile : float
+        Quantile of 1/|k|max taken as R_c, in (0, 1) (:data:`DEFAULT_CURVATURE_QUANTILE`).
+    n_probe : int
+        Vertices fitted per pilot pass (:data:`PILOT_SAMPLES`); ≥ 10.
+    rng : numpy.random.Generator or int, optional
+        Which vertices the pilot fits (by index: the result does not depend on the pose).
+
+    Returns
+    -------
+    radius : float
+        Fitting radius in the mesh unit.
+    info : dict
+        JSON-serialisable: ``radius``, ``edge`` (h), ``radius_edges`` (radius / h),
+        ``curvature_radius`` (R_c; None when the pilot found no curvature, e.g. a plane),
+        ``rim_cap`` (½ the largest rim distance; None on a closed surface), ``limited_by``
+        (``"edges"``, ``"curvature"``, ``"rim"`` or ``"min_edges"``), ``pilot_radii`` (radius of
+        each pilot pass), ``n_probe`` (vertices fitted in the last pass), ``fraction``,
+        ``quantile``.
+
+    Raises
+    ------
+    NemoError
+        Unusable mesh, parameters out of range, an unknown ``fit``.
+    """
+    check_mesh(mesh)
+    fraction = _check_default_radius_args(fit, edges, min_edges, fraction, quantile, n_probe)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    normals = vertex_normals(mesh)
+    h = mean_edge_length(mesh)
+    if not (math.isfinite(h) and h > 0):
+        raise NemoError(f"the mesh's mean edge length is {h}: cannot set a curvature radius from it")
+    d_rim = rim(mesh.faces, len(vertices), vertices)["distance"]
+    rim_cap = 0.5 * float(d_rim.max()) if np.isfinite(d_rim).all() else math.inf
+    caps = {"edges": edges * h}
+    radius = min(min_edges * h, rim_cap)  # from below: a fit beyond ~0.7 R underestimates |k|
+    order = _as_rng(rng).permutation(np.flatnonzero(np.isfinite(normals[:, 0])))
+    if len(order) == 0:
+        raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
+    tree = cKDTree(vertices)
+    pilots: list[float] = []
+    for _ in range(PILOT_PASSES):
+        pilots.append(radius)
+        r_c, n_fit = _pilot_curvature_radius(vertices, normals, tree, order, d_rim, radius, n_probe, quantile)
+        caps["curvature"] = fraction * r_c
+        new = min(max(min_edges * h, min(caps.values())), rim_cap)
+        if abs(new - radius) < 0.1 * radius:
+            break
+        radius = new
+    radius = new
+    limited_by = "rim" if radius == rim_cap else min(caps, key=caps.get)
+    if limited_by != "rim" and caps[limited_by] < min_edges * h:
+        limited_by = "min_edges"
+    info = {
+        "radius": float(radius), "edge": float(h), "radius_edges": float(radius / h),
+        "curvature_radius": float(r_c) if math.isfinite(r_c) else None,
+        "rim_cap": float(rim_cap) if math.isfinite(rim_cap) else None, "limited_by": limited_by,
+        "pilot_radii": [float(r) for r in pilots], "n_probe": int(n_fit), "fraction": float(fraction),
+        "quantile": float(quantile),
+    }
+    logger.info("curvature: default radius %.3g %s (%.1f edges; limited by %s; radius of curvature %s)",
+                radius, _pretty_unit(_unit_name(mesh)), radius / h, limited_by,
+                "–" if info["curvature_radius"] is None else f"{r_c:.3g}")
+    return float(radius), info
+
+
+def _check_default_radius_args(fit: str, edges: float, min_edges: float, fraction: float | None,
+                               quantile: float, n_probe: int) -> float:
+    """The fraction of the radius of curvature (its default for ``fit``); NemoError when out of range."""
+    if fit not in ("auto", "quadric", "quadratic", "quartic"):
+        raise NemoError(f"unknown curvature fit {fit!r}: use auto, quadric, quadratic or quartic")
+    if not (math.isfinite(edges) and math.isfinite(min_edges) and 0 < min_edges <= edges):
+        raise NemoError(f"the radius bounds must satisfy 0 < min_edges ≤ edges (in edge lengths), got "
+                        f"min_edges={min_edges}, edges={edges}")
+    if fraction is None:
+        fraction = DEFAULT_FRACTION_QUADRATIC if fit in ("quadric", "quadratic") else DEFAULT_FRACTION
+    if not (math.isfinite(fraction) and 0 < fraction <= 2):
+        raise NemoError(f"fraction of the radius of curvature must be in (0, 2], got {fraction}")
+    if not (0 < quantile < 1):
+        raise NemoError(f"quantile must be in (0, 1), got {quantile}")
+    if int(n_probe) < 10:
+        raise NemoError(f"the pilot needs at least 10 vertices, got n_probe={n_probe}")
+    return float(fraction)
+
+
+def _pilot_curvature_radius(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, order: np.ndarray,
+                            d_rim: np.ndarray, radius: float, n_probe: int, quantile: float) -> tuple[float, int]:
+    """The ``quantile`` of 1/|k|max from quartic fits at ``radius`` (inf: no curvature found).
+
+    The first ``n_probe`` vertices of ``order`` whose ball stays off the rim are fitted (those
+    farthest from the rim if none does).
+
+    Returns
+    -------
+    r_c : float
+        Radius of curvature in the mesh unit.
+    n : int
+        Number of finite fits it comes from.
+    """
+    probe = order[d_rim[order] > radius][: int(n_probe)]
+    if len(probe) == 0:
+        probe = np.argsort(-d_rim)[: int(n_probe)]
+    probe = np.sort(probe)
+    n_pairs = float(np.mean(tree.query_ball_point(vertices[probe[:256]], radius, return_length=True)))
+    chunk = max(1, int(_PAIRS_PER_CHUNK // max(1.0, n_pairs)))
+    out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, "quartic", chunk)
+    kmax = np.fmax(np.abs(out["k1"]), np.abs(out["k2"]))
+    kmax = kmax[np.isfinite(kmax)]
+    if len(kmax) == 0:
+        return math.inf, 0
+    kq = float(np.quantile(kmax, 1.0 - quantile))
+    return (1.0 / kq if kq > 0 else math.inf), len(kmax)
 
 
 def curvature(

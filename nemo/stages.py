@@ -11,9 +11,11 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 
 ==========================  =====================================================================
 ``mesh.step``               1 voxel; 2 for stacks above :data:`STEP2_VOXELS` voxels (memory)
-``mesh.sigma``              half the marching-cubes sampling distance, ``step (dx + dy) / 4``
-``curvature.radius``        ``15 edge``, at most ``0.5 R_obj`` (a fit needs many neighbours but
-                            must stay below the radius of curvature)
+``mesh.sigma``              noise-aware (nemo.surface.auto_sigma): at least half the sampling
+                            distance ``step (dx + dy) / 4``, enough for a blurred SNR of 20
+``curvature.radius``        ``min(15 edge, 0.6 R_c)``, at least ``4 edge``, at most half the largest
+                            rim distance on an open surface (``R_c``: radius of curvature of the
+                            most curved quarter, from pilot fits; nemo.morphology.default_radius)
 ``directors.patch_radius``  ``0.1 R_obj`` (the paper: 20 µm on R = 200 µm), at least ``8 edge``
 ``directors.n_patches``     30 per patch area, at most the number of vertices
 ``directors.pixel``         ``edge / 4``, at least ``patch_radius / 97`` (micro-images ≤ 195 px)
@@ -47,8 +49,6 @@ IMPORTED_PER_DISC = 10.0
 
 #: Stacks with more voxels than this are meshed every 2 voxels by default.
 STEP2_VOXELS = 64_000_000
-#: Default curvature fitting radius in mean edge lengths (docs/validation.md: 5 is noisy).
-CURVATURE_EDGES = 15.0
 #: Default averaging radius in patch radii.
 ORDER_PER_PATCH = 2.5
 
@@ -103,19 +103,25 @@ def mesh(
         and no object that has two walls.
     """
     from nemo.geometry import rim
-    from nemo.surface import default_sigma, find_objects, image_noise, one_object, reconstruct
+    from nemo.surface import auto_sigma, default_sigma, find_objects, image_noise, one_object, reconstruct
 
     p = nconfig.section("mesh", params)
     shape = (volume if volume is not None else mask).shape
     if p["step"] is None:
         p["step"] = 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
-    if p["sigma"] is None:
+    p["sigma_auto"] = None
+    if p["sigma"] is None and volume is not None and mask is None:
+        p["sigma"], p["sigma_auto"] = auto_sigma(volume, spacing, p["step"], threshold=p["threshold"])
+    elif p["sigma"] is None:
         p["sigma"] = default_sigma(spacing, p["step"])
     whole = reconstruct(volume, spacing, sigma=float(p["sigma"]), threshold=p["threshold"], mask=mask,
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit,
-                        border=p["border"])
-    whole.metadata["nemo_surface"]["keep"] = p["keep"]
-    p["level"] = float(whole.metadata["nemo_surface"]["level"])
+                        border=p["border"], refine=bool(p["refine"]), refine_sigma=p["refine_sigma"])
+    surface = whole.metadata["nemo_surface"]
+    surface["keep"] = p["keep"]
+    p["level"] = float(surface["level"])
+    p["refine_sigma"] = surface.get("refine_sigma")
+    p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None else {"noise": None, "snr": None})
     found = find_objects(whole) if p["keep"] == "all" else []
     if len(found) > 1:  # keep: all -> every object, labelled, each split about its own centre
@@ -282,20 +288,25 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
 
 
 def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:
-    """The ``curvature`` section with its radius resolved on ``mesh``."""
-    from nemo.mesh import mean_edge_length
+    """The ``curvature`` section with its radius resolved on ``mesh`` (:func:`nemo.morphology.default_radius`).
+
+    ``radius_from`` records what set a default radius: ``limited_by`` (``edges``, ``curvature``,
+    ``rim`` or ``min_edges``), the surface's radius of curvature, the mean edge and the rim cap.
+    """
+    from nemo.morphology import default_radius
 
     split = objects.parts(mesh)
     if split:  # each object its own radius
         return objects.combine_params([curvature_defaults(part.mesh, params) for part in split], split)
     p = nconfig.section("curvature", params)
     if p["radius"] is None:
-        p["radius"] = min(CURVATURE_EDGES * mean_edge_length(mesh), 0.5 * object_radius(mesh))
+        p["radius"], info = default_radius(mesh, fit=p["fit"], rng=int(p["seed"]))
+        p["radius_from"] = {k: info[k] for k in ("limited_by", "curvature_radius", "edge", "radius_edges", "rim_cap")}
     return p
 
 
 def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.DataFrame, dict]:
-    """H, K at every vertex (method note §3); radius default ``15 edge`` ≤ ``0.5 R_obj``."""
+    """H, K at every vertex (method note §3); default radius: :func:`curvature_defaults`."""
     from nemo.morphology import curvature as fit_curvature
 
     split = objects.parts(mesh)
@@ -530,10 +541,14 @@ def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvat
     found, extras, resolved = [], [], []
     for k, part in enumerate(split):  # a loop over objects
         v = part.vertices
-        df, extra, p = defects(part.mesh, objects.local_table(order_df, part), objects.local_table(directors_df, part),
-                               params, objects.value_for(avg_radius, k), None if curvature is None else curvature[v],
-                               None if intensity is None else np.asarray(intensity)[v],
-                               objects.pick(director_params, k))
+        try:
+            df, extra, p = defects(part.mesh, objects.local_table(order_df, part),
+                                   objects.local_table(directors_df, part), params, objects.value_for(avg_radius, k),
+                                   None if curvature is None else curvature[v],
+                                   None if intensity is None else np.asarray(intensity)[v],
+                                   objects.pick(director_params, k))
+        except NemoError as exc:  # e.g. an object too small for its averaging radius: the others go on
+            df, extra, p = _no_defects(part, params, str(exc))
         found.append(df)
         extras.append(extra)
         resolved.append(p)
@@ -552,6 +567,22 @@ def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvat
     pieces = [(e, part) for e, part in zip(extras, split) if e is not None]
     extra = objects.combine_tables([e for e, _ in pieces], [q for _, q in pieces], sort=False) if pieces else None
     return out, extra, objects.combine_params(resolved, split)
+
+
+def _no_defects(part, params: dict | None, reason: str) -> tuple[pd.DataFrame, None, dict]:
+    """The empty result of an object whose defect search cannot run, with a warning naming why."""
+    import warnings
+
+    from nemo.defects import COLUMNS
+    from nemo.errors import NemoWarning
+
+    warnings.warn(f"object {part.label}: no defect search ({reason})", NemoWarning, stacklevel=3)
+    df = pd.DataFrame(columns=list(COLUMNS))
+    df.attrs["euler_check"] = {"sum_charge": 0.0, "sum_charge_rounded": 0.0, "closed": bool(part.mesh.is_watertight),
+                               "euler_characteristic": int(part.mesh.euler_number), "matches": False,
+                               "skipped": reason}
+    df.attrs["parameters"] = {"skipped": reason}
+    return df, None, {**nconfig.section("defects", params), "skipped": reason}
 
 
 def _combined(results: list[tuple[pd.DataFrame, dict]], split: list) -> tuple[pd.DataFrame, dict]:

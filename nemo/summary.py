@@ -226,8 +226,9 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     for r in records:
         m = _read_measure(r["measure"])
         tables = _read_tables(r)
+        skipped = _skipped_searches(r)
         for label, mo in _objects(m):  # a loop over objects (one row each)
-            row = _frame_row(r, m, mo, _of_object(tables, label))
+            row = _frame_row(r, m, mo, _of_object(tables, label), skipped.get(label))
             row["object"] = label
             rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
@@ -236,7 +237,18 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     return out.sort_values(["t", "c", "layer", "object"], kind="stable").reset_index(drop=True)
 
 
-def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.DataFrame]) -> dict:
+def _skipped_searches(r: Mapping) -> dict[int, str]:
+    """Objects whose defect search could not run (``nemo.stages``), with the reason."""
+    if not r.get("defects"):
+        return {}
+    from nemo.tables import read_provenance
+
+    check = read_provenance(r["defects"]).get("euler_check") or {}
+    return {int(o["object"]): o["skipped"] for o in check.get("objects") or [] if o.get("skipped")}
+
+
+def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.DataFrame],
+               skipped: str | None = None) -> dict:
     """One row of ``frames.parquet``: the record ``r``, the surface's measure ``m``, the object's ``mo``."""
     centre = mo.get("centre") or [math.nan] * 3
     row = {"t": int(r["t"]), "c": int(r["c"]), "layer": str(r["layer"]),
@@ -258,7 +270,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
-    flags = quality_flags(row, mo)
+    flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped else [])
     row["qc_pass"] = not flags
     row["qc_flags"] = "; ".join(flags)
     return row

@@ -72,7 +72,10 @@ from nemo.mesh import (
 )
 
 __all__ = [
+    "AUTO_SIGMA_SNR",
     "OBJECT_MIN_AREA",
+    "auto_sigma",
+    "blur_noise_gain",
     "default_sigma",
     "face_components",
     "find_objects",
@@ -404,6 +407,202 @@ def default_sigma(spacing, step: int = 1) -> float:
     return 0.25 * max(1, int(step)) * (dx + dy)
 
 
+#: Blurred signal-to-noise ratio :func:`auto_sigma` aims at: (plateau − background) over the
+#: noise left after the blur. At 20 the iso-level (half the contrast) lies 10 blurred-noise
+#: standard deviations from both plateaus, so a wall of 10⁵–10⁶ surface samples has no hole.
+AUTO_SIGMA_SNR = 20.0
+#: Largest automatic σ, in lateral sampling distances (``step × (dx + dy) / 2``).
+AUTO_SIGMA_MAX_SAMPLES = 3.0
+#: Largest automatic σ as a fraction of the object's thickness (``2 × volume / area`` of the
+#: thresholded object, an underestimate on porous walls): a blur of 0.4 × a slab's thickness
+#: keeps 79 % of its plateau, so the two walls stay apart; the refinement then puts them back
+#: on the edges of the lightly blurred image.
+AUTO_SIGMA_THICKNESS = 0.4
+#: Signal-to-noise ratio of the profiles the refinement reads (:func:`reconstruct`, ``refine``):
+#: lower than the mesh's, since the shifts are averaged over neighbouring vertices.
+REFINE_SNR = 8.0
+
+
+def blur_noise_gain(sigma: float, spacing) -> float:
+    """Factor by which a Gaussian blur of σ (physical) divides white voxel noise's std.
+
+    ``1 / sqrt(∏ Σ_j g_ij²)`` over the three axes, ``g_i`` the normalised discrete kernel of
+    σ / d_i voxels (≈ ``sqrt(∏ 2 √π σ / d_i)`` once σ exceeds a voxel; 1 at σ = 0).
+
+    Parameters
+    ----------
+    sigma : float
+        Blur σ in physical units (>= 0).
+    spacing : (dz, dy, dx)
+
+    Returns
+    -------
+    float
+        >= 1.
+    """
+    gain = 1.0
+    for d in check_spacing(spacing):
+        s = sigma / d
+        if s <= 0:
+            continue
+        x = np.arange(-int(np.ceil(4 * s)) - 1, int(np.ceil(4 * s)) + 2)
+        g = np.exp(-0.5 * (x / s) ** 2)
+        gain *= float((g / g.sum()) @ (g / g.sum()))
+    return float(1.0 / np.sqrt(gain))
+
+
+def _sigma_for_snr(snr: float | None, spacing, target: float, floor: float, cap: float) -> float:
+    """Smallest σ in ``[floor, cap]`` with ``snr × blur_noise_gain(σ) >= target`` (bisection)."""
+    cap = max(cap, floor)
+    if snr is None or not np.isfinite(snr) or snr * blur_noise_gain(floor, spacing) >= target:
+        return floor
+    if snr <= 0 or snr * blur_noise_gain(cap, spacing) < target:
+        return cap
+    lo, hi = floor, cap
+    for _ in range(40):  # scalar bisection on a monotone function
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if snr * blur_noise_gain(mid, spacing) < target else (lo, mid)
+    return hi
+
+
+def _object_stats(sample: np.ndarray, blurred: np.ndarray, level: float) -> dict:
+    """Background, plateau, noise and contrast of a strided raw sample split by its blurred copy.
+
+    The noise is the larger of the background's robust spread (1.4826 × MAD of the raw voxels
+    whose blurred value is below ``level``) and the object's **dark spread**: how far the raw
+    voxels of the object's core (the thresholded blurred sample eroded by one sample, away from
+    its edges) fall below the plateau, ``(plateau − 25th percentile) / 0.6745`` (the std of
+    Gaussian noise; 0 when bright texture only adds light, as fibres do). Dark gaps inside the
+    object (noise, or speckle such as nuclei with dark space between them) make a thresholded wall
+    porous; bright texture does not. The plateau is ``2 × level − background`` (the level sits
+    half-way).
+    """
+    inside = blurred >= level
+    bg = sample[~inside]
+    core = sample[ndi.binary_erosion(inside)]
+    if bg.size < 10 or core.size < 10:
+        return {"background": None, "plateau": None, "noise": None, "snr": None}
+    b = float(np.median(bg))
+    n_bg = MAD_TO_SIGMA * float(np.median(np.abs(bg - b)))
+    plateau = 2.0 * level - b
+    n_dark = max(0.0, plateau - float(np.percentile(core, 25))) / 0.6745
+    noise = max(n_bg, n_dark)
+    contrast = plateau - b
+    return {"background": b, "plateau": plateau, "noise": noise, "background_noise": n_bg, "dark_spread": n_dark,
+            "snr": contrast / noise if noise > 0 else None}
+
+
+def _thickness(inside: np.ndarray, voxel: np.ndarray) -> float | None:
+    """Object thickness ``2 V / A`` of a binary sample (voxel size ``voxel``, z, y, x).
+
+    ``A`` from the transitions along each axis: a surface with isotropically distributed normals
+    crosses an axis-aligned grid ``A (|n_x| + |n_y| + |n_z|)`` = ``1.5 A`` times per face area,
+    so ``A ≈ (2/3) Σ_axes transitions × face area``. A slab of thickness T gives T.
+    """
+    vol = float(np.count_nonzero(inside)) * float(np.prod(voxel))
+    area = 0.0
+    for axis in range(3):
+        trans = np.count_nonzero(np.diff(inside.view(np.uint8), axis=axis))
+        area += trans * float(np.prod(np.delete(voxel, axis)))
+    area *= 2.0 / 3.0
+    return 2.0 * vol / area if area > 0 and vol > 0 else None
+
+
+def auto_sigma(
+    volume: np.ndarray,
+    spacing,
+    step: int = 1,
+    *,
+    threshold: str | float = "yen",
+    target_snr: float = AUTO_SIGMA_SNR,
+    max_samples: float = AUTO_SIGMA_MAX_SAMPLES,
+    thickness_fraction: float = AUTO_SIGMA_THICKNESS,
+) -> tuple[float, dict]:
+    """Noise-aware Gaussian blur σ (physical units) for :func:`reconstruct`.
+
+    Rule: the smallest σ, **never below** :func:`default_sigma` (half the lateral sampling
+    distance), at which the blurred image's signal-to-noise ratio reaches ``target_snr``::
+
+        SNR(σ) = (plateau − background) / noise × blur_noise_gain(σ),
+        blur_noise_gain(σ) ≈ sqrt(∏_i 2 √π σ / d_i)   (white noise, per-axis σ / d_i voxels)
+
+    so anisotropic voxels count: a z-spacing 2.5 × dx averages 2.5 × fewer planes per µm of σ.
+    The noise is the larger of the background's spread and the object's dark spread (dark gaps
+    inside the object, :func:`_object_stats`); a clean image keeps the default. σ is capped by
+    ``max_samples`` lateral sampling distances (``step × (dx + dy) / 2``) and by
+    ``thickness_fraction`` of the object's thickness (``2 × volume / area`` of the object
+    thresholded at that σ), so thin walls are not blurred away; the cap never goes below the
+    default either.
+
+    The statistics come from a strided sample of the stack (about :data:`NOISE_SAMPLE_VOXELS`
+    voxels) blurred at the default σ and thresholded like :func:`reconstruct` (``edge="half"``).
+
+    Parameters
+    ----------
+    volume : ndarray, shape (Z, Y, X)
+        The raw (unblurred) segmented channel.
+    spacing : (dz, dy, dx)
+    step : int
+        Marching-cubes step (voxels).
+    threshold : {"yen", "otsu"} or float
+        As in :func:`reconstruct`.
+    target_snr : float
+        Blurred signal-to-noise ratio to reach (> 0).
+    max_samples : float
+        Cap in lateral sampling distances (> 0).
+    thickness_fraction : float
+        Cap as a fraction of the object's thickness (> 0).
+
+    Returns
+    -------
+    sigma : float
+    info : dict
+        ``default`` (the floor), ``cap``, ``thickness``, ``background``, ``plateau``, ``noise``
+        (with ``background_noise`` and ``dark_spread``), ``snr`` (raw), ``snr_blurred`` (at σ),
+        ``limited_by`` (``"default"``, ``"noise"`` or ``"cap"``).
+
+    Raises
+    ------
+    NemoError
+        Bad image or parameters (as :func:`reconstruct`).
+    """
+    for name, val in (("target_snr", target_snr), ("max_samples", max_samples),
+                      ("thickness_fraction", thickness_fraction)):
+        if not (isinstance(val, (int, float, np.floating, np.integer)) and np.isfinite(val) and val > 0):
+            raise NemoError(f"auto_sigma {name} must be a number > 0, got {val!r}")
+    (dz, dy, dx), step, floor = _check_reconstruct_args(spacing, None, "all", "half", step, 0, 0.1)
+    source, _, scale, _ = _source(volume, None)
+    k = max(1, int(np.ceil((source.size / NOISE_SAMPLE_VOXELS) ** (1 / 3))))
+    voxel = np.array([dz, dy, dx]) * k
+
+    def blurred(sigma):
+        return _blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), k)
+
+    b0 = blurred(floor)
+    vmin, vmax = float(b0.min()), float(b0.max())
+    level = _iso_level(b0, vmin, vmax, False, threshold, "half", scale)[0]
+    sample = np.asarray(source[::k, ::k, ::k], dtype=np.float32)
+    stats = _object_stats(sample, b0, level)
+    cap = max(floor, max_samples * step * 0.5 * (dx + dy))
+    sigma = _sigma_for_snr(stats["snr"], (dz, dy, dx), target_snr, floor, cap)
+    thick = None
+    if sigma > floor:  # the thickness of the object seen at that blur caps it
+        b1 = blurred(sigma)  # thresholded like reconstruct would at that σ
+        thick = _thickness(b1 >= _iso_level(b1, float(b1.min()), float(b1.max()), False, threshold, "half", scale)[0],
+                           voxel)
+        if thick is not None:
+            cap = max(floor, min(cap, thickness_fraction * thick))
+            sigma = min(sigma, cap)
+    snr_b = stats["snr"] * blur_noise_gain(sigma, (dz, dy, dx)) if stats["snr"] is not None else None
+    limited = "default" if sigma <= floor else ("cap" if sigma >= cap else "noise")
+    info = {"default": floor, "cap": cap, "thickness": thick, "snr_blurred": snr_b, "limited_by": limited,
+            **{key: (val * scale if key in ("background", "plateau", "noise", "background_noise", "dark_spread")
+                     and val is not None else val) for key, val in stats.items()}}
+    logger.info("auto sigma %.4g (default %.4g, raw SNR %s, limited by %s)", sigma, floor,
+                "n/a" if stats["snr"] is None else f"{stats['snr']:.3g}", limited)
+    return float(sigma), info
+
+
 def parse_threshold(threshold) -> str | float:
     """``"yen"``, ``"otsu"`` (any case) or a finite number, from a string or a number.
 
@@ -590,6 +789,8 @@ def reconstruct(
     unit: str = "um",
     pass_band: float = 0.1,
     border: Literal["open", "closed"] = "open",
+    refine: bool = True,
+    refine_sigma: float | None = None,
 ) -> trimesh.Trimesh:
     """Reconstruct the surface of the bright object(s) in a 3-D image as a triangle mesh.
 
@@ -629,6 +830,16 @@ def reconstruct(
         closes it along the border planes, leaving an open surface whose rim lies on the border
         (no fake geometry); ``"closed"`` keeps the capped, closed surface. An object inside the
         field has no cap: both give the same surface.
+    refine : bool
+        Sub-voxel refinement (:mod:`nemo.refine`, default on): after the smoothing, every vertex
+        moves along its normal to where the lightly blurred image crosses the iso-level (at most
+        1.5 samples, shifts regularised over neighbours), undoing the pull of the mesh blur
+        and the marching-cubes step. Vertices on the image border stay. Skipped for a ``mask``
+        (a binary mask has no sub-voxel edge: its blurred 0.5 level already is the surface).
+    refine_sigma : float, optional
+        Blur σ (physical) of the image the refinement reads. Default: none for a clean image,
+        else the smallest σ giving the profiles a signal-to-noise ratio of :data:`REFINE_SNR`
+        (:func:`blur_noise_gain`), at most ``sigma``.
 
     Returns
     -------
@@ -636,7 +847,9 @@ def reconstruct(
         Vertices (N, 3) in physical x, y, z; faces (F, 3) wound so that normals point out of
         the object. ``mesh.metadata["nemo_surface"]`` records the iso-level and parameters,
         ``border``, ``cap_faces`` (faces on the border planes), ``rim_vertices`` and
-        ``rim_loops`` (the open rim; 0 for a closed surface).
+        ``rim_loops`` (the open rim; 0 for a closed surface), and the refinement: ``refine``
+        (applied or not), ``refine_sigma``, ``refined``/``rejected`` vertices and the shifts'
+        ``shift_median``/``shift_abs_p95`` (:func:`nemo.refine.refine_vertices`).
 
     Raises
     ------
@@ -675,16 +888,63 @@ def reconstruct(
         with log_step(f"Taubin smoothing ({smooth_iter} iterations, {len(mesh.vertices)} vertices)"):
             smoothed = _taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band)
             mesh.vertices = np.clip(smoothed, 0.0, box)
+    ref_info = _refine(mesh, source if mask is None else None, level, (dz, dy, dx), step, refine,
+                       refine_sigma, sigma, box)
     mesh, rim_info = _apply_border(mesh, border, box)
     mesh.metadata["nemo_surface"] = {
         "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
         "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
-        "spacing": [dz, dy, dx], "border": border, **rim_info,
+        "spacing": [dz, dy, dx], "border": border, **rim_info, **ref_info,
     }
     mesh.metadata.pop("parent_faces", None)
     mesh.metadata.pop("parent_vertices", None)
     mesh.metadata["spacing"] = (dz, dy, dx)  # saved in the PLY header: peel checks the image
     return mesh
+
+
+def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spacing: tuple[float, float, float],
+            step: int, refine: bool, refine_sigma: float | None, sigma: float, box: np.ndarray) -> dict:
+    """Refine ``mesh``'s vertices in place (:func:`nemo.refine.refine_vertices`); the record.
+
+    ``source`` None (a mask) or ``refine`` False: no refinement. The profile image is ``source``
+    blurred by ``refine_sigma`` (default :data:`REFINE_SNR` from :func:`image_noise`, at most
+    ``sigma``; none for a clean image).
+    """
+    from nemo.refine import refine_vertices
+
+    if not isinstance(refine, (bool, np.bool_)):
+        raise NemoError(f"refine must be true or false, got {refine!r}")
+    if refine_sigma is not None and not (np.isfinite(float(refine_sigma)) and float(refine_sigma) >= 0):
+        raise NemoError(f"refine_sigma must be a length >= 0 (µm), got {refine_sigma!r}")
+    if not refine or source is None or len(mesh.faces) == 0:
+        return {"refine": False}
+    if refine_sigma is None:
+        snr = image_noise(source, level)["snr"]
+        refine_sigma = _sigma_for_snr(snr, spacing, REFINE_SNR, 0.0, sigma)
+    refine_sigma = float(refine_sigma)
+    image = source
+    if refine_sigma > 0:
+        with log_step(f"blurring for the refinement (sigma {refine_sigma:.3g})"):
+            image = ndi.gaussian_filter(source, [refine_sigma / d for d in spacing], output=np.float32, truncate=3.0)
+    code = np.asarray(mesh.vertex_attributes[_CODE])
+    with log_step(f"refining {len(mesh.vertices)} vertices"):
+        new, info = refine_vertices(np.asarray(mesh.vertices), np.asarray(mesh.faces), _vertex_normals(mesh), image,
+                                    spacing, level, step=step, fixed=code != 0)
+    mesh.vertices = np.clip(new, 0.0, box)
+    logger.info("refinement: %d vertices on an edge, %d without one; median shift %.3g, |shift| p95 %.3g",
+                info["refined"], info["rejected"], info["shift_median"], info["shift_abs_p95"])
+    return {"refine": True, "refine_sigma": refine_sigma, **info}
+
+
+def _vertex_normals(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Unit area-weighted vertex normals (N, 3); NaN where the faces around a vertex have no area."""
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    normals, areas = face_normals_areas(vertices, faces)
+    acc = np.stack([np.bincount(faces.ravel(), weights=np.repeat(normals[:, k] * areas, 3), minlength=len(vertices))
+                    for k in range(3)], axis=1)
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(norm > 0, acc / norm, np.nan)
 
 
 #: Samples of padding (the blurred volume's minimum) around the sampled grid: closed surfaces.

@@ -60,8 +60,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("image", help="TIFF hyperstack, OME-TIFF or OME-Zarr folder")
     add_common(parser, frame=True, output_help="output mesh (.ply or .obj)")
     parser.add_argument("--sigma", type=non_negative, default=None, metavar="UM",
-                        help="Gaussian blur sigma in the image unit (default: half the sampling distance, "
-                             "--step × (dx + dy)/4, i.e. one voxel at --step 2; 0 = none)")
+                        help="Gaussian blur sigma in the image unit (default: noise-aware, at least half the "
+                             "sampling distance --step × (dx + dy)/4, enough for a blurred SNR of 20; 0 = none)")
+    parser.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
+                        help="move the vertices to the sub-voxel edge along their normals (default: off; "
+                             "not with --mask)")
+    parser.add_argument("--refine-sigma", type=non_negative, default=None, metavar="UM",
+                        help="blur of the image the refinement reads (default: as much as the noise needs)")
     parser.add_argument("--threshold", type=_threshold, default=None, metavar="yen|otsu|VALUE",
                         help="automatic threshold or an intensity iso-level (default yen)")
     parser.add_argument("--edge", choices=("half", "threshold"), default=None,

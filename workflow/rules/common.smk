@@ -177,14 +177,21 @@ wildcard_constraints:
 
 
 # ----------------------------------------------------------------------------- options
+#: Boolean keys whose command-line option is on by default: False is spelled ``--no-KEY``.
+NEGATABLE = ("refine",)
+
+
 def cli_opts(options, skip=()):
-    """``{key: value}`` -> ``--key value`` (None/False omitted, True = flag, lists spread).
+    """``{key: value}`` -> ``--key value`` (None/False omitted, True = flag, lists spread;
+    False = ``--no-KEY`` for the keys of :data:`NEGATABLE`).
 
     Keys are sorted, so the order of keys in a config file never changes a command line
     (Snakemake reruns a job when its params change).
     """
     parts = []
     for key, value in sorted((options or {}).items()):
+        if value is False and key in NEGATABLE and key not in skip:
+            parts.append(f"--no-{str(key).replace('_', '-')}")
         if key in skip or value is None or value is False:
             continue
         flag = f"--{str(key).replace('_', '-')}"
