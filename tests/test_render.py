@@ -426,6 +426,20 @@ def test_frame_qc_without_qc_columns():
     assert sorted(x for ln in fails for x in ln.get_xdata()) == [0, 2]
 
 
+def test_defect_map_of_several_objects_centres_each_object():
+    """Two objects' defects in one frame (an object column): each is placed about its own centre,
+    not about a point between the objects."""
+    u = np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+    a, b = np.array([0.0, 0, 0]), np.array([500.0, 0, 0])
+    xyz = np.concatenate([a + 30 * u, b + 20 * u])
+    df = pd.DataFrame({"t": 0, "c": 0, "object": np.repeat([0, 1], 6), "x": xyz[:, 0], "y": xyz[:, 1],
+                       "z": xyz[:, 2], "charge": 0.5})
+    lon, lat = defect_lonlat(df, {(0, 0): np.array([250.0, 0, 0])})  # the frame centroid is ignored
+    np.testing.assert_allclose(lon[:6], lon[6:], atol=1e-9)
+    np.testing.assert_allclose(lat[:6], lat[6:], atol=1e-9)
+    np.testing.assert_allclose(lat[4:6], [90, -90], atol=1e-9)  # degrees
+
+
 def test_defect_map_places_defects_at_longitude_latitude():
     centre = np.array([10.0, -5.0, 3.0])
     lon, lat = np.radians([60.0, -150.0]), np.radians([-30.0, 45.0])
