@@ -361,9 +361,12 @@ def test_ci_variant_through_snakemake(tmp_path):
         assert r["loc_err_max"] < 4.0 and r["charge_correct"] == 1.0, case
         # data-derived defaults (2 µm voxels: patch 8 edges, σ 4 px of ¼ edge): S measured 0.77-0.95
         assert r["angle_err_median"] < 8.0 and r["S_ordered_median"] > 0.72, case
-    # noise 40 on the 0-255 scale: the protocol's failure end (nothing reliable found)
-    assert cases.loc["noise-40-r1", "detection_rate"] < 1.0
-    assert cases.loc["noise-40-r1", "angle_err_median"] > 15.0
+    # noise 40 on the 0-255 scale (SNR 3.8): once the protocol's failure end; with the topology
+    # check of the noise-aware mesh blur every defect is found (measured: 4 of 4, within 2.80 µm,
+    # charges right, director angle error 8.4°)
+    r = cases.loc["noise-40-r1"]
+    assert r["detection_rate"] == 1.0 and r["false_positives"] == 0, r
+    assert r["loc_err_max"] < 4.0 and r["charge_correct"] == 1.0 and r["angle_err_median"] < 12.0, r
     ell = shapes.set_index("shape").loc["ellipsoid"]
     assert ell["H_err_median"] < 0.03 and ell["K_err_median"] < 0.05
     sph = shapes.set_index("shape").loc["spheres"]
