@@ -847,6 +847,7 @@ def test_real_stacks_run_end_to_end_with_quality_control(tmp_path):
     assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in stacks} == digest
 
 
+@pytest.mark.slow  # ≈ 75 s; the default suite runs keep: all through the workflow on the real organoid
 def test_several_objects_through_the_workflow_and_nemo_run(tmp_path, write_two_vesicles):
     """mesh.keep: all through snakemake: a row per object, each with its own Σ charge = χ = 2 and
     its defects at the truth; `nemo run` with the same config gives the same tables."""
