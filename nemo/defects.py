@@ -126,7 +126,7 @@ from scipy import optimize, sparse
 from scipy.spatial import cKDTree
 
 from nemo._log import logger
-from nemo.errors import NemoError
+from nemo.errors import NemoError, ObjectTooSmallError
 from nemo.geometry import (
     boundary_loop,
     edge_graph,
@@ -622,7 +622,7 @@ def find_defects(
     size = math.sqrt(float(mesh.area) / (4 * math.pi))  # radius of the sphere of equal area
     for name, value in (("contour_radius", contour_radius), ("avg_radius", avg_radius), ("fit_radius", fit_radius)):
         if value is not None and value > MAX_RADIUS_PER_SIZE * size:
-            raise NemoError(
+            raise ObjectTooSmallError(
                 f"`{name}` {value:.4g} is larger than {MAX_RADIUS_PER_SIZE:g} × the surface's size ({size:.4g}, "
                 f"the radius of the sphere of equal area): a defect's contour must enclose a small piece of "
                 f"the surface; leave it unset (derived from the averaging radius) or give a smaller value"

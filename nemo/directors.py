@@ -36,7 +36,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
-from nemo.errors import NemoError, NemoWarning
+from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.geometry import tangent_frames
 from nemo.mesh import mean_edge_length, object_radius
 
@@ -255,7 +255,7 @@ def check_patch_size(radius: float, obj_radius: float, name: str = "patch_radius
     The limit is the object radius ``sqrt(area / 4π)`` (the default patch is a tenth of it).
     """
     if radius > obj_radius:
-        raise NemoError(
+        raise ObjectTooSmallError(
             f"the patch (`{name}`, radius {radius:.4g}) is larger than the object itself (radius "
             f"{obj_radius:.4g} from its area): a patch must be a small, nearly flat piece of the surface. "
             f"Use a `patch_radius` well below {obj_radius:.4g} (the default is {PATCH_PER_RADIUS:g} × that, "

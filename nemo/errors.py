@@ -12,5 +12,13 @@ class NemoError(Exception):
     """An error in the user's input or configuration, with a message meant for people."""
 
 
+class ObjectTooSmallError(NemoError):
+    """A length of the analysis (patch, averaging or contour radius) does not fit on the object.
+
+    Raised apart so that a frame of several objects (``mesh.keep: all``) can leave that object
+    out of the step, with a warning and a quality flag, and go on with the others.
+    """
+
+
 class NemoWarning(UserWarning):
     """A recoverable problem the user should know about (missing calibration, fallback)."""

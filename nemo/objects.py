@@ -58,20 +58,29 @@ def set_labels(mesh: trimesh.Trimesh, labels: np.ndarray) -> trimesh.Trimesh:
     return mesh
 
 
+def labelled(mesh: trimesh.Trimesh) -> bool:
+    """The mesh carries object labels (made with ``mesh.keep: all`` from several objects)."""
+    return OBJECT_FIELD in mesh.vertex_attributes
+
+
 def parts(mesh: trimesh.Trimesh) -> list[Part] | None:
-    """The objects of a labelled mesh as sub-meshes, or None when it holds one object.
+    """The objects of a labelled mesh as sub-meshes, or None when it has no labels.
+
+    A labelled surface may hold a single object (e.g. the inner walls when the other objects
+    are droplets): it still gets its label.
 
     Returns
     -------
     list of Part or None
-        Sorted by label; each part's mesh keeps the unit, metadata and vertex fields.
+        Sorted by label; each part's mesh keeps the unit, metadata and vertex fields except the
+        labels (a part is one object).
     """
     from nemo.surface import submesh
 
+    if not labelled(mesh):
+        return None
     labels = vertex_labels(mesh)
     present = np.unique(labels)
-    if len(present) < 2:
-        return None
     faces = np.asarray(mesh.faces)
     face_label = labels[faces[:, 0]]
     if (labels[faces] != face_label[:, None]).any():
@@ -80,6 +89,7 @@ def parts(mesh: trimesh.Trimesh) -> list[Part] | None:
     out = []
     for label in present:  # a loop over objects (a handful), not over vertices
         sub = submesh(mesh, np.flatnonzero(face_label == label))
+        sub.vertex_attributes.pop(OBJECT_FIELD, None)
         vertices = np.asarray(sub.metadata.pop("parent_vertices"))
         sub.metadata.pop("parent_faces", None)
         sub.metadata.update({k: v for k, v in mesh.metadata.items() if k not in ("parent_faces", "parent_vertices")})
@@ -125,8 +135,9 @@ def combine_tables(tables: Sequence[pd.DataFrame], all_parts: Sequence[Part], so
 
 
 def combine_params(params: Sequence[dict], all_parts: Sequence[Part]) -> dict:
-    """Resolved parameters of several objects: the first's, with ``objects`` = each object's (with its label)."""
-    out = dict(params[0])
+    """Resolved parameters of several objects: the first analysed object's (one not ``skipped``),
+    with ``objects`` = each object's (with its label)."""
+    out = dict(next((p for p in params if not p.get("skipped")), params[0]))
     out["objects"] = [dict(p, object=part.label) for p, part in zip(params, all_parts)]
     return out
 

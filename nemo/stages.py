@@ -38,7 +38,7 @@ import trimesh
 from nemo import config as nconfig
 from nemo import objects
 from nemo._log import logger
-from nemo.errors import NemoError
+from nemo.errors import NemoError, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
 
 __all__ = ["object_radius", "mesh", "measure", "curvature", "curvature_defaults", "thickness", "peel", "directors",
@@ -395,9 +395,12 @@ def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
     from nemo.directors import directors as measure_directors
 
     split = objects.parts(mesh)
-    if split:  # patches never reach across objects
+    if split:  # patches never reach across objects; an object smaller than its patch gets none
         intensity = np.asarray(intensity)
-        return _combined([directors(part.mesh, intensity[part.vertices], params) for part in split], split)
+        results = _each_object(split, lambda k, part: directors(part.mesh, intensity[part.vertices], params),
+                               "directors")
+        empty = next(r for r in results if not isinstance(r, str))[0].iloc[:0]
+        return _combined([(empty, {"skipped": r}) if isinstance(r, str) else r for r in results], split)
     p = directors_defaults(mesh, params)
     df = measure_directors(mesh, intensity, patch_radius=p["patch_radius"], patch_k=p["patch_k"],
                            n_patches=int(p["n_patches"]), pixel=float(p["pixel"]), sigma=p["sigma"],
@@ -454,8 +457,14 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
 
     split = objects.parts(mesh)
     if split:  # each object's directors averaged on it alone; patch_radius: one or one per object
-        return _combined([order(part.mesh, objects.local_table(directors_df, part), params,
-                                objects.value_for(patch_radius, k)) for k, part in enumerate(split)], split)
+        local = [objects.local_table(directors_df, part) for part in split]
+        results = [None if not len(d) else order(part.mesh, d, params, objects.value_for(patch_radius, k))
+                   for k, (part, d) in enumerate(zip(split, local))]
+        if all(r is None for r in results):
+            raise NemoError("no object of the surface has a director: nothing to average")
+        example = next(r for r in results if r is not None)[0]
+        return _combined([r if r is not None else (_nan_table(example, part), {"skipped": NO_DIRECTORS})
+                          for r, part in zip(results, split)], split)
     p = nconfig.section("order", params)
     if p["radius"] is None:
         if not patch_radius:
@@ -538,20 +547,25 @@ def defects(
 
 def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvature, intensity, director_params):
     """:func:`defects` on each object of a labelled mesh; one table, Euler checks per object and summed."""
-    found, extras, resolved = [], [], []
+    found, extras, resolved, errors = [], [], [], []
     for k, part in enumerate(split):  # a loop over objects
         v = part.vertices
+        local = objects.local_table(directors_df, part)
         try:
-            df, extra, p = defects(part.mesh, objects.local_table(order_df, part),
-                                   objects.local_table(directors_df, part), params, objects.value_for(avg_radius, k),
-                                   None if curvature is None else curvature[v],
+            if not len(local):
+                raise ObjectTooSmallError(NO_DIRECTORS)
+            df, extra, p = defects(part.mesh, objects.local_table(order_df, part), local, params,
+                                   objects.value_for(avg_radius, k), None if curvature is None else curvature[v],
                                    None if intensity is None else np.asarray(intensity)[v],
                                    objects.pick(director_params, k))
-        except NemoError as exc:  # e.g. an object too small for its averaging radius: the others go on
+        except ObjectTooSmallError as exc:  # e.g. an object smaller than its averaging radius: the others go on
+            errors.append(exc)
             df, extra, p = _no_defects(part, params, str(exc))
         found.append(df)
         extras.append(extra)
         resolved.append(p)
+    if len(errors) == len(split):  # no object could be searched: as for a single object, an error
+        raise errors[0]
     out = objects.combine_tables(found, split, sort=False)
     checks = [df.attrs["euler_check"] for df in found]
     out.attrs["euler_check"] = {
@@ -562,8 +576,8 @@ def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvat
         "objects": [dict(c, object=part.label) for c, part in zip(checks, split)],
     }
     out.attrs["parameters"] = objects.combine_params([df.attrs["parameters"] for df in found], split)
-    out.attrs["candidates"] = [dict(r, object=part.label) for df, part in zip(found, split)
-                               for r in df.attrs.get("candidates", [])]
+    out.attrs["candidates"] = [dict(r, object=part.label, vertex=int(part.vertices[int(r["vertex"])]))
+                               for df, part in zip(found, split) for r in df.attrs.get("candidates", [])]
     pieces = [(e, part) for e, part in zip(extras, split) if e is not None]
     extra = objects.combine_tables([e for e, _ in pieces], [q for _, q in pieces], sort=False) if pieces else None
     return out, extra, objects.combine_params(resolved, split)
@@ -592,9 +606,44 @@ def _combined(results: list[tuple[pd.DataFrame, dict]], split: list) -> tuple[pd
 
 
 def _labelled(df: pd.DataFrame, mesh: trimesh.Trimesh) -> pd.DataFrame:
-    """``df`` with the ``object`` column when ``mesh`` holds several objects (else as is)."""
-    labels = objects.vertex_labels(mesh)
-    return objects.with_object(df, labels) if len(np.unique(labels)) > 1 else df
+    """``df`` with the ``object`` column when ``mesh`` is labelled (:mod:`nemo.objects`; else as is)."""
+    return objects.with_object(df, objects.vertex_labels(mesh)) if objects.labelled(mesh) else df
+
+
+#: Why an object of a labelled mesh has no order value and no defect search.
+NO_DIRECTORS = "no director on this object (it is smaller than the director patch)"
+
+
+def _each_object(split: list, run_one, what: str) -> list:
+    """``run_one(k, part)`` for every object; an object too small for the step gives the reason instead.
+
+    A warning names each object left out; when every object is too small, the first error is raised.
+    """
+    import warnings
+
+    from nemo.errors import NemoWarning
+
+    out, errors = [], []
+    for k, part in enumerate(split):  # a loop over objects
+        try:
+            out.append(run_one(k, part))
+        except ObjectTooSmallError as exc:
+            warnings.warn(f"object {part.label}: no {what} ({exc})", NemoWarning, stacklevel=3)
+            out.append(str(exc))
+            errors.append(exc)
+    if len(errors) == len(split):
+        raise errors[0]
+    return out
+
+
+def _nan_table(example: pd.DataFrame, part) -> pd.DataFrame:
+    """A per-vertex table like ``example`` for every vertex of ``part``: positions x, y, z, counts 0,
+    the rest NaN (an object without directors has no order value)."""
+    n = len(part.vertices)
+    xyz = dict(zip("xyz", np.asarray(part.mesh.vertices, dtype=np.float64).T))
+    return pd.DataFrame({c: np.arange(n, dtype=np.int64) if c == "vertex" else xyz[c] if c in xyz
+                         else np.zeros(n, dtype=dt) if np.issubdtype(dt, np.integer) else np.full(n, np.nan)
+                         for c, dt in example.dtypes.items()})
 
 
 #: Largest |Σ charge − χ| of a closed surface's defects accepted without a second search (a

@@ -297,6 +297,10 @@ def collect_defects(records: Iterable[Mapping]) -> pd.DataFrame:
         df = read_table(r["defects"], "defects")
         params = read_provenance(r["defects"]).get("parameters") or {}
         df["min_distance"] = float(params.get("min_distance") or math.nan)  # tracking's default
+        per_object = {int(o["object"]): o.get("min_distance") for o in params.get("objects") or [] if "object" in o}
+        if per_object and "object" in df.columns:  # several objects: each its own suppression radius
+            radii = pd.Series({k: float(v) if v else math.nan for k, v in per_object.items()})
+            df["min_distance"] = df["object"].astype(int).map(radii).astype(float)
         if "object" not in df.columns:  # one object: 0
             df.insert(0, "object", np.zeros(len(df), dtype=np.int64))
         df.insert(0, "layer", str(r["layer"]))

@@ -651,8 +651,11 @@ def auto_sigma(
         if thick is not None:
             sigma_cap = max(floor, min(cap, thickness_fraction * thick))
             sigma = min(sigma, sigma_cap)
-    # the topology ladder needs no thickness cap: a wall blurred away changes the solid's topology
-    sigma_topology, ladder = _topology_sigma(blurred, floor, cap, threshold, scale)
+    # the topology ladder needs no thickness cap: a wall blurred away changes the solid's topology.
+    # On a strided sample (k > 1) each σ is judged at least at the sample's own anti-aliasing blur,
+    # so a thin wall missed between the sample points is not counted as a noise hole.
+    alias = default_sigma((dz, dy, dx), k)
+    sigma_topology, ladder = _topology_sigma(lambda sg: blurred(max(sg, alias)), floor, cap, threshold, scale)
     sigma = max(sigma, sigma_topology)
     snr_b = stats["snr"] * blur_noise_gain(sigma, (dz, dy, dx)) if stats["snr"] is not None else None
     limited = ("default" if sigma <= floor else "topology" if sigma == sigma_topology
@@ -852,7 +855,7 @@ def reconstruct(
     unit: str = "um",
     pass_band: float = 0.1,
     border: Literal["open", "closed"] = "open",
-    refine: bool = True,
+    refine: bool = False,
     refine_sigma: float | None = None,
 ) -> trimesh.Trimesh:
     """Reconstruct the surface of the bright object(s) in a 3-D image as a triangle mesh.
@@ -894,7 +897,8 @@ def reconstruct(
         (no fake geometry); ``"closed"`` keeps the capped, closed surface. An object inside the
         field has no cap: both give the same surface.
     refine : bool
-        Sub-voxel refinement (:mod:`nemo.refine`, default on): after the smoothing, every vertex
+        Sub-voxel refinement (:mod:`nemo.refine`, default off: on noisy anisotropic images it
+        roughens the wall, docs/validation.md): after the smoothing, every vertex
         moves along its normal to where the lightly blurred image crosses the iso-level (at most
         1.5 samples, shifts regularised over neighbours), undoing the pull of the mesh blur
         and the marching-cubes step. Vertices on the image border stay. Skipped for a ``mask``

@@ -49,7 +49,7 @@ def test_refined_sphere_radius(spacing, psf):
     R = 16.0
     shape, c = _setup(R, 0.0, spacing, psf)
     vol = _image(shape, spacing, lambda x, y, z: (x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2 < R**2, psf)
-    mesh = reconstruct(vol, spacing)
+    mesh = reconstruct(vol, spacing, refine=True)
     assert mesh.metadata["nemo_surface"]["refine"] and mesh.euler_number == 2
     err = np.median(_radial(mesh, c)) - R
     # analytic part of the residual: a ball blurred by σ has its half level σ_t²/R inside (σ_t the
@@ -72,7 +72,7 @@ def test_shell_thickness_unbiased(spacing):
         return (r >= R) & (r < R + T)
 
     vol = _image(shape, spacing, shell, (1.0, 1.0, 1.0), photons=200, seed=2)
-    inner, outer = split_mesh(reconstruct(vol, spacing, keep="all"), centre=c)
+    inner, outer = split_mesh(reconstruct(vol, spacing, keep="all", refine=True), centre=c)
     # thickness along the normal of the inner wall: the outer wall at the same scaled direction
     ri = np.linalg.norm(((inner.vertices - c) @ rot) / axes, axis=1)
     ro = np.linalg.norm(((outer.vertices - c) @ rot) / axes, axis=1)
@@ -96,7 +96,7 @@ def test_noisy_shell_closed_walls_with_auto_sigma():
         # the raw SNR estimate errs low when the default blur leaves the wall porous (measured
         # 4.5 at SNR 5, 1.4 at SNR 3): more blur, never less
         assert 0.4 * snr < info["snr"] < 1.2 * snr
-        inner, outer = split_mesh(reconstruct(vol, spacing, sigma=sigma, keep="all"), centre=c, keep="largest")
+        inner, outer = split_mesh(reconstruct(vol, spacing, sigma=sigma, keep="all", refine=True), centre=c, keep="largest")
         assert inner.euler_number == 2 and outer.euler_number == 2
         # measured: inner -0.22/-0.35 µm, outer -0.02/+0.08 µm (SNR 5/3)
         assert abs(np.median(_radial(inner, c)) - R) < 0.5
@@ -126,12 +126,12 @@ def test_refine_off_reproduces_old_surface_and_mask_skips():
     shape, c = _setup(8.0, 0.0, spacing, (1, 1, 1))
     inside = lambda x, y, z: (x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2 < 64  # noqa: E731
     vol = _image(shape, spacing, inside, (1, 1, 1))
-    on, off = reconstruct(vol, spacing), reconstruct(vol, spacing, refine=False)
+    on, off = reconstruct(vol, spacing, refine=True), reconstruct(vol, spacing)  # off: the default
     assert len(on.vertices) == len(off.vertices) and np.array_equal(on.faces, off.faces)
     assert off.metadata["nemo_surface"]["refine"] is False
     assert not np.allclose(on.vertices, off.vertices)
     mask = vol > 60
-    assert reconstruct(None, spacing, mask=mask).metadata["nemo_surface"]["refine"] is False
+    assert reconstruct(None, spacing, mask=mask, refine=True).metadata["nemo_surface"]["refine"] is False
 
 
 def test_refine_bad_inputs():
@@ -178,7 +178,7 @@ def test_auto_sigma_sees_noise_in_an_image_clipped_at_zero():
     assert info["snr"] > 20  # the spread estimates are fooled ...
     assert ladder[0][1] > 2 * ladder[0][2]  # ... but the default blur leaves noise bubbles in the wall
     assert info["limited_by"] == "topology" and sigma == ladder[-1][0] > default_sigma(spacing)
-    inner, outer = split_mesh(reconstruct(vol, spacing, sigma=sigma, keep="all"), centre=c, keep="largest")
+    inner, outer = split_mesh(reconstruct(vol, spacing, sigma=sigma, keep="all", refine=True), centre=c, keep="largest")
     assert inner.euler_number == 2 and outer.euler_number == 2
     # measured: inner -0.83 µm (the sheet 2 µm inside pulls it), outer -0.09 µm
     assert abs(np.median(_radial(inner, c)) - R) < 1.0

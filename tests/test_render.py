@@ -438,6 +438,11 @@ def test_defect_map_of_several_objects_centres_each_object():
     np.testing.assert_allclose(lon[:6], lon[6:], atol=1e-9)
     np.testing.assert_allclose(lat[:6], lat[6:], atol=1e-9)
     np.testing.assert_allclose(lat[4:6], [90, -90], atol=1e-9)  # degrees
+    # one defect per object: placed about each object's surface centroid (from its mesh), not itself
+    one = df.iloc[[4, 6]]  # object 0's north pole, object 1's +x point
+    lon, lat = defect_lonlat(one, {(0, 0): np.array([250.0, 0, 0]), (0, 0, 0): a, (0, 0, 1): b})
+    np.testing.assert_allclose(lat, [90, 0], atol=1e-9)
+    np.testing.assert_allclose(lon[1], 0, atol=1e-9)
 
 
 def test_defect_map_places_defects_at_longitude_latitude():

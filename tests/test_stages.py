@@ -183,6 +183,56 @@ def test_mesh_keep_all_leaves_a_droplet_out_of_the_walls():
                     {"split": "centre", "keep": "all"})
 
 
+def _textured_shells(shape, spheres, period=4.0):
+    """``_balls`` shells with a stripe texture (rings about z), so that directors have something to see."""
+    z, y, x = np.indices(shape)
+    return _balls(shape, spheres) * (1.0 + 0.5 * np.cos(2 * np.pi * z / period))
+
+
+def test_an_object_too_small_for_its_patch_is_left_out_not_fatal():
+    """Two shells, the second's inner wall (r 5) smaller than the 8-edge director patch: with
+    keep: all its directors, order and defects are skipped with warnings and the larger shell is
+    analysed; keep: largest never sees the small one."""
+    from nemo import objects
+    from nemo.errors import NemoWarning
+
+    vol = _textured_shells((48, 48, 100), [(24, 24, 24, 15, 21), (76, 24, 24, 5, 9)])
+    meshes, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
+    inner = meshes["inner"]
+    intensity = np.ones(len(inner.vertices)) + 0.1 * np.asarray(inner.vertices)[:, 2] % 1.0
+    with pytest.warns(NemoWarning, match="object 1: no directors"):
+        ddf, dp = stages.directors(inner, intensity, {"n_patches": 300})
+    assert set(ddf["object"]) == {0} and dp["objects"][1]["skipped"] and "patch" in dp["objects"][1]["skipped"]
+    odf, op = stages.order(inner, ddf, None, patch_radius=objects.values(dp, "nominal_radius"))
+    labels = objects.vertex_labels(inner)
+    np.testing.assert_array_equal(odf["object"], labels[odf["vertex"]])
+    assert odf.loc[odf["object"] == 1, "S"].isna().all() and odf.loc[odf["object"] == 0, "S"].notna().all()
+    with pytest.warns(NemoWarning, match="object 1: no defect search"):
+        fdf, _, fp = stages.defects(inner, odf, ddf, None, avg_radius=objects.values(op, "radius"))
+    assert set(fdf["object"]) <= {0} and fp["objects"][1]["skipped"]
+    assert "s_threshold" in fp and fp["min_distance"] == fp["objects"][0]["min_distance"]  # the analysed object's
+    rejected = [rec for rec in fdf.attrs["candidates"] if not rec["accepted"]]
+    assert rejected and {rec["object"] for rec in rejected} == {0}
+    for rec in rejected:  # candidates name whole-mesh vertices (a rejected one sits on its vertex)
+        np.testing.assert_allclose(inner.vertices[rec["vertex"]], [rec["x"], rec["y"], rec["z"]], atol=1e-4)
+
+
+def test_a_surface_holding_one_object_keeps_its_label():
+    """A droplet (object 0, the larger) and a shell (object 1): the inner surface holds only object 1
+    and says so in its tables and measure."""
+    from nemo import objects
+
+    vol = _balls((40, 40, 80), [(20, 20, 20, -1, 15), (60, 20, 20, 7, 12)])
+    meshes, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
+    inner = meshes["inner"]
+    assert [p.label for p in objects.parts(inner)] == [1]
+    df, _ = stages.curvature(inner, {"radius": 3.0})
+    assert set(df["object"]) == {1}
+    m = stages.measure(inner)
+    assert [o["object"] for o in m["objects"]] == [1]
+    assert m["objects"][0]["centre"][0] == pytest.approx(60, abs=0.5)
+
+
 def test_curvature_and_measure_per_object_follow_each_objects_size():
     """Two spheres, R = 14 and 9: each object its own default radius and H = 1/R; measure per object."""
     from nemo import objects

@@ -275,7 +275,9 @@ def _summary_files(inputs) -> dict[str, Path]:
     return out
 
 
-def _frame_centres(dataset_dir: Path) -> dict[tuple[int, int], np.ndarray]:
+def _frame_centres(dataset_dir: Path) -> dict[tuple, np.ndarray]:
+    """Surface centroid per frame ``(t, c)``; with several objects also per ``(t, c, object)``."""
+    from nemo import objects
     from nemo.mesh import load_mesh
 
     centres = {}
@@ -287,7 +289,10 @@ def _frame_centres(dataset_dir: Path) -> dict[tuple[int, int], np.ndarray]:
         ff = discover_frame(d)
         mkey = next((k for k in (*MESH_PREFERENCE, *ff.meshes) if k in ff.meshes), None)
         try:
-            centres[key] = surface_centre(load_mesh(ff.meshes[mkey], manifold=False))
+            mesh = load_mesh(ff.meshes[mkey], manifold=False)
+            centres[key] = surface_centre(mesh)
+            for part in objects.parts(mesh) or []:  # a handful of objects
+                centres[(*key, part.label)] = surface_centre(part.mesh)
         except NemoError:
             continue
     return centres

@@ -34,12 +34,15 @@ from nemo.render.style import (
 def _defect_centres(df: pd.DataFrame, centres: dict | None) -> np.ndarray:
     """Per-row origin of the spherical coordinates: the frame's surface centroid from
     ``centres[(t, c)]``, else the mean position of that frame's defects; with several objects
-    (an ``object`` column), the mean position of each object's defects in the frame. Shape (M, 3)."""
+    (an ``object`` column), each object's centroid ``centres[(t, c, object)]``, else the mean
+    position of its defects in the frame. Shape (M, 3)."""
     xyz = df[["x", "y", "z"]].to_numpy(float)
     cs = df["c"].astype(int) if "c" in df.columns else pd.Series(0, index=df.index)
     keys = list(zip(df["t"].astype(int), cs))
-    if "object" in df.columns and df["object"].nunique() > 1:  # the frame's centroid lies between objects
-        keys, centres = list(zip(df["t"].astype(int), cs, df["object"].astype(int))), None
+    labelled = any(len(k) == 3 for k in (centres or {}))  # several objects: their centroids are known
+    if "object" in df.columns and (labelled or (df["object"] != 0).any()):  # not the frame's (between objects)
+        keys = list(zip(df["t"].astype(int), cs, df["object"].astype(int)))
+        centres = {k: v for k, v in (centres or {}).items() if len(k) == 3}
     frame_mean = pd.DataFrame(xyz, columns=["x", "y", "z"]).assign(_k=keys).groupby("_k").mean()
     centres = centres or {}
     return np.array([centres[k] if k in centres else frame_mean.loc[[k]].to_numpy()[0]
