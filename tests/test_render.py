@@ -379,6 +379,23 @@ def test_frames_figure_reads_without_offsets(tmp_path):
     assert _axis(fig, "wall thickness").get_ylabel() == "thickness [nm]"
 
 
+def test_frames_figure_of_one_time_point_has_one_tick_and_short_reasons():
+    """A single frame (the real stacks): one integer t tick per panel, not a crowd of fractions;
+    a long QC reason is shortened to fit the figure."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    df = _frames_table(1)
+    df.loc[0, ["qc_pass", "qc_flags"]] = [False, "no defect search: " + "a very long reason " * 30]
+    fig = frames_figure(df)
+    FigureCanvasAgg(fig).draw()
+    for ax in fig.axes:
+        if ax.axison and ax.get_xlabel():
+            lo, hi = ax.get_xlim()
+            assert [tk for tk in ax.get_xticks() if lo <= tk <= hi] == [0], ax.get_title()
+    text = [t.get_text() for a in fig.axes for t in a.texts if "Flagged frames" in t.get_text()][0]
+    assert max(len(line) for line in text.splitlines()) <= 190 and "(frames.parquet qc_flags)" in text
+
+
 def test_frames_figure_marks_flagged_frames():
     df = _frames_table()
     bad = (df["t"] == 1) & (df["layer"] == "basal")

@@ -224,7 +224,9 @@ def defect_map_figure(defects: pd.DataFrame, layer: str | None = None,
     n_tr = df["track_id"].nunique() if "track_id" in df.columns else 0
     ax.set_title(f"{name}{len(df)} defects in {len(np.unique(t))} frames"
                  f"{f' (t = {t.min()}–{t.max()})' if len(t) else ''}, {n_tr} tracks\n"
-                 "equal-area map around the surface centroid", fontsize=11, pad=24)
+                 + ("equal-area map, each object's defects around its own centroid"
+                    if "object" in df.columns and df["object"].nunique() > 1
+                    else "equal-area map around the surface centroid"), fontsize=11, pad=24)
     return fig
 
 
@@ -481,7 +483,7 @@ def frames_figure(frames: pd.DataFrame, unit: str = "um", title: str = ""):
     for ax in [*axes, ax_qc]:
         for t in bad_t:
             ax.axvspan(t - 0.5, t + 0.5, color="red", alpha=0.12, lw=0, zorder=0)
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))  # one time point: one tick
         ax.set_xlim(t_all.min() - 0.5, t_all.max() + 0.5)
         ax.ticklabel_format(axis="y", style="plain", useOffset=False) if ax is not ax_qc else None
         ax.grid(True, axis="y", color="0.9", lw=0.6)
@@ -492,13 +494,20 @@ def frames_figure(frames: pd.DataFrame, unit: str = "um", title: str = ""):
     return fig
 
 
+#: Characters of a QC reason line in frames.png (the full text is in frames.parquet's qc_flags).
+REASON_WIDTH = 190
+
+
 def _reasons_text(ax, reasons: list[str], max_lines: int = 12) -> None:
     ax.axis("off")
     if not reasons:
         ax.text(0, 1, "All frames pass quality control.", va="top", fontsize=10, color="tab:green",
                 transform=ax.transAxes)
         return
+    import textwrap
+
     lines = reasons[:max_lines] + ([f"… and {len(reasons) - max_lines} more (frames.parquet qc_flags)"]
                                    if len(reasons) > max_lines else [])
+    lines = [textwrap.shorten(line, REASON_WIDTH, placeholder=" … (frames.parquet qc_flags)") for line in lines]
     ax.text(0, 1, "Flagged frames:\n" + "\n".join(lines), va="top", fontsize=9, color="darkred",
             transform=ax.transAxes, linespacing=1.3)
