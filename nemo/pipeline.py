@@ -185,7 +185,8 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
 
     Meshes the frame (nothing is written); per surface and per layer where a default depends
     on the mesh (curvature radius, director patch radius, pixel and count, averaging radius,
-    defect suppression and contour radii, tracking distance).
+    defect suppression and contour radii, tracking distance). With several objects
+    (``mesh.keep: all``) each layer's ``objects`` lists every object's lengths.
     """
     from nemo.defects import CONTOUR_PER_AVERAGING
     from nemo.io import read_stack
@@ -201,14 +202,19 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     if sections["curvature"] is not None:
         sections["curvature"] = {s: stages.curvature_defaults(meshes[s], sections["curvature"])
                                  for s in sections["surfaces"]}
-    per_layer = {}
-    for name, layer in (sections["layers"] or {}).items():
-        dp = stages.directors_defaults(meshes[layer["surface"]], sections["directors"])
+    def lengths(dp: dict) -> dict:
         radius = sections["order"]["radius"] or stages.ORDER_PER_PATCH * dp["nominal_radius"]
         fp = nconfig.section("defects", sections["defects"])
         fp["min_distance"] = fp["min_distance"] or radius
         fp["contour_radius"] = fp["contour_radius"] or CONTOUR_PER_AVERAGING * radius
-        per_layer[name] = {"directors": dp, "order": {**sections["order"], "radius": radius}, "defects": fp}
+        return {"directors": dp, "order": {**sections["order"], "radius": radius}, "defects": fp}
+
+    per_layer = {}
+    for name, layer in (sections["layers"] or {}).items():
+        dp = stages.directors_defaults(meshes[layer["surface"]], sections["directors"])
+        per_layer[name] = lengths(dp)  # several objects: the first's here, each object's in `objects`
+        if dp.get("objects"):
+            per_layer[name]["objects"] = [{"object": o["object"], **lengths(o)} for o in dp["objects"]]
     sections["resolved_per_layer"] = per_layer
     if per_layer:
         sections["tracking"] = stages.tracking_distance(sections["tracking"],

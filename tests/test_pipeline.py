@@ -425,3 +425,16 @@ def test_step_commands_reproduce_the_per_object_run(run_cli, two_vesicles, tmp_p
     mine, run = read_table(tmp_path / "defects.parquet", "defects"), read_table(out / "defects_film.parquet", "defects")
     np.testing.assert_allclose(mine[["x", "y", "z", "charge"]], run[["x", "y", "z", "charge"]])
     assert mine["object"].tolist() == run["object"].tolist()
+
+
+def test_print_config_lists_each_objects_lengths(two_vesicles):
+    """--print-config with keep: all: every object's data-derived lengths, as the run used them."""
+    from nemo.pipeline import resolved_config
+
+    out = two_vesicles["out"]
+    cfg = resolved_config(two_vesicles["dir"] / "two.tif", two_vesicles["config"])
+    per_object = cfg["resolved_per_layer"]["film"]["objects"]
+    assert [o["object"] for o in per_object] == [0, 1]
+    used = read_provenance(out / "order_film.parquet")["parameters"]["objects"]
+    np.testing.assert_allclose([o["order"]["radius"] for o in per_object], [o["radius"] for o in used])
+    assert per_object[1]["order"]["radius"] < per_object[0]["order"]["radius"]
