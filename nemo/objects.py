@@ -18,7 +18,7 @@ when objects have similar sizes (``frames.parquet`` gives each object's centre t
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -161,11 +161,6 @@ def values(params: dict | None, key: str):
     if params.get("objects"):
         return [p.get(key) for p in params["objects"]]
     return params.get(key)
-
-
-def run(all_parts: Sequence[Part], one: Callable[[int, Part], tuple]) -> list[tuple]:
-    """``one(k, part)`` for every object, in label order (a loop over objects, not vertices)."""
-    return [one(k, part) for k, part in enumerate(all_parts)]
 
 
 def concatenate(meshes: Sequence[trimesh.Trimesh], labels: Sequence[int]) -> trimesh.Trimesh:
