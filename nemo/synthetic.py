@@ -1007,67 +1007,39 @@ def _rasterise(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels
     if np.ndim(blur):
         return _rasterise_aniso(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um,
                                 blur, fibre_intensity, noise, shell_prof, noise_rngs, photons)
-    frames = len(frame_rot)
-    data = np.zeros((frames, shape[0], channels, shape[1], shape[2]), np.uint8)
     # trilinear splatting already spreads a fibre by a hat kernel of variance d^2/6 per axis:
     # blur by the rest so that the total is the requested isotropic physical sigma
     sigma_vox = tuple(np.sqrt(max(blur**2 - d * d / 6.0, 0.0)) / d for d in sp)
     norm = 2 * np.pi * blur**2 if blur > 0 else float(np.prod(sp)) ** (2.0 / 3.0)
-    weight = step_um / float(np.prod(sp))  # fibre length per voxel volume (µm / µm³)
     inv_dr = np.float32(1.0 / _SHELL_DR)
     zz = np.arange(shape[0]) * sp[0] - centre_zyx[0]
     yy = (np.arange(shape[1]) * sp[1] - centre_zyx[1])[:, None]
     xx = (np.arange(shape[2]) * sp[2] - centre_zyx[2])[None, :]
     rho2 = (yy**2 + xx**2).astype(np.float32)
-    scale = np.float32(255.0 * fibre_intensity * norm)
-    vol = np.zeros(shape, np.float32) if any(s["channel"] < channels for s in specs) else None
-    for t in range(frames):
-        for c in range(channels):
-            mine = [i for i, s in enumerate(specs) if s["channel"] == c]
-            with step(f"frame {t + 1}/{frames} channel {c + 1}/{channels}: rasterising {len(mine)} layer(s)"):
-                if mine:
-                    vol[...] = 0.0
-                    for i in mine:
-                        xyz = traced[i] @ frame_rot[t].T + centre
-                        _splat(xyz, weight, shape, sp, vol)
-                    if max(sigma_vox) > 0:
-                        ndimage.gaussian_filter(vol, sigma_vox, output=vol, mode="constant", truncate=4.0)
-                    vol *= scale
-                nrng = noise_rngs[t * channels + c]
-                for z in range(shape[0]):  # slab loop: each slab is vectorised
-                    r = np.sqrt(rho2 + np.float32(zz[z] ** 2)) * inv_dr  # radial grid index
-                    i = np.minimum(r.astype(np.int32), len(shell_prof) - 2)
-                    fr = r - i
-                    img = shell_prof[i] * (1 - fr) + shell_prof[i + 1] * fr
-                    if mine:
-                        img += vol[z]
-                    if photons:
-                        img = add_noise(img, photons, noise, nrng)
-                    elif noise > 0:
-                        img += np.float32(noise) * nrng.standard_normal(img.shape, dtype=np.float32)
-                    np.clip(img, 0.0, 255.0, out=img)
-                    data[t, z, c] = np.rint(img).astype(np.uint8)
-    return data
+
+    def shell_slab(z: int) -> np.ndarray:  # the tabulated radial profile, interpolated
+        r = np.sqrt(rho2 + np.float32(zz[z] ** 2)) * inv_dr  # radial grid index
+        i = np.minimum(r.astype(np.int32), len(shell_prof) - 2)
+        fr = r - i
+        return shell_prof[i] * (1 - fr) + shell_prof[i + 1] * fr
+
+    return _fill_frames(traced, specs, frame_rot, centre, shape, sp, channels, step_um / float(np.prod(sp)),
+                        sigma_vox, np.float32(255.0 * fibre_intensity * norm), noise, photons, noise_rngs, shell_slab)
 
 
 def _rasterise_aniso(traced, specs, frame_rot, centre, centre_zyx, shape, sp, channels, step_um, sigmas,
                      fibre_intensity, noise, shell, noise_rngs, photons) -> np.ndarray:
     """:func:`_rasterise` with an anisotropic Gaussian PSF ``sigmas`` = (sz, sy, sx) µm."""
     R, thick, _, background = shell
-    frames = len(frame_rot)
-    data = np.zeros((frames, shape[0], channels, shape[1], shape[2]), np.uint8)
     s = np.asarray(sigmas, float)
     sigma_vox = tuple(np.sqrt(max(b * b - d * d / 6.0, 0.0)) / d for b, d in zip(s, sp))
     s1, s2 = np.sort(s)[::-1][:2]  # a fibre's peak: 1 / (2 pi s_a s_b) over its normal plane
     norm = 2 * np.pi * s1 * s2 if s2 > 0 else float(np.prod(sp)) ** (2.0 / 3.0)
-    weight = step_um / float(np.prod(sp))
     zz = np.arange(shape[0]) * sp[0] - centre_zyx[0]
     yy = (np.arange(shape[1]) * sp[1] - centre_zyx[1])[:, None]
     xx = (np.arange(shape[2]) * sp[2] - centre_zyx[2])[None, :]
     rho2 = yy**2 + xx**2
     ys2 = (s[1] ** 2 * yy**2 + s[2] ** 2 * xx**2)
-    scale = np.float32(255.0 * fibre_intensity * norm)
-    vol = np.zeros(shape, np.float32) if any(sp_["channel"] < channels for sp_ in specs) else None
     tiny = 1e-6 * max(float(s.max()), 1e-3)
     shell_slabs = []
     for z in range(shape[0]):  # the shell, once: each voxel blurred with the sigma along its normal
@@ -1076,9 +1048,22 @@ def _rasterise_aniso(traced, specs, frame_rot, centre, centre_zyx, shape, sp, ch
         sn = np.maximum(sn, tiny)
         shell_slabs.append((255.0 * background * (_ball_blur_along(r, R + thick, sn)
                                                   - _ball_blur_along(r, R, sn))).astype(np.float32))
+    return _fill_frames(traced, specs, frame_rot, centre, shape, sp, channels, step_um / float(np.prod(sp)),
+                        sigma_vox, np.float32(255.0 * fibre_intensity * norm), noise, photons, noise_rngs,
+                        lambda z: shell_slabs[z].copy())
+
+
+def _fill_frames(traced, specs, frame_rot, centre, shape, sp, channels, weight, sigma_vox, scale, noise, photons,
+                 noise_rngs, shell_slab) -> np.ndarray:
+    """The uint8 image (T, Z, C, Y, X) of :func:`_rasterise`: per frame and channel the channel's
+    fibres (splatted with ``weight`` µm per µm³, blurred by ``sigma_vox``, times ``scale``) on
+    ``shell_slab(z)``, with noise, slab by slab."""
+    frames = len(frame_rot)
+    data = np.zeros((frames, shape[0], channels, shape[1], shape[2]), np.uint8)
+    vol = np.zeros(shape, np.float32) if any(spec["channel"] < channels for spec in specs) else None
     for t in range(frames):
         for c in range(channels):
-            mine = [i for i, sp_ in enumerate(specs) if sp_["channel"] == c]
+            mine = [i for i, spec in enumerate(specs) if spec["channel"] == c]
             with step(f"frame {t + 1}/{frames} channel {c + 1}/{channels}: rasterising {len(mine)} layer(s)"):
                 if mine:
                     vol[...] = 0.0
@@ -1088,8 +1073,8 @@ def _rasterise_aniso(traced, specs, frame_rot, centre, centre_zyx, shape, sp, ch
                         ndimage.gaussian_filter(vol, sigma_vox, output=vol, mode="constant", truncate=4.0)
                     vol *= scale
                 nrng = noise_rngs[t * channels + c]
-                for z in range(shape[0]):
-                    img = shell_slabs[z].copy()
+                for z in range(shape[0]):  # slab loop: each slab is vectorised
+                    img = shell_slab(z)
                     if mine:
                         img += vol[z]
                     img = add_noise(img, photons, noise, nrng)
