@@ -53,13 +53,11 @@ _CHUNK_SAMPLES = 4_000_000
 
 
 def _neighbour_matrix(faces: np.ndarray, n: int) -> sparse.csr_matrix:
-    """Row-normalised vertex adjacency (mean over the edge neighbours); isolated rows are 0."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
-    adj = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    adj.data[:] = 1.0  # duplicates (edges of two faces) summed: back to 1
-    deg = np.asarray(adj.sum(axis=1)).ravel()
-    return sparse.diags(np.where(deg > 0, 1.0 / np.maximum(deg, 1), 0.0)) @ adj
+    """Row-normalised vertex adjacency (the mean over the edge neighbours), shape (N, N)."""
+    import trimesh
+    from trimesh.smoothing import laplacian_calculation
+
+    return laplacian_calculation(trimesh.Trimesh(np.zeros((n, 3)), faces, process=False)).tocsr()
 
 
 def _crossings(image: np.ndarray, points: np.ndarray, normals: np.ndarray, reach: np.ndarray,
