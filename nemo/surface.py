@@ -536,7 +536,7 @@ def _hole_excess(chi: int, components: int) -> int:
     return max(AUTO_SIGMA_MIN_EULER - chi, chi - 2 * components, 0)
 
 
-def _topology_sigma(blurred, floor: float, cap: float, threshold, scale: float) -> tuple[float, list]:
+def _topology_sigma(blurred, level_of, floor: float, cap: float) -> tuple[float, list]:
     """Smallest σ of the ladder ``floor × 1.3^k ≤ cap`` whose thresholded solid has no noise holes.
 
     "No noise holes": the Euler characteristic of the solid (:func:`_solid_euler`) between
@@ -545,14 +545,14 @@ def _topology_sigma(blurred, floor: float, cap: float, threshold, scale: float) 
     texture instead of the wall; all vanish once the blur has averaged the noise. When no σ of
     the ladder reaches it (a truly porous object), the σ closest to it (the smallest among equals).
 
+    ``blurred(σ)`` is the sample blurred by σ, ``level_of(b)`` its iso-level (as reconstruct's).
     Returns σ and the ladder as [(σ, χ, components), ...].
     """
     ladder = []
     sigma = floor
     while sigma <= cap * (1 + 1e-9):  # a handful of blurs of the strided sample
         b = blurred(sigma)
-        level = _iso_level(b, float(b.min()), float(b.max()), False, threshold, "half", scale)[0]
-        ladder.append((float(sigma), *_solid_euler(b >= level)))
+        ladder.append((float(sigma), *_solid_euler(b >= level_of(b))))
         if _hole_excess(*ladder[-1][1:]) == 0:
             return float(sigma), ladder
         sigma *= AUTO_SIGMA_LADDER
@@ -633,12 +633,18 @@ def auto_sigma(
     k = max(1, int(np.ceil((source.size / NOISE_SAMPLE_VOXELS) ** (1 / 3))))
     voxel = np.array([dz, dy, dx]) * k
 
-    def blurred(sigma):
-        return _blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), k)
+    cache: dict[float, np.ndarray] = {}
+
+    def blurred(sigma):  # the strided sample blurred by σ (the same σ is asked for more than once)
+        if sigma not in cache:
+            cache[sigma] = _blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), k)
+        return cache[sigma]
+
+    def level_of(b):  # thresholded like reconstruct (edge "half")
+        return _iso_level(b, float(b.min()), float(b.max()), False, threshold, "half", scale)[0]
 
     b0 = blurred(floor)
-    vmin, vmax = float(b0.min()), float(b0.max())
-    level = _iso_level(b0, vmin, vmax, False, threshold, "half", scale)[0]
+    level = level_of(b0)
     sample = np.asarray(source[::k, ::k, ::k], dtype=np.float32)
     stats = _object_stats(sample, b0, level)
     cap = max(floor, max_samples * step * 0.5 * (dx + dy))
@@ -646,8 +652,7 @@ def auto_sigma(
     thick, sigma_cap = None, cap
     if sigma > floor:  # the thickness of the object seen at that blur caps the noise rule
         b1 = blurred(sigma)  # thresholded like reconstruct would at that σ
-        thick = _thickness(b1 >= _iso_level(b1, float(b1.min()), float(b1.max()), False, threshold, "half", scale)[0],
-                           voxel)
+        thick = _thickness(b1 >= level_of(b1), voxel)
         if thick is not None:
             sigma_cap = max(floor, min(cap, thickness_fraction * thick))
             sigma = min(sigma, sigma_cap)
@@ -655,7 +660,7 @@ def auto_sigma(
     # On a strided sample (k > 1) each σ is judged at least at the sample's own anti-aliasing blur,
     # so a thin wall missed between the sample points is not counted as a noise hole.
     alias = default_sigma((dz, dy, dx), k)
-    sigma_topology, ladder = _topology_sigma(lambda sg: blurred(max(sg, alias)), floor, cap, threshold, scale)
+    sigma_topology, ladder = _topology_sigma(lambda sg: blurred(max(sg, alias)), level_of, floor, cap)
     sigma = max(sigma, sigma_topology)
     snr_b = stats["snr"] * blur_noise_gain(sigma, (dz, dy, dx)) if stats["snr"] is not None else None
     limited = ("default" if sigma <= floor else "topology" if sigma == sigma_topology
