@@ -420,8 +420,7 @@ def _pilot_curvature_radius(vertices: np.ndarray, normals: np.ndarray, tree: cKD
     if len(probe) == 0:
         probe = np.argsort(-d_rim)[: int(n_probe)]
     probe = np.sort(probe)
-    n_pairs = float(np.mean(tree.query_ball_point(vertices[probe[:256]], radius, return_length=True)))
-    chunk = max(1, int(_PAIRS_PER_CHUNK // max(1.0, n_pairs)))
+    _, _, chunk = _plan_fits(tree, vertices, probe, radius, "quartic", np.random.default_rng(0))  # batch size only
     out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, "quartic", chunk)
     kmax = np.fmax(np.abs(out["k1"]), np.abs(out["k2"]))
     kmax = kmax[np.isfinite(kmax)]
