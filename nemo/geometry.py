@@ -256,6 +256,15 @@ def _smooth_frames(mesh, normals, max_vertices, source):
 # mesh-edge graph
 
 
+def surface_centre(mesh) -> np.ndarray:
+    """Area-weighted centroid of a surface (the origin of the spherical maps, an object's centre), shape (3,)."""
+    tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if area.sum() <= 0:
+        return np.asarray(mesh.vertices).mean(axis=0)
+    return (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum()
+
+
 def edge_graph(mesh: trimesh.Trimesh) -> sparse.csr_matrix:
     """Symmetric sparse graph of the mesh edges weighted by their length, shape (N, N).
 

@@ -123,13 +123,14 @@ def mesh(
     p["refine_sigma"] = surface.get("refine_sigma")
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None else {"noise": None, "snr": None})
-    found = find_objects(whole) if p["keep"] == "all" else []
-    if len(found) > 1:  # keep: all -> every object, labelled, each split about its own centre
-        meshes = _object_walls(whole, found, p)
-    else:
-        whole = one_object(whole, p["split"] != "none", p["keep"])  # several objects: the largest
+    if p["keep"] == "all":  # every object, labelled, each split about its own centre
+        found = find_objects(whole)
+        meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)
+        p["n_objects"] = len(found)
+    else:  # several objects: the largest, and a warning
+        whole = one_object(whole, p["split"] != "none", p["keep"])
         meshes = _walls(whole, p, centre)
-    p["n_objects"] = len(found) if len(found) > 1 else int(whole.metadata["n_objects"])
+        p["n_objects"] = int(whole.metadata["n_objects"])
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
     info = rim(meshes["whole"].faces, len(meshes["whole"].vertices))  # of the analysed surface
     p["rim_vertices"], p["rim_loops"] = info["n_vertices"], info["n_loops"]
@@ -141,8 +142,6 @@ def mesh(
 
 def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[str, trimesh.Trimesh]:
     """Every object of ``whole`` (``keep: all``), labelled (:mod:`nemo.objects`), split if configured."""
-    from nemo import objects
-
     pieces = objects.object_meshes(whole, found)
     unit = getattr(whole, "units", None) or "um"
     logger.info("keeping all %d objects: %s", len(found), "; ".join(
@@ -150,8 +149,6 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
         f"{o['centre'][2]:.4g})" for k, o in enumerate(found)))
     if p["split"] == "none":
         return {"whole": objects.concatenate(pieces, range(len(pieces)))}
-    if p["split"] != "centre" and p["split"] != "axis":
-        raise NemoError(f"mesh.split must be none, centre or axis, got {p['split']!r}")
     return objects.split_objects(pieces, p["split"], p["axis"])
 
 
@@ -272,13 +269,11 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
     objects (:mod:`nemo.objects`) ``objects`` holds the same record for each, with its ``object``
     label, so the summary can give each object its own row.
     """
-    from nemo.mesh import face_normals_areas
+    from nemo.geometry import surface_centre
     from nemo.morphology import measure as measure_surface
 
-    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
-    areas = face_normals_areas(vertices, faces)[1]
     result = measure_surface(mesh, curvature_df)
-    result["centre"] = ((vertices[faces].mean(axis=1) * areas[:, None]).sum(axis=0) / max(areas.sum(), 1e-300)).tolist()
+    result["centre"] = surface_centre(mesh).tolist()
     split = objects.parts(mesh)
     if split:
         result["objects"] = [dict(measure(part.mesh, None if curvature_df is None

@@ -14,14 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-
-def surface_centre(mesh) -> np.ndarray:
-    """Area-weighted centroid of a surface (the origin of the spherical maps), shape (3,)."""
-    tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    if area.sum() <= 0:
-        return np.asarray(mesh.vertices).mean(axis=0)
-    return (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum()
+from nemo.geometry import surface_centre  # noqa: F401  (re-exported: the origin of the charts)
 
 
 def spherical_angles(points: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
