@@ -168,15 +168,13 @@ def concatenate(meshes: Sequence[trimesh.Trimesh], labels: Sequence[int]) -> tri
 
     Vertex fields present in every mesh are kept; unit and metadata come from the first mesh.
     """
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
-    out = trimesh.Trimesh(np.concatenate([np.asarray(m.vertices) for m in meshes]),
-                          np.concatenate([np.asarray(m.faces) + o for m, o in zip(meshes, offsets)]), process=False)
-    out.units = getattr(meshes[0], "units", None)
-    out.metadata.update({k: v for k, v in meshes[0].metadata.items() if k not in ("parent_faces", "parent_vertices")})
-    shared = set.intersection(*(set(m.vertex_attributes) for m in meshes)) - {OBJECT_FIELD}
-    for name in sorted(shared):
-        out.vertex_attributes[name] = np.concatenate([np.asarray(m.vertex_attributes[name]) for m in meshes])
-    return set_labels(out, np.repeat(np.asarray(labels, dtype=np.int64), np.diff(offsets)))
+    metadata = {k: v for k, v in meshes[0].metadata.items() if k not in ("parent_faces", "parent_vertices")}
+    out = trimesh.util.concatenate(list(meshes))  # vertices in order, shared vertex fields and unit kept
+    out.metadata.clear()
+    out.metadata.update(metadata)
+    out.vertex_attributes.pop(OBJECT_FIELD, None)
+    sizes = [len(m.vertices) for m in meshes]
+    return set_labels(out, np.repeat(np.asarray(labels, dtype=np.int64), sizes))
 
 
 def object_meshes(whole: trimesh.Trimesh, found: Sequence[dict]) -> list[trimesh.Trimesh]:
