@@ -11,9 +11,12 @@ so that normals point **out of the bright object** (the solid). Steps:
    With ``edge="half"`` (default for Yen/Otsu) the automatic threshold only tells background
    from object; the surface is placed half-way between the background intensity (the mode of
    the class below the threshold) and the object's plateau (the most populated histogram peak
-   above the background). That is where a blurred step edge really lies: Yen's own level sits
-   on the dim tail of the edge and would shift the surface by about 2σ of the total blur. An
-   object without a plateau (a blob) falls back to the threshold itself.
+   above the background that rises above the lowest count between them by a third, and by three
+   times the counts' Poisson noise, so no blip of the sparse bright tail). That is where a
+   blurred step edge really lies: Yen's own level sits on the dim tail of the edge and would
+   shift the surface by about 2σ of the total blur. Without such a peak (a wall smeared by
+   texture and noise), the plateau is the median of the voxels above the threshold, and the
+   level never goes below the threshold (a blob keeps the threshold itself).
    A numeric threshold is used as the iso-level as given; a mask is blurred by σ and cut at 0.5.
 3. The blurred volume is sampled every ``step`` voxels (the grid scikit-image's marching cubes
    would use with ``step_size=step``) and padded by one sample of its minimum, so that
@@ -277,8 +280,66 @@ def _describe_objects(objects: list[dict], unit: str) -> str:
 
 #: Most voxels :func:`image_noise` looks at (a strided sample; robust statistics need no more).
 NOISE_SAMPLE_VOXELS = 4_000_000
-#: MAD to standard deviation for Gaussian noise.
-MAD_TO_SIGMA = 1.4826
+
+
+#: Most of a sample that may sit at its minimum for :func:`background_spread` to read a spread.
+MAX_CLIPPED_FRACTION = 0.9
+
+
+def background_spread(values: np.ndarray) -> tuple[float | None, float | None]:
+    """Centre and standard deviation of background intensities, robust to clipping at the bottom.
+
+    The centre μ and spread σ of a Gaussian are the line ``x = μ + σ Φ⁻¹(F(x))`` fitted to the
+    empirical distribution F at nine cuts x between its quantiles ``max(¼, p0 + (1 − p0)/20)``
+    and ``max(¾, p0 + (1 − p0)/2)``, ``p0`` being the fraction of values at the minimum. Without
+    clipping that is the interquartile range (robust to outliers, as a MAD). With clipping (a
+    camera offset of 0, an 8-bit image whose dark background lost its lower half to 0) the values
+    at the minimum are censored and only the quantiles above them are used; a median/MAD reads
+    such an image as noise-free (the SNR-5 vesicles did). Integer data are cut half-way between
+    levels, so 8-bit rounding does not bias small spreads.
+
+    Parameters
+    ----------
+    values : ndarray, shape (N,)
+        Background intensities (any dtype; NaN not allowed).
+
+    Returns
+    -------
+    centre, spread : float or None
+        None when undefined (fewer than 10 values, or more than :data:`MAX_CLIPPED_FRACTION`
+        but not all of them at the minimum). All values equal: that value and 0.
+    """
+    from scipy.special import ndtri  # Φ⁻¹
+
+    values = np.sort(np.asarray(values, dtype=np.float64).ravel())
+    if values.size < 10:
+        return None, None
+    clipped = np.searchsorted(values, values[0], side="right") / values.size
+    if clipped >= 1.0:  # one value: no noise
+        return float(values[0]), 0.0
+    if clipped > MAX_CLIPPED_FRACTION:
+        return None, None
+    q = np.linspace(max(0.25, clipped + 0.05 * (1 - clipped)), max(0.75, clipped + 0.5 * (1 - clipped)), 9)
+    cuts = np.unique(np.quantile(values, q))
+    if np.array_equal(values, np.round(values)):  # integer counts: cut half-way between levels
+        cuts = np.unique(np.floor(cuts) + 0.5)
+    below = np.searchsorted(values, cuts, side="right") / values.size
+    keep = (below > 0) & (below < 1)
+    if keep.sum() < 2:
+        return None, None
+    spread, centre = np.polyfit(ndtri(below[keep]), cuts[keep], 1)  # cut = centre + spread Φ⁻¹(F(cut))
+    return float(centre), float(spread)
+
+
+def _split_sample(sample: np.ndarray, blurred: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(inside mask, background values, core values) of a raw sample split by its blurred copy.
+
+    Background: the raw values whose blurred value is below ``level``, two samples away from the
+    object (its blurred edge is not background); core: the object eroded by one sample. Split by
+    the blurred copy, not the raw values, so the noise of either side is not cut at ``level``.
+    """
+    inside = blurred >= level
+    return inside, sample[~ndi.binary_dilation(inside, iterations=2)], sample[ndi.binary_erosion(inside)]
 
 
 def image_noise(volume: np.ndarray, level: float) -> dict:
@@ -294,19 +355,18 @@ def image_noise(volume: np.ndarray, level: float) -> dict:
     Returns
     -------
     dict
-        ``noise``: the background's robust spread, 1.4826 × median absolute deviation of the
-        voxels below ``level``; ``snr``: (median of the voxels at or above ``level`` − median
-        background) / ``noise``. None where undefined (no noise, or too few voxels on a side).
+        ``noise``: the background's spread (:func:`background_spread`, robust to clipping) over
+        a strided sample (about :data:`NOISE_SAMPLE_VOXELS` voxels) split by its copy blurred
+        by one sample (:func:`_split_sample`); ``snr``: (median of the object's core − background
+        centre) / ``noise``. None where undefined (no noise, or too few voxels on a side).
     """
     step = max(1, int(np.ceil((volume.size / NOISE_SAMPLE_VOXELS) ** (1 / 3))))
-    sample = np.asarray(volume[::step, ::step, ::step], dtype=np.float64).ravel()
-    sample = sample[np.isfinite(sample)]
-    background, foreground = sample[sample < level], sample[sample >= level]
-    if background.size < 10 or foreground.size < 10:
+    sample = np.nan_to_num(np.asarray(volume[::step, ::step, ::step], dtype=np.float32))
+    _, background, core = _split_sample(sample, ndi.gaussian_filter(sample, 1.0), level)
+    centre, noise = background_spread(background)
+    if centre is None or core.size < 10:
         return {"noise": None, "snr": None}
-    centre = float(np.median(background))
-    noise = MAD_TO_SIGMA * float(np.median(np.abs(background - centre)))
-    snr = (float(np.median(foreground)) - centre) / noise if noise > 0 else None
+    snr = (float(np.median(core)) - centre) / noise if noise > 0 else None
     return {"noise": noise, "snr": snr}
 
 
@@ -479,22 +539,20 @@ def _sigma_for_snr(snr: float | None, spacing, target: float, floor: float, cap:
 def _object_stats(sample: np.ndarray, blurred: np.ndarray, level: float) -> dict:
     """Background, plateau, noise and contrast of a strided raw sample split by its blurred copy.
 
-    The noise is the larger of the background's robust spread (1.4826 × MAD of the raw voxels
-    whose blurred value is below ``level``) and the object's **dark spread**: how far the raw
-    voxels of the object's core (the thresholded blurred sample eroded by one sample, away from
-    its edges) fall below the plateau, ``(plateau − 25th percentile) / 0.6745`` (the std of
-    Gaussian noise; 0 when bright texture only adds light, as fibres do). Dark gaps inside the
+    The noise is the larger of the background's spread (:func:`background_spread`, robust to
+    clipping, of the raw voxels whose blurred value is below ``level``, :func:`_split_sample`)
+    and the object's **dark spread**: how far the raw voxels of the object's core (the
+    thresholded blurred sample eroded by one sample, away from its edges) fall below the
+    plateau, ``(plateau − 25th percentile) / 0.6745`` (the std of Gaussian noise; 0 when bright
+    texture only adds light, as fibres do). Dark gaps inside the
     object (noise, or speckle such as nuclei with dark space between them) make a thresholded wall
     porous; bright texture does not. The plateau is ``2 × level − background`` (the level sits
     half-way).
     """
-    inside = blurred >= level
-    bg = sample[~inside]
-    core = sample[ndi.binary_erosion(inside)]
-    if bg.size < 10 or core.size < 10:
+    inside, bg, core = _split_sample(sample, blurred, level)
+    b, n_bg = background_spread(bg)
+    if b is None or core.size < 10:
         return {"background": None, "plateau": None, "noise": None, "snr": None}
-    b = float(np.median(bg))
-    n_bg = MAD_TO_SIGMA * float(np.median(np.abs(bg - b)))
     plateau = 2.0 * level - b
     n_dark = max(0.0, plateau - float(np.percentile(core, 25))) / 0.6745
     noise = max(n_bg, n_dark)
@@ -727,10 +785,16 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
     peaks = np.flatnonzero((ext[1:-1] >= ext[:-2]) & (ext[1:-1] > ext[2:]))
     peaks = peaks[peaks > b0]
     valley = np.minimum.accumulate(counts[b0:])  # lowest count from the background peak onwards
-    ok = counts[peaks] >= (4.0 / 3.0) * valley[peaks - b0]
-    if not ok.any():  # no plateau (e.g. a blob): fall back to the automatic threshold
-        logger.info("no object plateau in the intensity histogram: surface at the %s threshold", method)
-        return thr, thr
+    rise = counts[peaks] - valley[peaks - b0]
+    # ... and by more than the counts' own noise (3 Poisson std): no blips of the sparse tail
+    ok = (counts[peaks] >= (4.0 / 3.0) * valley[peaks - b0]) & (rise >= 3.0 * np.sqrt(counts[peaks]))
+    if not ok.any():  # no plateau peak (a blob, or a wall smeared by texture and noise)
+        # half-way to the object's median instead, never below the threshold: a textured noisy
+        # wall gets its half-maximum level, a blob (median near the threshold) the threshold
+        level = max(thr, 0.5 * (float(centres[b0]) + float(np.median(sample[sample > thr]))))
+        logger.info("no object plateau in the intensity histogram: surface %s",
+                    f"at the {method} threshold" if level == thr else "half-way to the object's median")
+        return thr, level
     top = peaks[ok][np.argmax(counts[peaks[ok]])]
     return thr, 0.5 * (float(centres[b0]) + float(centres[top]))
 

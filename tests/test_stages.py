@@ -141,7 +141,8 @@ def test_mesh_split_of_two_objects_keeps_the_largest_or_refuses_to_mix_them():
     with pytest.warns(NemoWarning, match=r"2 objects: analysing the largest .*centred at \(56, 20, 20\)"):
         meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})  # keep: largest (default)
     assert params["n_objects"] == 2
-    assert params["noise"] == 0 and params["snr"] is None  # a noise-free image: no ratio
+    # a noise-free image: no noise but the blurred edges' tail (0 = the clipped background)
+    assert params["noise"] < 0.05 and (params["snr"] is None or params["snr"] > 1000)
     for wall, radius in (("inner", 10), ("outer", 14)):  # the larger shell's walls, nothing of the other
         assert measure(meshes[wall])["euler_characteristic"] == 2
         assert stages.object_radius(meshes[wall]) == pytest.approx(radius, abs=0.6)

@@ -647,3 +647,62 @@ def test_cli_mesh_border(tmp_path, run_cli):
         assert mesh.is_watertight == (border == "closed")
         areas[border] = mesh.area
     assert areas["closed"] > areas["open"] * 1.15
+
+
+@pytest.mark.parametrize("centre, std", [(100.0, 10.0), (0.0, 20.0), (-15.0, 20.0), (5.0, 30.0)])
+def test_background_spread_reads_gaussian_noise_clipped_or_not(centre, std):
+    """Gaussian background N(centre, std) stored as 8-bit (clipped at 0 and rounded): the spread
+    and the centre come back within 5 %/1.5 grey levels, though up to 77 % of it reads 0."""
+    from nemo.surface import background_spread
+
+    rng = np.random.default_rng(3)
+    values = np.clip(np.rint(rng.normal(centre, std, 200_000)), 0, 255).astype(np.uint8)
+    got_centre, got_std = background_spread(values)
+    assert got_std == pytest.approx(std, rel=0.05)
+    assert got_centre == pytest.approx(centre, abs=1.5)
+
+
+def test_background_spread_flat_clipped_and_too_few():
+    from nemo.surface import background_spread
+
+    assert background_spread(np.full(1000, 7.0)) == (7.0, 0.0)  # no noise
+    rng = np.random.default_rng(0)
+    assert background_spread(np.clip(rng.normal(-60, 20, 10_000), 0, None)) == (None, None)  # 99.9 % clipped
+    assert background_spread(np.arange(5.0)) == (None, None)
+
+
+def test_image_noise_of_a_clipped_shell_reads_the_noise_and_the_wall():
+    """A bright ball (100 on 0) with noise of std 20, clipped at 0: the noise is 20 and the SNR
+    about 100 / 20, where a median/MAD of the dark half read no noise at all."""
+    from nemo.surface import image_noise
+
+    rng = np.random.default_rng(5)
+    z, y, x = np.mgrid[:48, :48, :48]
+    ball = 100.0 * ((z - 24) ** 2 + (y - 24) ** 2 + (x - 24) ** 2 < 15**2)
+    vol = np.clip(ball + rng.normal(0, 20, ball.shape), 0, None).astype(np.float32)
+    got = image_noise(vol, 50.0)
+    assert got["noise"] == pytest.approx(20, rel=0.05)
+    assert got["snr"] == pytest.approx(5, rel=0.1)
+
+
+def test_auto_level_ignores_blips_in_the_sparse_bright_tail():
+    """An object with no intensity plateau (values spread evenly from the background up to 0.7, as
+    a noisy blurred wall with texture) and a handful of bright voxels at 0.95: the lone bright
+    voxels are no plateau (they used to set the level half-way to them, 0.52), so the level is
+    half-way to the object's median (0.55 → 0.33); a real plateau (0.6) sets the half-way level
+    (0.35), and a blob (a median near the threshold) keeps the threshold."""
+    from nemo.surface import _auto_level
+
+    rng = np.random.default_rng(2)
+    background = rng.normal(0.1, 0.01, 60_000)
+    blips = np.r_[np.full(4, 0.95), [1.0]]
+    flat = np.r_[background, rng.uniform(0.1, 0.7, 30_000), blips]
+    thr, level = _auto_level(flat.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
+    above = flat[flat > thr]
+    assert level == pytest.approx(0.5 * (0.1 + np.median(above)), abs=0.01) and level < 0.4
+    plateau = np.r_[background, rng.normal(0.6, 0.02, 20_000), blips]
+    thr, level = _auto_level(plateau.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
+    assert level == pytest.approx(0.35, abs=0.02)
+    blob = np.r_[background, 0.1 + 0.8 * rng.uniform(0, 1, 5_000) ** 4]  # a bright core, mostly edge
+    thr, level = _auto_level(blob.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
+    assert level == thr

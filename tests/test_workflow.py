@@ -823,21 +823,19 @@ def test_directors_from_files_replace_peel_and_directors(tmp_path):
 def test_real_stacks_run_end_to_end_with_quality_control(tmp_path):
     """config/real.yaml on the two real stacks shipped in data/real/ (a neural-tube organoid at
     3.4 µm voxels, an uncalibrated Drosophila embryo cut by the field of view): the workflow runs
-    through, every frame has its QC verdict, what is wrong with the data is named, the organoid's
-    two objects get a row each (mesh.keep: all), and the input files are not modified."""
+    through, every frame has its QC verdict, what is wrong with the data is named, the organoid
+    (one object, mesh.keep: all) gets its row, and the input files are not modified."""
     import hashlib
 
     (tmp_path / "data").symlink_to(ROOT / "data")
     stacks = sorted((ROOT / "data" / "real").glob("*.tif"))
     digest = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in stacks}
     smk(tmp_path, "--cores", "2", "--configfile", ROOT / "config" / "real.yaml", timeout=900)
-    organoid = _summary(tmp_path, "frames", "organoid")  # two organoids, each its own row (keep: all)
-    assert organoid["object"].tolist() == [0, 1] and (organoid["n_objects"] == 2).all()
-    assert organoid["c"].tolist() == [1, 1] and organoid["layer"].tolist() == ["apical", "apical"]
-    assert organoid["area"].iloc[0] > organoid["area"].iloc[1]  # object 0 is the larger one
-    assert organoid["centre_x"].iloc[1] > organoid["centre_x"].iloc[0] + 100  # the second sits at the right edge
+    organoid = _summary(tmp_path, "frames", "organoid")  # one ring of epithelium (keep: all)
+    assert organoid["object"].tolist() == [0] and (organoid["n_objects"] == 1).all()
+    assert organoid["c"].tolist() == [1] and organoid["layer"].tolist() == ["apical"]
     assert not organoid["qc_pass"].any()  # a porous, cut nuclear shell: flagged, with reasons
-    assert organoid["qc_flags"].str.contains("no curvature at").all()
+    assert organoid["qc_flags"].str.contains("pieces").all() and organoid["qc_flags"].str.contains("holes").all()
     assert organoid["S_mean"].between(0, 1).all() and (organoid["snr"] > 3).all()
     fly = _summary(tmp_path, "frames", "drosophila")
     assert len(fly) == 1 and fly["n_objects"].iloc[0] == 1 and fly["area"].iloc[0] > 1000  # pixel² units
