@@ -295,8 +295,10 @@ def background_spread(values: np.ndarray) -> tuple[float | None, float | None]:
     clipping that is the interquartile range (robust to outliers, as a MAD). With clipping (a
     camera offset of 0, an 8-bit image whose dark background lost its lower half to 0) the values
     at the minimum are censored and only the quantiles above them are used; a median/MAD reads
-    such an image as noise-free (the SNR-5 vesicles did). Integer data are cut half-way between
-    levels, so 8-bit rounding does not bias small spreads.
+    such an image as noise-free (the SNR-5 vesicles did). Only a minimum at or below 0 counts as
+    clipped: a flat background above 0 (a clean image whose blurred edges form a sparse tail)
+    is noise-free. Integer data are cut half-way between levels, so 8-bit rounding does not bias
+    small spreads.
 
     Parameters
     ----------
@@ -307,20 +309,22 @@ def background_spread(values: np.ndarray) -> tuple[float | None, float | None]:
     -------
     centre, spread : float or None
         None when undefined (fewer than 10 values, or more than :data:`MAX_CLIPPED_FRACTION`
-        but not all of them at the minimum). All values equal: that value and 0.
+        but not all of them at a minimum of 0). Half or more of the values equal: spread 0.
     """
     from scipy.special import ndtri  # Φ⁻¹
 
     values = np.sort(np.asarray(values, dtype=np.float64).ravel())
     if values.size < 10:
         return None, None
-    clipped = np.searchsorted(values, values[0], side="right") / values.size
-    if clipped >= 1.0:  # one value: no noise
-        return float(values[0]), 0.0
+    # clipping happens at 0 (an unsigned camera or an 8-bit image); a flat background above 0 with
+    # blurred edges is a clean image, not a clipped one
+    clipped = np.searchsorted(values, values[0], side="right") / values.size if values[0] <= 0 else 0.0
     if clipped > MAX_CLIPPED_FRACTION:
-        return None, None
+        return (0.0, 0.0) if clipped >= 1.0 else (None, None)
     q = np.linspace(max(0.25, clipped + 0.05 * (1 - clipped)), max(0.75, clipped + 0.5 * (1 - clipped)), 9)
     cuts = np.unique(np.quantile(values, q))
+    if len(cuts) == 1:  # most of the background is one value: no noise
+        return float(cuts[0]), 0.0
     if np.array_equal(values, np.round(values)):  # integer counts: cut half-way between levels
         cuts = np.unique(np.floor(cuts) + 0.5)
     below = np.searchsorted(values, cuts, side="right") / values.size
