@@ -25,7 +25,6 @@ from nemo.defects import (
     candidate_table,
     find_defects,
     noise_floor,
-    orientation_weights,
     step_limit_deg,
     winding_steps,
 )
@@ -634,56 +633,3 @@ def test_sparse_sampling_of_the_projects_vesicle_field(spacing, noise, preset):
     field = director_field(np.asarray(mesh.vertices), dirs, charges, pole=projection_pole(dirs))
     ddf = sf.vertex_directors(mesh, field, noise, int(noise))
     _sparse_check(mesh, ddf, 50.0 * dirs, charges)
-
-
-# ------------------------------------------------------------------------------------------------
-# fit weights: the inverse angle variance of a structure tensor
-
-
-@pytest.mark.parametrize("ratio", [1.5, 3.0, 10.0])
-def test_orientation_weights_are_the_inverse_angle_variance_of_a_structure_tensor(ratio):
-    """The principal-axis angle of a sample tensor of N Gaussian gradients with covariance
-    diag(λ1, λ2) has variance λ1 λ2 / (N (λ1 − λ2)²) = (1 − c²) / (4 N c²): the weight c²/(1 − c²)
-    times 4 N var(θ) is 1 (Monte Carlo against the analytic variance)."""
-    rng = np.random.default_rng(int(ratio * 10))
-    n_samples, trials = 400, 4000
-    lam1, lam2 = ratio, 1.0
-    g = rng.standard_normal((trials, n_samples, 2)) * np.sqrt([lam1, lam2])
-    j = np.einsum("tni,tnj->tij", g, g) / n_samples
-    angle = 0.5 * np.arctan2(2 * j[:, 0, 1], j[:, 0, 0] - j[:, 1, 1])  # dominant axis (truth 0)
-    c = (lam1 - lam2) / (lam1 + lam2)
-    assert 4 * n_samples * np.var(angle) * orientation_weights(c) == pytest.approx(1.0, rel=0.1)
-    # monotone, finite at c = 1, a floor for c = 0 and NaN
-    w = orientation_weights(np.array([np.nan, 0.0, 0.5, 0.9, 1.0]))
-    assert np.all(np.isfinite(w)) and np.all(np.diff(w[1:]) > 0) and w[0] == w[1] > 0
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_model_fit_resists_a_coherent_sector_of_low_coherency_directors(seed):
-    """A +1/2 core whose directors are 60° off over a sector near the core (as where a
-    z-elongated PSF hides the fibres across the optical axis), with the lower coherency such
-    directors have (0.7 against 0.95): the inverse-variance fit stays on the analytic core, while
-    the same directors without that information (equal coherency) pull it 5-7 µm away."""
-    mesh = grid_mesh(40.0, 1.0)
-    core = np.array([0.37, -0.29])
-
-    def field(p):
-        th = 0.5 * np.arctan2(p[:, 1] - core[1], p[:, 0] - core[0])
-        return np.column_stack([np.cos(th), np.sin(th), np.zeros(len(p))])
-
-    ddf = sample_directors(mesh, 3000, field, np.random.default_rng(seed), noise_deg=3.0)
-    rel = ddf[["x", "y"]].to_numpy() - core
-    r, phi = np.hypot(rel[:, 0], rel[:, 1]), np.degrees(np.arctan2(rel[:, 1], rel[:, 0]))
-    bad = (r < 10) & (phi > -100) & (phi < -30)
-    th = np.arctan2(ddf["ny"], ddf["nx"]) + np.where(bad, np.radians(60), 0.0)
-    ddf["nx"], ddf["ny"] = np.cos(th), np.sin(th)
-    ddf["coherency"] = np.where(bad, 0.7, 0.95)
-    odf = q_average(mesh, ddf, 10.0)
-
-    def error(directors):
-        df = find_defects(mesh, odf, directors, avg_radius=10.0)
-        assert len(df) == 1 and df["refine"].iloc[0] == "model"
-        return float(np.hypot(*(df[["x", "y"]].to_numpy()[0] - core)))
-
-    assert error(ddf) < 0.5  # vertex spacing 1
-    assert error(ddf.assign(coherency=0.95)) > 3.0
