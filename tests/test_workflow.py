@@ -152,11 +152,13 @@ def test_bad_config_fails_before_any_job_naming_the_key(tmp_path, name):
 @pytest.mark.parametrize(
     "edit, key, words",
     [
-        (lambda d: d.update(c=[0, 1]), "datasets.cells.c", "1 channel"),
-        (lambda d: d.update(t=[0, 5]), "datasets.cells.t", "2 time points"),
-        (lambda d: d.update(segment_channel=2), "datasets.cells.segment_channel", "channel 2"),
+        pytest.param(lambda d: d.update(c=[0, 1]), "datasets.cells.c", "1 channel", id="channel"),
+        # the same check on the other axes: ≈ 26 s each, run with the slow tests (suite budget)
+        pytest.param(lambda d: d.update(t=[0, 5]), "datasets.cells.t", "2 time points", id="time",
+                     marks=pytest.mark.slow),
+        pytest.param(lambda d: d.update(segment_channel=2), "datasets.cells.segment_channel", "channel 2",
+                     id="segment-channel", marks=pytest.mark.slow),
     ],
-    ids=["channel", "time", "segment-channel"],
 )
 def test_hyperstack_header_checked_at_parse_time(tmp_path, tiny_stack, edit, key, words):
     cfg = _bad(lambda c: edit(c["datasets"]["cells"]), tiny_stack)
@@ -462,6 +464,7 @@ def test_odd_dataset_paths_are_quoted(tmp_path):
     assert not list(tmp_path.rglob("PWNED")) and not Path("PWNED").exists()
 
 
+@pytest.mark.slow  # ≈ 75 s (kills and reruns a real workflow); the suite's budget is ~15 min on 2 cores
 def test_a_killed_run_recovers_with_unlock_and_rerun_incomplete(tmp_path):
     """kill -9 mid-run leaves a lock and incomplete files; the documented commands recover."""
     radii = [7.0, 7.5, 8.0, 8.5, 9.0, 9.5]
@@ -744,6 +747,7 @@ def test_catalog_test_config_runs(tmp_path):
 
 
 # ----------------------------------------------------------------------------- directors from other tools
+@pytest.mark.slow  # ≈ 55 s (a two-frame workflow plus nemo run); tests/test_import_directors.py covers the import
 def test_directors_from_files_replace_peel_and_directors(tmp_path):
     """A layer with `directors_from` (issue 17): the dry run plans `directors_import` instead of
     peel + directors for it (and the rest unchanged), a missing file stops the parse naming the
