@@ -548,10 +548,9 @@ def _object_stats(sample: np.ndarray, blurred: np.ndarray, level: float) -> dict
     and the object's **dark spread**: how far the raw voxels of the object's core (the
     thresholded blurred sample eroded by one sample, away from its edges) fall below the
     plateau, ``(plateau − 25th percentile) / 0.6745`` (the std of Gaussian noise; 0 when bright
-    texture only adds light, as fibres do). Dark gaps inside the
-    object (noise, or speckle such as nuclei with dark space between them) make a thresholded wall
-    porous; bright texture does not. The plateau is ``2 × level − background`` (the level sits
-    half-way).
+    texture only adds light, as fibres do). Dark gaps inside the object (noise, or speckle such as
+    nuclei with dark space between them) make a thresholded wall porous; bright texture does not.
+    The plateau is ``2 × level − background`` (the level sits half-way).
     """
     inside, bg, core = _split_sample(sample, blurred, level)
     b, n_bg = background_spread(bg)
@@ -795,7 +794,8 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
     if not ok.any():  # no plateau peak (a blob, or a wall smeared by texture and noise)
         # half-way to the object's median instead, never below the threshold: a textured noisy
         # wall gets its half-maximum level, a blob (median near the threshold) the threshold
-        level = max(thr, 0.5 * (float(centres[b0]) + float(np.median(sample[sample > thr]))))
+        above = sample[sample > thr]
+        level = max(thr, 0.5 * (float(centres[b0]) + float(np.median(above)))) if above.size else thr
         logger.info("no object plateau in the intensity histogram: surface %s",
                     f"at the {method} threshold" if level == thr else "half-way to the object's median")
         return thr, level
