@@ -280,8 +280,6 @@ def _describe_objects(objects: list[dict], unit: str) -> str:
 
 #: Most voxels :func:`image_noise` looks at (a strided sample; robust statistics need no more).
 NOISE_SAMPLE_VOXELS = 4_000_000
-
-
 #: Most of a sample that may sit at its minimum for :func:`background_spread` to read a spread.
 MAX_CLIPPED_FRACTION = 0.9
 
@@ -320,7 +318,7 @@ def background_spread(values: np.ndarray) -> tuple[float | None, float | None]:
     # blurred edges is a clean image, not a clipped one
     clipped = np.searchsorted(values, values[0], side="right") / values.size if values[0] <= 0 else 0.0
     if clipped > MAX_CLIPPED_FRACTION:
-        return (0.0, 0.0) if clipped >= 1.0 else (None, None)
+        return (float(values[0]), 0.0) if clipped >= 1.0 else (None, None)
     q = np.linspace(max(0.25, clipped + 0.05 * (1 - clipped)), max(0.75, clipped + 0.5 * (1 - clipped)), 9)
     cuts = np.unique(np.quantile(values, q))
     if len(cuts) == 1:  # most of the background is one value: no noise

@@ -666,6 +666,7 @@ def test_background_spread_flat_clipped_and_too_few():
     from nemo.surface import background_spread
 
     assert background_spread(np.full(1000, 7.0)) == (7.0, 0.0)  # no noise
+    assert background_spread(np.full(1000, -3.0)) == (-3.0, 0.0)  # flat at or below 0: no noise either
     # a clean background of 20 with the blurred edges' sparse tail above it is not "clipped at 20"
     # (it read a spread of 18 on a noise-free shell imaged with a z-elongated PSF)
     rng = np.random.default_rng(1)
