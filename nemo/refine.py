@@ -40,7 +40,7 @@ from scipy import sparse
 
 from nemo.errors import NemoError
 
-__all__ = ["REFINE_MAX_SHIFT", "REFINE_SMOOTH", "refine_vertices"]
+__all__ = ["REFINE_MAX_SHIFT", "REFINE_SMOOTH", "refine_vertices", "snap_to_level"]
 
 #: Default largest shift of a vertex, in voxels along its normal (× the marching-cubes step).
 REFINE_MAX_SHIFT = 1.5
@@ -229,3 +229,73 @@ def _regularise(shift: np.ndarray, found: np.ndarray, movable: np.ndarray, reach
         value = 0.5 * value + 0.5 * (mean @ value)
         value[~movable] = 0.0
     return np.clip(value, -reach, reach)
+
+
+
+#: Newton steps of :func:`snap_to_level` (the start is within a fraction of a sample).
+_SNAP_STEPS = 3
+#: Finite-difference step of the slope along the normal, as a fraction of the search reach.
+_SNAP_DIFF = 0.1
+
+
+def snap_to_level(vertices: np.ndarray, normals: np.ndarray, field: np.ndarray, level: float,
+                  sample_spacing, origin, fixed: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Move marching-cubes vertices along their normals onto the field's cubic-spline iso-surface.
+
+    Marching cubes places each vertex on a grid edge by *linear* interpolation between two
+    samples. Where an edge is sampled coarsely (z planes 2–3 × the pixel size, or a step > 1)
+    that misplaces the surface by up to ~0.05 sample in a pattern that follows the planes:
+    terraces where the surface runs nearly parallel to them (near the poles of an object imaged
+    on anisotropic voxels), which a curvature fit at a small radius reads as curvature. Here each
+    vertex moves along its normal, by Newton steps (slope by central differences), to where the
+    cubic B-spline interpolant of the same field (:func:`scipy.ndimage.spline_filter`,
+    :func:`scipy.ndimage.map_coordinates`, order 3) crosses the same level: no new blur, no
+    search, at most half a sample along the normal. A vertex where the field does not fall
+    outward (no clear edge), or that is ``fixed``, stays.
+
+    Parameters
+    ----------
+    vertices, normals : ndarray, shape (N, 3)
+        Physical x, y, z and unit outward normals (NaN rows stay).
+    field : ndarray, shape (Z, Y, X)
+        The sampled (blurred) field marching cubes ran on (not modified; its float32 spline
+        coefficients are a temporary copy).
+    level : float
+        Its iso-level.
+    sample_spacing : (dz, dy, dx)
+        Physical distance between the field's samples.
+    origin : (z, y, x)
+        Physical position of the field's sample (0, 0, 0).
+    fixed : ndarray of bool, shape (N,), optional
+
+    Returns
+    -------
+    vertices : ndarray, shape (N, 3)
+    info : dict
+        ``snapped`` (vertices moved) and ``snap_abs_p95`` (physical distance moved, 95th percentile).
+    """
+    sp = np.asarray(sample_spacing, dtype=np.float64)[::-1]  # x, y, z
+    org = np.asarray(origin, dtype=np.float64)[::-1]
+    move = np.isfinite(normals).all(axis=1)
+    if fixed is not None:
+        move &= ~np.asarray(fixed, dtype=bool)
+    idx = np.flatnonzero(move)
+    coef = ndi.spline_filter(field, order=3, output=np.float32, mode="mirror")
+    n = normals[idx]
+    reach = 0.5 * np.linalg.norm(n * sp, axis=1)  # half a sample along the normal
+    h = _SNAP_DIFF * reach
+
+    def value(t):  # the spline at vertex + t × normal
+        q = (vertices[idx] + t[:, None] * n - org) / sp
+        return ndi.map_coordinates(coef, q[:, ::-1].T, order=3, mode="mirror", prefilter=False)
+
+    t = np.zeros(len(idx))
+    ok = np.ones(len(idx), dtype=bool)
+    for _ in range(_SNAP_STEPS):
+        slope = (value(t + h) - value(t - h)) / (2 * h)
+        ok &= slope < 0
+        t = np.where(ok, np.clip(t - (value(t) - level) / np.where(ok, slope, -1.0), -reach, reach), 0.0)
+    out = np.array(vertices, dtype=np.float64, copy=True)
+    out[idx] += t[:, None] * n
+    moved = np.abs(t[ok])
+    return out, {"snapped": int(ok.sum()), "snap_abs_p95": float(np.percentile(moved, 95)) if moved.size else 0.0}

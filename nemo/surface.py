@@ -28,7 +28,11 @@ so that normals point **out of the bright object** (the solid). Steps:
    (a shell's inner wall is part of the shell) with at least :data:`OBJECT_MIN_AREA` (10 %) of
    the largest one's area (smaller ones are noise). :func:`one_object` refuses to split several
    objects into walls and warns when ``keep="largest"`` ignores some (``nemo.stages.mesh``).
-5. Taubin (windowed-sinc) smoothing through PyVista removes the staircase without shrinking.
+5. Sub-sample snap (:func:`nemo.refine.snap_to_level`): marching cubes interpolates linearly
+   between samples, which on coarse z planes leaves terraces where the surface runs nearly
+   parallel to them; each vertex moves along its normal (at most half a sample) to the
+   crossing of the same level by the cubic-convolution interpolant of the same field.
+   Then Taubin (windowed-sinc) smoothing through PyVista removes the staircase without shrinking.
 6. Open surfaces (``border="open"``, the default): a tissue cut by the field of view (a *Hydra*
    foot close-up, an organoid taller than the stack) has no surface beyond the image; its cap is
    fake geometry (fake curvature at its edge, fake topology). The cap faces are dropped after
@@ -1016,12 +1020,13 @@ def reconstruct(
 
     box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
     vertices, faces, code = _marching_cubes(padded, level, (dz, dy, dx), step, box)
-    del padded
     mesh = make_mesh(vertices, faces, unit=unit, fields={_CODE: code}, orient_outward=False)
     if signed_volume(mesh.vertices, mesh.faces) < 0:  # padded => closed => the solid has volume > 0
         mesh.faces = mesh.faces[:, ::-1]
     logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
     mesh = keep_components(mesh, keep)
+    snap_info = _snap(mesh, padded, level, (dz, dy, dx), step, box)
+    del padded
     if smooth_iter > 0:
         with log_step(f"Taubin smoothing ({smooth_iter} iterations, {len(mesh.vertices)} vertices)"):
             smoothed = _taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band)
@@ -1032,12 +1037,29 @@ def reconstruct(
     mesh.metadata["nemo_surface"] = {
         "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
         "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
-        "spacing": [dz, dy, dx], "border": border, **rim_info, **ref_info,
+        "spacing": [dz, dy, dx], "border": border, **snap_info, **rim_info, **ref_info,
     }
     mesh.metadata.pop("parent_faces", None)
     mesh.metadata.pop("parent_vertices", None)
     mesh.metadata["spacing"] = (dz, dy, dx)  # saved in the PLY header: peel checks the image
     return mesh
+
+
+def _snap(mesh: trimesh.Trimesh, padded: np.ndarray, level: float, spacing: tuple[float, float, float],
+          step: int, box: np.ndarray) -> dict:
+    """Snap ``mesh``'s marching-cubes vertices in place onto the cubic iso-surface of the padded
+    field (:func:`nemo.refine.snap_to_level`: undoes the terraces of linear interpolation
+    between coarse samples); vertices on the image border stay. The record."""
+    from nemo.refine import snap_to_level
+
+    if len(mesh.faces) == 0:
+        return {"snapped": 0, "snap_abs_p95": 0.0}
+    sample = np.asarray(spacing, dtype=np.float64) * step
+    code = np.asarray(mesh.vertex_attributes[_CODE])
+    new, info = snap_to_level(np.asarray(mesh.vertices), _vertex_normals(mesh), padded, level, sample,
+                              -_PAD * sample, fixed=code != 0)
+    mesh.vertices = np.clip(new, 0.0, box)
+    return info
 
 
 def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spacing: tuple[float, float, float],

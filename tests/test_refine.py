@@ -220,3 +220,54 @@ def test_refinement_of_a_noisy_sphere_keeps_its_normals_smooth():
     rough.vertices = new
     assert tilt(on) <= 1.1 * tilt(off) < tilt(rough)
     assert abs(np.median(_radial(on, c)) - R) < 0.3
+
+
+def _erf_sphere(radius, spacing, edge_sigma, pad=4.0):
+    """A (Z, Y, X) image of a ball (1 inside, 0 outside) with an erf edge of σ ``edge_sigma`` µm."""
+    from scipy.special import erf
+
+    half = radius + pad + 4 * edge_sigma
+    axes = [np.arange(-half, half + 1e-9, d) for d in spacing]
+    z, y, x = np.meshgrid(*axes, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    origin = np.array([a[0] for a in axes])  # z, y, x of sample (0, 0, 0)
+    return (0.5 - 0.5 * erf((r - radius) / (np.sqrt(2) * edge_sigma))).astype(np.float32), origin
+
+
+def test_snap_to_level_removes_the_terraces_of_coarse_z_planes():
+    """Marching cubes on planes 2.5 × the pixel size puts the vertices of an erf edge (σ 0.8 plane)
+    up to 0.06 µm off the true sphere in terraces near the poles (linear interpolation between
+    planes); the snap onto the cubic-spline iso-surface brings them within 0.025 µm. (An edge
+    sharper than ~0.6 plane is aliased: no interpolant recovers it, measured 0.27 → 0.24 µm at
+    σ 0.32 plane.)"""
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    from nemo.mesh import vertex_normals
+    from nemo.refine import snap_to_level
+
+    R, spacing = 12.0, (2.5, 1.0, 1.0)
+    field, origin = _erf_sphere(R, spacing, edge_sigma=2.0)
+    verts, faces, _, _ = marching_cubes(field, 0.5, spacing=spacing)
+    verts_xyz = (verts + origin)[:, ::-1]
+    mesh = trimesh.Trimesh(verts_xyz, faces, process=False)  # (z, y, x) -> (x, y, z) flips the winding twice
+    normals = vertex_normals(mesh)
+    assert np.einsum("ij,ij->i", normals, verts_xyz).min() > 0  # outward
+    snapped, info = snap_to_level(verts_xyz, normals, field, 0.5, spacing, origin)
+    err_before = np.abs(np.linalg.norm(verts_xyz, axis=1) - R)
+    err_after = np.abs(np.linalg.norm(snapped, axis=1) - R)
+    pole = np.abs(normals[:, 2]) > 0.8
+    assert err_before[pole].max() > 0.05  # the terraces are there ...
+    assert err_after[pole].max() < 0.5 * err_before[pole].max()  # ... and gone
+    assert np.sqrt(np.mean(err_after**2)) < 0.4 * np.sqrt(np.mean(err_before**2))
+    assert info["snapped"] == len(verts_xyz)
+    # a snap never moves a vertex more than half a sample along its normal
+    reach = 0.5 * np.linalg.norm(normals * np.array(spacing[::-1]), axis=1)
+    assert (np.linalg.norm(snapped - verts_xyz, axis=1) <= reach + 1e-9).all()
+    # fixed vertices and vertices on a flat field stay where they are
+    fixed = np.zeros(len(verts_xyz), bool)
+    fixed[::3] = True
+    again, _ = snap_to_level(verts_xyz, normals, field, 0.5, spacing, origin, fixed=fixed)
+    assert np.array_equal(again[fixed], verts_xyz[fixed])
+    flat, info_flat = snap_to_level(verts_xyz, normals, np.zeros_like(field), 0.5, spacing, origin)
+    assert np.array_equal(flat, verts_xyz) and info_flat["snapped"] == 0
