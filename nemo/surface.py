@@ -30,8 +30,8 @@ so that normals point **out of the bright object** (the solid). Steps:
    objects into walls and warns when ``keep="largest"`` ignores some (``nemo.stages.mesh``).
 5. Sub-sample snap (:func:`nemo.refine.snap_to_level`): marching cubes interpolates linearly
    between samples, which on coarse z planes leaves terraces where the surface runs nearly
-   parallel to them; each vertex moves along its normal (at most half a sample) to the
-   crossing of the same level by the cubic-convolution interpolant of the same field.
+   parallel to them; each vertex moves along its normal (at most a quarter of a sample) to the
+   crossing of the same level by the cubic B-spline interpolant of the same field.
    Then Taubin (windowed-sinc) smoothing through PyVista removes the staircase without shrinking.
 6. Open surfaces (``border="open"``, the default): a tissue cut by the field of view (a *Hydra*
    foot close-up, an organoid taller than the stack) has no surface beyond the image; its cap is
@@ -1056,8 +1056,9 @@ def _snap(mesh: trimesh.Trimesh, padded: np.ndarray, level: float, spacing: tupl
         return {"snapped": 0, "snap_abs_p95": 0.0}
     sample = np.asarray(spacing, dtype=np.float64) * step
     code = np.asarray(mesh.vertex_attributes[_CODE])
-    new, info = snap_to_level(np.asarray(mesh.vertices), _vertex_normals(mesh), padded, level, sample,
-                              -_PAD * sample, fixed=code != 0)
+    with log_step(f"snapping {len(mesh.vertices)} vertices onto the cubic-spline iso-surface"):
+        new, info = snap_to_level(np.asarray(mesh.vertices), _vertex_normals(mesh), padded, level, sample,
+                                  -_PAD * sample, fixed=code != 0)
     mesh.vertices = np.clip(new, 0.0, box)
     return info
 

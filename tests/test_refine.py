@@ -261,8 +261,8 @@ def test_snap_to_level_removes_the_terraces_of_coarse_z_planes():
     assert err_after[pole].max() < 0.5 * err_before[pole].max()  # ... and gone
     assert np.sqrt(np.mean(err_after**2)) < 0.4 * np.sqrt(np.mean(err_before**2))
     assert info["snapped"] == len(verts_xyz)
-    # a snap never moves a vertex more than half a sample along its normal
-    reach = 0.5 * np.linalg.norm(normals * np.array(spacing[::-1]), axis=1)
+    # a snap never moves a vertex more than a quarter of a sample along its normal
+    reach = 0.25 * np.linalg.norm(normals * np.array(spacing[::-1]), axis=1)
     assert (np.linalg.norm(snapped - verts_xyz, axis=1) <= reach + 1e-9).all()
     # fixed vertices and vertices on a flat field stay where they are
     fixed = np.zeros(len(verts_xyz), bool)
