@@ -30,6 +30,11 @@ edge of the object at the resolution of the image, not of the mesh blur.
 An elongated PSF (σ_z > σ_xy, as in a confocal) widens the edge along z but leaves the
 half-level crossing of a flat edge in place; ``D`` follows the voxel size along the normal, so
 the search reaches as far in z (in voxels) as in x, y.
+
+:func:`snap_to_level` is the lighter, always-on step before the smoothing: it reads the same
+blurred field marching cubes ran on, only through a cubic B-spline instead of linear
+interpolation between samples, so it removes the terraces of coarse z planes without reading
+the noise a second time.
 """
 
 from __future__ import annotations
@@ -229,7 +234,6 @@ def _regularise(shift: np.ndarray, found: np.ndarray, movable: np.ndarray, reach
         value = 0.5 * value + 0.5 * (mean @ value)
         value[~movable] = 0.0
     return np.clip(value, -reach, reach)
-
 
 
 #: Half-width of :func:`snap_to_level`'s bracket along the normal, in samples: the cubic
