@@ -286,23 +286,25 @@ def snap_to_level(vertices: np.ndarray, normals: np.ndarray, field: np.ndarray, 
     idx = np.flatnonzero(move)
     coef = ndi.spline_filter(field, order=3, output=np.float32, mode="mirror")
     n = normals[idx]
+    base = (vertices[idx] - org) / sp  # (x, y, z) sample coordinates
+    step = n / sp
     h = _SNAP_BRACKET * np.linalg.norm(n * sp, axis=1)  # physical, along the normal
 
-    def value(t):  # the spline at vertex + t × normal
-        q = (vertices[idx] + t[:, None] * n - org) / sp
-        return ndi.map_coordinates(coef, q[:, ::-1].T, order=3, mode="mirror", prefilter=False)
+    def value(t):  # the spline minus the level at vertex + t × normal
+        q = base + t[:, None] * step
+        return ndi.map_coordinates(coef, q[:, ::-1].T, order=3, mode="mirror", prefilter=False) - level
 
-    lo, hi = -h, h.copy()
-    f_lo, f_hi = value(lo) - level, value(hi) - level
+    def secant(lo, hi, f_lo, f_hi):  # root of the chord of each bracket
+        return np.where(ok, lo + (hi - lo) * f_lo / np.where(ok, f_lo - f_hi, 1.0), 0.0)
+
+    lo, hi = -h, h
+    f_lo, f_hi = value(lo), value(hi)
     ok = (f_lo >= 0) & (f_hi < 0)  # the field falls through the level across the bracket
-    for last in (False, True):  # two steps of false position (regula falsi)
-        t = np.where(ok, lo + (hi - lo) * f_lo / np.where(ok, f_lo - f_hi, 1.0), 0.0)
-        if last:
-            break
-        f_t = value(t) - level
-        inside = f_t >= 0
-        lo, f_lo = np.where(inside, t, lo), np.where(inside, f_t, f_lo)
-        hi, f_hi = np.where(inside, hi, t), np.where(inside, f_hi, f_t)
+    t = secant(lo, hi, f_lo, f_hi)
+    f_t = value(t)  # one step of false position: keep the sub-bracket that holds the crossing
+    inside = f_t >= 0
+    t = secant(np.where(inside, t, lo), np.where(inside, hi, t), np.where(inside, f_t, f_lo),
+               np.where(inside, f_hi, f_t))
     out = np.array(vertices, dtype=np.float64, copy=True)
     out[idx] += t[:, None] * n
     moved = np.abs(t[ok])

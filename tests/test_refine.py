@@ -250,7 +250,7 @@ def test_snap_to_level_removes_the_terraces_of_coarse_z_planes():
     field, origin = _erf_sphere(R, spacing, edge_sigma=2.0)
     verts, faces, _, _ = marching_cubes(field, 0.5, spacing=spacing)
     verts_xyz = (verts + origin)[:, ::-1]
-    mesh = trimesh.Trimesh(verts_xyz, faces, process=False)  # (z, y, x) -> (x, y, z) flips the winding twice
+    mesh = trimesh.Trimesh(verts_xyz, faces, process=False)  # winding checked just below
     normals = vertex_normals(mesh)
     assert np.einsum("ij,ij->i", normals, verts_xyz).min() > 0  # outward
     snapped, info = snap_to_level(verts_xyz, normals, field, 0.5, spacing, origin)

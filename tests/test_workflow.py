@@ -218,8 +218,8 @@ def _summary(work: Path, name: str, dataset: str = "demo") -> pd.DataFrame:
 # marching-cubes vertices were snapped onto the cubic-spline iso-surface). An open issue
 # (walls biased outward): test_default_run_thickness_is_unbiased below is its strict xfail.
 # The bias shrinks with the voxel size (benchmarks/README.md: 10.26 at the paper's 2 µm step on
-# R 200, 10.03 at 1 µm voxels). `mesh.refine: true` (sub-voxel walls, off by default) gave 10.56 (before the snap)
-# here and 10.02 on the paper's vesicle (docs/validation.md).
+# R 200, 10.03 at 1 µm voxels). `mesh.refine: true` (sub-voxel walls, off by default) gave
+# 10.56 here before the snap and 10.02 on the paper's vesicle (docs/validation.md).
 DEMO_THICKNESS_BIAS = 0.65  # µm, measured: 0.646 - 0.656 over the 3 frames
 
 

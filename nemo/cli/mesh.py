@@ -17,7 +17,8 @@ DESCRIPTION = """\
 Reconstruct the surface of the bright object in one (t, c) stack as a triangle mesh with
 vertices in physical x, y, z (µm) and outward normals (method note §2): Gaussian blur
 (--sigma in µm), threshold (Yen by default; the surface sits half-way between the object and
-background intensities) or a binary --mask, marching cubes every --step voxels, Taubin
+background intensities) or a binary --mask, marching cubes every --step voxels, vertices
+snapped onto the cubic-spline iso-surface (no terraces between coarse z planes), Taubin
 smoothing, largest connected component. An object cut by the edge of the image gives an open
 surface whose rim lies on the border (--border open, the default); --border closed keeps the
 flat cap that closes it along the border planes.
