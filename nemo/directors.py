@@ -295,20 +295,21 @@ def directors(
         Layer intensity per vertex (from :func:`nemo.peel.peel`); NaN values are ignored.
     patch_radius : float, optional
         Patch radius (mesh unit, µm): vertices within this 3D distance of the centre. Default
-        (when ``patch_k`` is not given either) 10 × the mean edge length; the CLI requires one of
-        the two.
+        (when ``patch_k`` is not given either) :func:`default_patch_radius`.
     patch_k : int, optional
         Patch = the ``patch_k`` nearest vertices instead (exclusive with ``patch_radius``).
     n_patches : int, optional
         Number of centres, drawn without replacement. Default :func:`default_n_patches`
         (30 per patch area; the paper's 12 000 for R = 200 µm, r = 20 µm), capped by N.
     pixel : float, optional
-        Micro-image pixel (µm); default half the mean edge length, but at least
-        ``radius / 20`` (so a patch spans at most ~40 pixels across). Refused below
+        Micro-image pixel (µm); default :func:`default_pixel` (a quarter of the mean edge
+        length, at least ``radius / MAX_HALF_WIDTH_PX``). Refused below
         :data:`MIN_PIXEL_PER_EDGE` × the mean edge length or when the micro-image would be
         wider than ``2 MAX_HALF_WIDTH_LIMIT + 1`` pixels.
     sigma : float, optional
-        Structure-tensor integration scale in pixels; default half the patch radius.
+        Structure-tensor integration scale in pixels; default :data:`SIGMA_PX`. The micro-images
+        are gridded only as far as the centre's tensor reads them (:func:`support_half_width`):
+        a patch wider than that only bounds the window (pixels outside it carry no weight).
     frames : {"axis", "smooth"}
         Tangent frames (see :func:`nemo.geometry.tangent_frames`); the directors in 3D do not
         depend on this choice.
@@ -348,11 +349,26 @@ def directors(
     with step(f"frames ({frames}) for {n_c} patch centres"):
         t1, t2 = tangent_frames(mesh, frames, vertices=centres)
 
+    half = min(half, support_half_width(sigma, smooth))
     size = 2 * half + 1
     with step(f"directors: {n_c} patches (r ≈ {grid_radius:.3g}, {size}×{size} px of {pixel:.3g})"):
         theta, coherency = _patch_angles(tree, vertices, intensity, centres, (t1, t2), radii, grid_radius,
                                          half, pixel, sigma, smooth, spacing_v)
     return _director_table(vertices, centres, theta, coherency, t1, t2)
+
+
+def support_half_width(sigma: float, smooth: float, grad_sigma: float = GRAD_SIGMA) -> int:
+    """Half-width (pixels) of the micro-image that the centre pixel's structure tensor depends on.
+
+    The integration window, the gradient kernel and the normalised-convolution kernel
+    (``smooth``) are scipy Gaussians truncated at 4 σ; a sample splats onto the pixel next to
+    it. Samples and pixels farther (Chebyshev distance) from the centre than the sum change
+    nothing, so :func:`directors` grids no farther (same numbers, fewer pixels).
+    """
+    def reach(s: float) -> int:
+        return int(4.0 * float(s) + 0.5)
+
+    return reach(sigma) + reach(grad_sigma) + reach(smooth) + 1
 
 
 def _check_intensity(intensity: np.ndarray, n_vert: int) -> np.ndarray:
@@ -455,7 +471,8 @@ def _patch_angles(tree: cKDTree, vertices: np.ndarray, intensity: np.ndarray, ce
                   pixel: float, sigma: float, smooth: float, spacing_v: float) -> tuple[np.ndarray, np.ndarray]:
     """Fibre angle θ (from ``t1`` towards ``t2``) and coherency of every patch, in chunks of centres.
 
-    Each chunk: the (centre, vertex) pairs within the grid radius plus the margin, their tangent
+    Each chunk: the (centre, vertex) pairs the micro-image grids (within the grid radius plus the
+    margin, or the grid's corners when ``half`` is cut to the tensor's support), their tangent
     coordinates, the micro-images, the structure tensor at the centre pixel (inside the patch
     only) and its fibre angle. NaN for patches with too few vertices or a flat image.
     """
@@ -463,7 +480,9 @@ def _patch_angles(tree: cKDTree, vertices: np.ndarray, intensity: np.ndarray, ce
     n_c = len(centres)
     size = 2 * half + 1
     margin = _MARGIN_PX * pixel
-    pairs_per_patch = np.pi * (grid_radius + margin) ** 2 / spacing_v**2
+    reach = min(grid_radius + margin, np.sqrt(2.0) * half * pixel)  # the patch, or the grid's corners
+    finite_tree = cKDTree(vertices[np.isfinite(intensity)])  # counts each whole patch's data
+    pairs_per_patch = np.pi * reach**2 / spacing_v**2
     chunk = int(max(1, min(n_c, _CHUNK_ELEMENTS // max(4 * pairs_per_patch, size * size * 4))))
     theta = np.full(n_c, np.nan)
     coherency = np.full(n_c, np.nan)
@@ -472,15 +491,14 @@ def _patch_angles(tree: cKDTree, vertices: np.ndarray, intensity: np.ndarray, ce
         sl = slice(start, min(n_c, start + chunk))
         cen = centres[sl]
         ctree = cKDTree(vertices[cen])
-        pairs = ctree.sparse_distance_matrix(tree, grid_radius + margin, output_type="ndarray")
+        pairs = ctree.sparse_distance_matrix(tree, reach, output_type="ndarray")
         pi, vj = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
         keep = pairs["v"] <= radii[sl][pi] + margin
         pi, vj = pi[keep], vj[keep]
         d = vertices[vj] - vertices[cen][pi]
         u = np.einsum("ij,ij->i", d, t1[sl][pi])
         w = np.einsum("ij,ij->i", d, t2[sl][pi])
-        in_patch = pairs["v"][keep] <= radii[sl][pi]
-        count = np.bincount(pi[in_patch & np.isfinite(intensity[vj])], minlength=len(cen))
+        count = finite_tree.query_ball_point(vertices[cen], radii[sl], return_length=True)
         images, density = micro_images(u, w, intensity[vj], pi, len(cen), half, pixel, smooth)
         mask = (rho2[None] <= radii[sl][:, None, None] ** 2) & (density > 0)
         tensor = structure_tensor_centre(images, sigma, mask)

@@ -72,8 +72,11 @@ from nemo.mesh import (
 
 #: Fewest neighbours (besides the vertex itself) a quadric fit accepts.
 MIN_NEIGHBOURS = 6
-#: Default number of sampled vertices is at least this many (or all vertices if fewer).
+#: Default number of sampled vertices is at least this many (or all vertices if fewer) ...
 MIN_DEFAULT_SAMPLES = 20_000
+#: ... unless their fits would hold more (sample, neighbour) pairs than this: at a large radius
+#: the discs overlap so much that fewer samples (still ≥ 8 per disc) cost less for the same map.
+DEFAULT_PAIR_BUDGET = 4_000_000
 #: The quartic fit needs at least this many neighbours, else that sample uses the quadratic fit.
 QUARTIC_MIN_NEIGHBOURS = 30
 #: ``fit="auto"`` picks the quartic fit when the median sample has at least this many neighbours.
@@ -131,10 +134,15 @@ def default_n_samples(n_vertices: int, area: float, radius: float) -> int:
 
     About eight samples per fitting disc (π r²), so the samples are ~0.6 r apart and the
     k-nearest interpolation blurs no more than the fit itself; at least
-    :data:`MIN_DEFAULT_SAMPLES`, at most every vertex.
+    :data:`MIN_DEFAULT_SAMPLES` (fewer when their fits would exceed
+    :data:`DEFAULT_PAIR_BUDGET` neighbour pairs, but never fewer than eight per disc), at most
+    every vertex.
     """
-    per_disc = math.ceil(8.0 * area / (math.pi * radius**2))
-    return int(min(n_vertices, max(MIN_DEFAULT_SAMPLES, per_disc)))
+    disc = math.pi * radius**2
+    per_disc = math.ceil(8.0 * area / disc)
+    neighbours = max(1.0, n_vertices * disc / area) if area > 0 else 1.0
+    floor = min(MIN_DEFAULT_SAMPLES, math.ceil(DEFAULT_PAIR_BUDGET / neighbours))
+    return int(min(n_vertices, max(floor, per_disc)))
 
 
 def _neighbour_pairs(

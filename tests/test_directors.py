@@ -128,6 +128,32 @@ def test_flat_stripes_at_the_default_scale(alpha_deg):
     assert np.median(err) < 1.0 and err.max() < 5.0, (np.median(err), err.max())
 
 
+def test_micro_images_cut_to_the_tensor_support_change_nothing(monkeypatch, rng):
+    """At the default σ the centre's tensor reads a window narrower than a 12 µm patch: gridding
+    only that window gives the directors of the whole patch (noise and NaN holes included)."""
+    import nemo.directors as nd
+
+    mesh, intensity, _, centres = flat_stripes(30.0)
+    intensity = intensity + 0.5 * rng.standard_normal(len(intensity))
+    intensity[rng.random(len(intensity)) < 0.2] = np.nan
+    halves = []
+    grid = nd.micro_images
+
+    def recording(*args):
+        halves.append(args[5])
+        return grid(*args)
+
+    monkeypatch.setattr(nd, "micro_images", recording)
+    cut = directors(mesh, intensity, patch_radius=12.0, centres=centres)
+    monkeypatch.setattr(nd, "support_half_width", lambda *a, **k: 10**6)
+    whole = directors(mesh, intensity, patch_radius=12.0, centres=centres)
+    assert halves[0] < 0.7 * halves[-1], halves  # the cut happened
+    assert (cut["vertex"].to_numpy() == whole["vertex"].to_numpy()).all()
+    err = angle_between_deg(cut[["nx", "ny", "nz"]].to_numpy(), whole[["nx", "ny", "nz"]].to_numpy())
+    assert err.max() < 1e-3, err.max()
+    np.testing.assert_allclose(cut["coherency"], whole["coherency"], atol=1e-5)
+
+
 @pytest.mark.parametrize("alpha_deg", [0.0, 40.0, 90.0])
 def test_cylinder_helical_stripes(alpha_deg):
     rc = 15.0

@@ -206,6 +206,25 @@ def test_subsampling_and_interpolation(sphere15):
     assert np.array_equal(df["H"].to_numpy(), full["H"].to_numpy())
 
 
+def test_default_sample_count_bounds_the_fit_pairs(sphere15, monkeypatch):
+    """Many samples at a small radius; at a large radius no more than the pair budget allows,
+    but never fewer than eight per fitting disc, and the fit stays right with that few."""
+    import nemo.morphology as nm
+
+    area, n_vert = 4 * np.pi * 200.0**2, 188_650  # the paper's inner wall at step 2
+    assert nm.default_n_samples(n_vert, area, 10.0) == nm.MIN_DEFAULT_SAMPLES  # ~120 neighbours
+    assert nm.default_n_samples(5000, area, 5.0) == 5000
+    r = 27.8  # the default radius there: ~900 neighbours per fit
+    n = nm.default_n_samples(n_vert, area, r)
+    per_disc = 8 * area / (np.pi * r**2)
+    assert per_disc <= n < nm.MIN_DEFAULT_SAMPLES
+    assert n * n_vert * np.pi * r**2 / area <= 1.001 * nm.DEFAULT_PAIR_BUDGET
+    monkeypatch.setattr(nm, "DEFAULT_PAIR_BUDGET", 1)
+    df = curvature(sphere15, radius=5.0, rng=3)
+    assert df["sampled"].sum() == np.ceil(8 * sphere15.area / (np.pi * 25.0)) < len(sphere15.vertices)
+    assert np.median(np.abs(df["H"] * 15.0 - 1)) < 0.01
+
+
 def test_seed_reproducibility(sphere15):
     a = curvature(sphere15, radius=4.0, n_samples=500, rng=7)
     b = curvature(sphere15, radius=4.0, n_samples=500, rng=7)

@@ -38,7 +38,8 @@ def add_arguments(parser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--samples", type=positive(int), metavar="N",
                        help="number of randomly chosen vertices to fit (default: all vertices of small "
-                            "meshes, else ~8 per fitting disc, at least 20000)")
+                            "meshes, else ~8 per fitting disc, at least 20000 unless their fits "
+                            "would hold over 4M neighbour pairs)")
     group.add_argument("--fraction", type=positive(float), metavar="F",
                        help="fraction of vertices to fit, in (0, 1]")
     parser.add_argument("--k-interp", type=positive(int), metavar="K",
