@@ -101,6 +101,9 @@ DEFAULT_CURVATURE_QUANTILE = 0.25
 #: Vertices fitted by each pilot pass of :func:`default_radius`, and the most passes.
 PILOT_SAMPLES = 2000
 PILOT_PASSES = 5
+#: A pilot pass fits fewer vertices (at least :data:`PILOT_MIN_SAMPLES`) when theirs would hold
+#: more (vertex, neighbour) pairs than this (a quantile needs no more at a large radius).
+PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 500
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -329,7 +332,8 @@ def default_radius(
     quantile : float
         Quantile of 1/|k|max taken as R_c, in (0, 1) (:data:`DEFAULT_CURVATURE_QUANTILE`).
     n_probe : int
-        Vertices fitted per pilot pass (:data:`PILOT_SAMPLES`); ≥ 10.
+        Most vertices fitted per pilot pass (:data:`PILOT_SAMPLES`; fewer at a large radius, see
+        :data:`PILOT_PAIR_BUDGET`); ≥ 10.
     rng : numpy.random.Generator or int, optional
         Which vertices the pilot fits (by index: the result does not depend on the pose).
 
@@ -415,7 +419,8 @@ def _pilot_curvature_radius(vertices: np.ndarray, normals: np.ndarray, tree: cKD
     """The ``quantile`` of 1/|k|max from quartic fits at ``radius`` (inf: no curvature found).
 
     The first ``n_probe`` vertices of ``order`` whose ball stays off the rim are fitted (those
-    farthest from the rim if none does).
+    farthest from the rim if none does), fewer (not below :data:`PILOT_MIN_SAMPLES`) when their
+    neighbours would exceed :data:`PILOT_PAIR_BUDGET`.
 
     Returns
     -------
@@ -424,11 +429,13 @@ def _pilot_curvature_radius(vertices: np.ndarray, normals: np.ndarray, tree: cKD
     n : int
         Number of finite fits it comes from.
     """
-    probe = order[d_rim[order] > radius][: int(n_probe)]
+    probe = order[d_rim[order] > radius]
     if len(probe) == 0:
-        probe = np.argsort(-d_rim)[: int(n_probe)]
-    probe = np.sort(probe)
-    _, _, chunk = _plan_fits(tree, vertices, probe, radius, "quartic", np.random.default_rng(0))  # batch size only
+        probe = np.argsort(-d_rim)
+    per_fit = max(1.0, float(np.mean(tree.query_ball_point(vertices[probe[:256]], radius, return_length=True))))
+    n = min(int(n_probe), max(PILOT_MIN_SAMPLES, int(PILOT_PAIR_BUDGET // per_fit)))
+    probe = np.sort(probe[:n])
+    chunk = max(1, int(_PAIRS_PER_CHUNK // per_fit))
     out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, "quartic", chunk)
     kmax = np.fmax(np.abs(out["k1"]), np.abs(out["k2"]))
     kmax = kmax[np.isfinite(kmax)]
