@@ -995,7 +995,7 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
 def _image_quality(mesh: trimesh.Trimesh) -> dict:
     """What NEMO's mesh step found in the image (None for meshes from elsewhere)."""
     params = mesh.metadata.get("nemo_params") or {}
-    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "rim_loops")}
+    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops")}
 
 
 def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> dict:

@@ -91,7 +91,7 @@ def mesh(
         ``whole`` and, when split, ``inner`` and ``outer`` (trimesh.Trimesh, physical x, y, z).
     resolved : dict
         The section with ``step`` and ``sigma`` as numbers, the iso-level used, the image's
-        ``noise`` and ``snr`` (:func:`nemo.surface.image_noise`; None with a mask),
+        ``noise``, ``snr`` and ``saturated`` (:func:`nemo.surface.image_noise`; None with a mask),
         ``n_objects`` (:func:`nemo.surface.find_objects`), ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
@@ -122,7 +122,8 @@ def mesh(
     p["level"] = float(surface["level"])
     p["refine_sigma"] = surface.get("refine_sigma")
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
-    p.update(image_noise(volume, p["level"]) if volume is not None and mask is None else {"noise": None, "snr": None})
+    p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
+             else {"noise": None, "snr": None, "saturated": None})
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
         found = find_objects(whole)
         meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)

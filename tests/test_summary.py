@@ -131,6 +131,10 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
     ({"snr": 3.0}, {**CLOSED, "n_objects": 1}, []),
+    ({}, {**CLOSED, "saturated": 0.25}, ["25 % of the object's voxels saturated: walls placed outward, thickness "
+                                          "overestimated (lower the gain or the exposure)"]),
+    ({}, {**CLOSED, "saturated": 0.10}, []),
+    ({}, {**CLOSED, "saturated": None}, []),
     ({}, {**CLOSED, "n_objects": 3}, ["3 objects in the image (see the mesh step's warning)"]),
 ])
 def test_quality_flags_name_each_reason(change, measure, expected):

@@ -689,6 +689,35 @@ def test_image_noise_of_a_clipped_shell_reads_the_noise_and_the_wall():
     assert got["snr"] == pytest.approx(5, rel=0.1)
 
 
+def test_image_noise_reads_the_saturated_fraction_and_saturation_moves_the_wall_out():
+    """A blurred ball of 300 on 20 stored as 8-bit is cut at 255: about half of its core is at
+    full scale, and its wall comes out farther than the unclipped image's; float images,
+    16-bit images below full scale and label images read no saturation."""
+    from scipy import ndimage as ndi
+
+    from nemo.surface import image_noise, saturated_fraction
+
+    z, y, x = np.mgrid[:48, :48, :48]
+    r = np.sqrt((z - 24) ** 2 + (y - 24) ** 2 + (x - 24) ** 2)
+    ball = ndi.gaussian_filter(np.where(r < 14, 300.0, 20.0), 3.0)
+    clipped = np.clip(ball, 0, 255).round().astype(np.uint8)
+    got = image_noise(clipped, 137.0)  # the level sits at r ≈ 14; the core is the object eroded by a voxel
+
+    def full_scale_within(radius):
+        return np.count_nonzero(ball[r < radius] >= 254.5) / np.count_nonzero(r < radius)
+
+    assert full_scale_within(14) < got["saturated"] < full_scale_within(12)  # 0.39 < 0.48 < 0.63
+    assert image_noise(ball.astype(np.float32), 160.0)["saturated"] is None
+    assert image_noise(ball.astype(np.uint16), 160.0)["saturated"] == 0.0  # 300 is no full scale
+    assert saturated_fraction(np.array([0, 1, 1, 2], np.uint8)) == 0.0  # labels
+    assert saturated_fraction(np.array([], np.uint16)) is None
+    radius = {}
+    for name, vol in (("clipped", clipped), ("float", ball.astype(np.float32))):
+        mesh = reconstruct(vol, (1.0, 1.0, 1.0), sigma=0.5)
+        radius[name] = np.linalg.norm(mesh.vertices - 24.0, axis=1).mean()
+    assert radius["clipped"] > radius["float"] + 0.3, radius
+
+
 def test_auto_level_ignores_blips_in_the_sparse_bright_tail():
     """An object with no intensity plateau (values spread evenly from the background up to 0.7, as
     a noisy blurred wall with texture) and a handful of bright voxels at 0.95: the lone bright
