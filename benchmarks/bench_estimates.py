@@ -1,0 +1,93 @@
+"""Benchmark: what the data-derived defaults cost in one frame (issue 12: ≤ 20 % of a frame).
+
+``nemo run`` on the paper's vesicle (R = 200 µm, 1 µm voxels) twice per round, alternating:
+
+* **defaults**: every length from the data, so the mesh step estimates the noise and runs the
+  blur's topology ladder (``nemo.surface.auto_sigma``) and the curvature step runs the radius
+  pilot (``nemo.morphology.default_radius``) for each wall;
+* **pinned**: a config that gives the values the defaults resolved to (``mesh.sigma`` and
+  ``curvature.radius`` read from the first run's outputs), so neither estimate runs.
+
+The difference of the in-process totals (``summary.json``'s ``total_s``) is the estimates'
+cost. The sub-sample snap of the marching-cubes vertices (always on) is reported from its log
+line. The image is generated once and not timed; the machine should be otherwise idle.
+
+    .venv/bin/python benchmarks/bench_estimates.py [--radius 200] [--repeat 3] [--workdir DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import yaml
+
+
+def run_frame(image: Path, out: Path, config: Path | None) -> tuple[dict, str]:
+    """``nemo run -v`` into ``out``; its summary.json and log."""
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [sys.executable, "-m", "nemo", "run", str(image), "-o", str(out), "-v"]
+    cmd += ["--config", str(config)] if config else []
+    done = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads((out / "summary.json").read_text()), done.stderr + done.stdout
+
+
+def resolved_values(out: Path) -> dict:
+    """The config that pins what the defaults resolved to in the run in ``out``."""
+    from nemo.tables import read_provenance
+
+    summary = json.loads((out / "summary.json").read_text())
+    radius = read_provenance(out / "curvature_inner.parquet")["parameters"]["radius"]
+    return {"mesh": {"sigma": float(summary["mesh"]["sigma"]), "step": int(summary["mesh"]["step"])},
+            "curvature": {"radius": float(radius)}}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--radius", type=float, default=200.0, help="vesicle radius (µm)")
+    ap.add_argument("--repeat", type=int, default=3, help="rounds (each runs both, alternating)")
+    ap.add_argument("--workdir", help="keep the runs here (default: a temporary folder)")
+    args = ap.parse_args()
+
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="nemo-bench-estimates-"))
+    work.mkdir(parents=True, exist_ok=True)
+    image = work / "vesicle.tif"
+    if not image.exists():
+        subprocess.run([sys.executable, "-m", "nemo", "synth", str(image), "--radius", str(args.radius)],
+                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    pinned = work / "pinned.yaml"
+    totals: dict[str, list[float]] = {"defaults": [], "pinned": []}
+    stages: dict[str, list[dict]] = {"defaults": [], "pinned": []}
+    snap = []
+    for k in range(args.repeat):
+        for name in ("defaults", "pinned"):
+            if name == "pinned" and not pinned.exists():
+                pinned.write_text(yaml.safe_dump(resolved_values(work / "defaults")))
+            summary, log = run_frame(image, work / name, pinned if name == "pinned" else None)
+            totals[name].append(summary["total_s"])
+            stages[name].append(summary["timings_s"])
+            snap += [float(s) for s in re.findall(r"snapping \d+ vertices.* done in ([\d.]+) s", log)]
+        print(f"round {k + 1}: defaults {totals['defaults'][-1]:.1f} s, pinned {totals['pinned'][-1]:.1f} s",
+              flush=True)
+    print(f"pinned values: {json.dumps(yaml.safe_load(pinned.read_text()))}")
+    for name, values in totals.items():
+        mid = {key: statistics.median(t[key] for t in stages[name]) for key in stages[name][0]}
+        print(f"{name:9s} median {statistics.median(values):6.1f} s, best {min(values):6.1f} s  stages (median): "
+              + ", ".join(f"{key} {val:.1f}" for key, val in mid.items()))
+    cost = statistics.median(totals["defaults"]) - statistics.median(totals["pinned"])
+    base = statistics.median(totals["pinned"])
+    print(f"estimates: {cost:+.1f} s = {100 * cost / base:+.0f} % of the pinned frame (medians); "
+          f"snap {statistics.median(snap) if snap else float('nan'):.2f} s per run")
+    print(f"work folder: {work}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
