@@ -230,7 +230,7 @@ def import_mesh(path: str | os.PathLike, volume: np.ndarray | None, spacing: tup
     ratio = _check_extent(mesh, volume, spacing, path, given) if volume is not None else None
     mesh.metadata["nemo_surface"] = {"method": "imported", "source": str(path)}
     p.update(source=str(path), mesh_unit=given, scale=scale.tolist(), extent_ratio=ratio,
-             n_objects=len(find_objects(mesh)), noise=None, snr=None)
+             n_objects=len(find_objects(mesh)), noise=None, snr=None, saturated=None)
     return _walls(mesh, p, centre), p
 
 

@@ -30,7 +30,7 @@ from nemo.tables import read_table
 
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
-    "t", "c", "layer", "object", "surface", "n_objects", "centre_x", "centre_y", "centre_z", "snr", "area",
+    "t", "c", "layer", "object", "surface", "n_objects", "centre_x", "centre_y", "centre_z", "snr", "saturated", "area",
     "volume", "euler_characteristic", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
@@ -178,7 +178,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         flags.append(f"low signal-to-noise ratio {snr:.1f} in the segmented channel")
     saturated = measure.get("saturated")
     if saturated is not None and saturated > QC_MAX_SATURATED:
-        flags.append(f"{100 * saturated:.0f} % of the object's voxels saturated: walls placed outward, "
+        flags.append(f"{100 * saturated:.1f} % of the object's core saturated: walls placed outward, "
                      "thickness overestimated (lower the gain or the exposure)")
     if (measure.get("n_components") or 1) > 1:
         flags.append(f"surface has {measure['n_components']} pieces")
@@ -265,6 +265,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
            "volume": _num(mo.get("volume")),
            "euler_characteristic": _num(mo.get("euler_characteristic")),
            "n_objects": m.get("n_objects"), "snr": _num(m.get("snr")),
+           "saturated": _num(m.get("saturated")),
            "centre_x": _num(centre[0]), "centre_y": _num(centre[1]), "centre_z": _num(centre[2]),
            "H_mean": _num(mo.get("mean_H")), "K_mean": _num(mo.get("mean_K"))}
     if "curvature" in tables:

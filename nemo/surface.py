@@ -348,6 +348,39 @@ def _split_sample(sample: np.ndarray, blurred: np.ndarray, level: float) -> tupl
     return inside, sample[~ndi.binary_dilation(inside, iterations=2)], sample[ndi.binary_erosion(inside)]
 
 
+#: Full scales of the integer detectors (8- to 16-bit, unsigned and signed 16-bit) that
+#: :func:`saturated_fraction` knows.
+DETECTOR_FULL_SCALES = (*(2**bits - 1 for bits in (8, 10, 12, 14, 16)), 2**15 - 1)
+
+
+def saturated_fraction(values: np.ndarray, dtype: np.dtype | None = None) -> float | None:
+    """Fraction of ``values`` at the largest of them when that is a detector's full scale.
+
+    A saturated object's plateau reads low, so the half level between background and plateau,
+    and with it every wall, moves outward (a bright shell comes out thicker). Only images of an
+    integer ``dtype`` whose maximum is a full scale of :data:`DETECTOR_FULL_SCALES` count: a
+    probability map's plateau at 1.0 or a label image is not saturation.
+
+    Parameters
+    ----------
+    values : ndarray, shape (M,)
+        Raw intensities (e.g. the object's core), any numeric dtype.
+    dtype : numpy dtype, optional
+        The image's dtype (default: that of ``values``; give it when they were converted).
+
+    Returns
+    -------
+    float or None
+        The fraction in [0, 1]; 0 when the maximum is no full scale; None for a non-integer
+        ``dtype`` or no values.
+    """
+    values = np.asarray(values)
+    if values.size == 0 or not np.issubdtype(values.dtype if dtype is None else np.dtype(dtype), np.integer):
+        return None
+    top = int(values.max())
+    return float(np.count_nonzero(values == top)) / values.size if top in DETECTOR_FULL_SCALES else 0.0
+
+
 def image_noise(volume: np.ndarray, level: float) -> dict:
     """Background noise and signal-to-noise ratio of a stack, split at the surface's iso-level.
 
@@ -365,39 +398,22 @@ def image_noise(volume: np.ndarray, level: float) -> dict:
         a strided sample (about :data:`NOISE_SAMPLE_VOXELS` voxels) split by its copy blurred
         by one sample (:func:`_split_sample`); ``snr``: (median of the object's core − background
         centre) / ``noise``; ``saturated``: the fraction of the core's voxels at the detector's
-        full scale (:func:`saturated_fraction`). None where undefined (no noise, or too few
-        voxels on a side).
+        full scale (:func:`saturated_fraction`; None for a two-valued image, a mask saved as an
+        image). None where undefined (no noise, or too few voxels on a side).
     """
     step = max(1, int(np.ceil((volume.size / NOISE_SAMPLE_VOXELS) ** (1 / 3))))
     raw = np.asarray(volume[::step, ::step, ::step])
     sample = np.nan_to_num(raw.astype(np.float32, copy=False))
     _, background, core = _split_sample(sample, ndi.gaussian_filter(sample, 1.0), level)
-    saturated = saturated_fraction(core, raw.dtype)
+    if core.size < 10:
+        return {"noise": None, "snr": None, "saturated": None}
+    binary = np.unique(sample.ravel()[:: max(1, sample.size // 100_000)]).size <= 2  # a mask saved as an image
+    saturated = None if binary else saturated_fraction(core, raw.dtype)
     centre, noise = background_spread(background)
-    if centre is None or core.size < 10:
+    if centre is None:
         return {"noise": None, "snr": None, "saturated": saturated}
     snr = (float(np.median(core)) - centre) / noise if noise > 0 else None
     return {"noise": noise, "snr": snr, "saturated": saturated}
-
-
-#: Full scales of the integer detectors (8-, 10-, 12-, 14- and 16-bit) that :func:`saturated_fraction` knows.
-DETECTOR_FULL_SCALES = tuple(2**bits - 1 for bits in (8, 10, 12, 14, 16))
-
-
-def saturated_fraction(values: np.ndarray, dtype: np.dtype | None = None) -> float | None:
-    """Fraction of ``values`` at the largest of them when that is a detector's full scale.
-
-    A saturated object's plateau reads low, so the half level between background and plateau,
-    and with it every wall, moves outward (a bright shell comes out thicker). Only images of an
-    integer ``dtype`` (default: the values') whose maximum is an 8- to 16-bit full scale
-    (:data:`DETECTOR_FULL_SCALES`) count: a probability map's plateau at 1.0 or a label image
-    is not saturation. None for other dtypes or no values.
-    """
-    values = np.asarray(values)
-    if values.size == 0 or not np.issubdtype(values.dtype if dtype is None else np.dtype(dtype), np.integer):
-        return None
-    top = int(values.max())
-    return float(np.count_nonzero(values == top)) / values.size if top in DETECTOR_FULL_SCALES else 0.0
 
 
 def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all"] = "largest",

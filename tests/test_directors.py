@@ -334,9 +334,11 @@ def test_micro_image_pixel_and_size_are_bounded(meshed_shell):
     intensity = np.ones(len(mesh.vertices))
     with pytest.raises(NemoError, match="`pixel`"):
         directors(mesh, intensity, patch_radius=6.0, pixel=0.01)
-    # inner wall: object radius 9.94, mean edge 0.92 (pixel ≥ 0.092): 9.5 / 0.095 = 100 px + margin
-    with pytest.raises(NemoError, match="micro-images of"):
-        directors(mesh, intensity, patch_radius=9.5, pixel=0.095)
+    # inner wall: object radius 9.94, mean edge 0.92 (pixel ≥ 0.092): 9.5 / 0.095 = 100 px + margin,
+    # but only the σ = 4 px window's support is gridded; a window as wide as the patch is refused
+    assert len(directors(mesh, intensity + mesh.vertices[:, 0], patch_radius=9.5, pixel=0.095, n_patches=5)) == 5
+    with pytest.raises(NemoError, match="micro-images of .* a smaller `sigma`"):
+        directors(mesh, intensity, patch_radius=9.5, pixel=0.095, sigma=25.0)
     with pytest.raises(NemoError, match="larger than the object"):
         directors(mesh, intensity, patch_radius=20.0, pixel=0.1)
 

@@ -225,6 +225,18 @@ def test_default_sample_count_bounds_the_fit_pairs(sphere15, monkeypatch):
     assert np.median(np.abs(df["H"] * 15.0 - 1)) < 0.01
 
 
+def test_radius_pilot_fits_fewer_vertices_at_a_large_radius(sphere15, monkeypatch):
+    """The pilot's pair budget cuts its vertices (not below PILOT_MIN_SAMPLES); R_c stays right."""
+    import nemo.morphology as nm
+
+    radius, info = nm.default_radius(sphere15, n_probe=2000, rng=0)
+    assert info["n_probe"] == min(2000, len(sphere15.vertices))
+    monkeypatch.setattr(nm, "PILOT_PAIR_BUDGET", 1)
+    radius_cut, cut = nm.default_radius(sphere15, n_probe=2000, rng=0)
+    assert cut["n_probe"] == nm.PILOT_MIN_SAMPLES
+    assert cut["curvature_radius"] == pytest.approx(15.0, rel=0.05) and radius_cut == pytest.approx(radius, rel=0.05)
+
+
 def test_seed_reproducibility(sphere15):
     a = curvature(sphere15, radius=4.0, n_samples=500, rng=7)
     b = curvature(sphere15, radius=4.0, n_samples=500, rng=7)

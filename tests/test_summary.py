@@ -131,7 +131,7 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
     ({"snr": 3.0}, {**CLOSED, "n_objects": 1}, []),
-    ({}, {**CLOSED, "saturated": 0.25}, ["25 % of the object's voxels saturated: walls placed outward, thickness "
+    ({}, {**CLOSED, "saturated": 0.25}, ["25.0 % of the object's core saturated: walls placed outward, thickness "
                                           "overestimated (lower the gain or the exposure)"]),
     ({}, {**CLOSED, "saturated": 0.10}, []),
     ({}, {**CLOSED, "saturated": None}, []),

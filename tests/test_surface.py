@@ -711,6 +711,9 @@ def test_image_noise_reads_the_saturated_fraction_and_saturation_moves_the_wall_
     assert image_noise(ball.astype(np.uint16), 160.0)["saturated"] == 0.0  # 300 is no full scale
     assert saturated_fraction(np.array([0, 1, 1, 2], np.uint8)) == 0.0  # labels
     assert saturated_fraction(np.array([], np.uint16)) is None
+    assert saturated_fraction(np.array([5, 32767, 32767, 9], np.float32), np.int16) == 0.5  # signed 16-bit
+    mask = np.where(r < 14, 255, 0).astype(np.uint8)  # a segmentation saved as an image: no saturation
+    assert image_noise(mask, 127.0)["saturated"] is None
     radius = {}
     for name, vol in (("clipped", clipped), ("float", ball.astype(np.float32))):
         mesh = reconstruct(vol, (1.0, 1.0, 1.0), sigma=0.5)

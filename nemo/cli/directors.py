@@ -28,9 +28,10 @@ table: vertex, x, y, z, nx, ny, nz (unit 3D director, tangent), coherency.
 Defaults follow the data (nemo.stages): patch radius 0.1 × the object radius sqrt(area/4π)
 (at least 8 mean edge lengths), pixel = a quarter of the mean edge length (at least radius/97),
 sigma = 4 pixels, 30 patches per patch area (the paper's 12 000 patches of 20 µm on a vesicle of
-R = 200 µm), capped by the number of vertices. Lengths are in the mesh's unit (µm). A pixel
-below 0.1 × the mean edge length, or micro-images wider than 201 pixels, are refused (they
-only cost time and memory).
+R = 200 µm), capped by the number of vertices. Lengths are in the mesh's unit (µm). The
+micro-images are gridded only as far as the centre's structure tensor reads them (4 sigma plus
+the gradient and smoothing kernels). A pixel below 0.1 × the mean edge length, or gridded
+micro-images wider than 201 pixels, are refused (they only cost time and memory).
 
 Directors made by another tool (a director field at points: CSV, Parquet or NumPy) become a
 directors table of the same kind with 'nemo directors import MESH POINTS -o FILE'; its options:
