@@ -101,6 +101,23 @@ def _centre_weights(n: int, sigma: float, truncate: float = 4.0) -> np.ndarray:
     return np.bincount(idx, weights=k, minlength=n)
 
 
+def _crop_to_reach(images: np.ndarray, mask: np.ndarray | None, reach: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Images (and mask) cut to ``reach`` pixels around the centre pixel where both sides have them.
+
+    The centre's tensor reads the gradients within the window and those the pixels within
+    the gradient kernel (``reach`` = both truncated radii): nothing farther changes it.
+    """
+    index = [slice(None)] * 3
+    for axis in (1, 2):
+        n = images.shape[axis]
+        c = n // 2
+        if c - reach > 0 and c + reach < n - 1:
+            index[axis] = slice(c - reach, c + reach + 1)
+    if mask is not None:  # (P, H, W) or one (H, W) for all
+        mask = np.asarray(mask)[tuple(index[-np.ndim(mask):])]
+    return images[tuple(index)], mask
+
+
 def structure_tensor_centre(
     images: np.ndarray,
     sigma: float,
@@ -131,6 +148,7 @@ def structure_tensor_centre(
         images = images.astype(np.float64, copy=False)  # float32 stacks stay float32 (speed)
     if images.ndim == 2:
         images = images[None]
+    images, mask = _crop_to_reach(images, mask, int(4.0 * sigma + 0.5) + int(4.0 * grad_sigma + 0.5))
     _, h, w = images.shape
     g_r = ndimage.gaussian_filter(images, grad_sigma, order=(1, 0), mode="nearest", axes=(1, 2))
     g_c = ndimage.gaussian_filter(images, grad_sigma, order=(0, 1), mode="nearest", axes=(1, 2))
