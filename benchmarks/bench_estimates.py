@@ -24,10 +24,10 @@ import shutil
 import statistics
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import yaml
+from bench_frame_overhead import vesicle_in_workdir  # same folder
 
 
 def run_frame(image: Path, out: Path, config: Path | None) -> tuple[dict, str]:
@@ -56,12 +56,7 @@ def main() -> int:
     ap.add_argument("--workdir", help="keep the runs here (default: a temporary folder)")
     args = ap.parse_args()
 
-    work = Path(args.workdir or tempfile.mkdtemp(prefix="nemo-bench-estimates-"))
-    work.mkdir(parents=True, exist_ok=True)
-    image = work / "vesicle.tif"
-    if not image.exists():
-        subprocess.run([sys.executable, "-m", "nemo", "synth", str(image), "--radius", str(args.radius)],
-                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    work, image = vesicle_in_workdir(args.workdir, "nemo-bench-estimates-", args.radius)
     pinned = work / "pinned.yaml"
     totals: dict[str, list[float]] = {"defaults": [], "pinned": []}
     stages: dict[str, list[dict]] = {"defaults": [], "pinned": []}

@@ -36,6 +36,17 @@ def timed(cmd: list[str], cwd: Path) -> float:
     return time.perf_counter() - start
 
 
+def vesicle_in_workdir(workdir: str | None, prefix: str, radius: float, spacing: float = 1.0) -> tuple[Path, Path]:
+    """The work folder (``workdir`` or a new temporary one) and the synthetic vesicle in it (made once)."""
+    work = Path(workdir or tempfile.mkdtemp(prefix=prefix))
+    work.mkdir(parents=True, exist_ok=True)
+    image = work / "vesicle.tif"
+    if not image.exists():
+        subprocess.run([sys.executable, "-m", "nemo", "synth", str(image), "--radius", str(radius),
+                        "--spacing", *[str(spacing)] * 3], check=True, stdout=subprocess.DEVNULL)
+    return work, image
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--radius", type=float, default=200.0, help="vesicle radius (µm)")
@@ -44,12 +55,7 @@ def main() -> int:
     ap.add_argument("--workdir", help="keep the runs here (default: a temporary folder)")
     args = ap.parse_args()
 
-    work = Path(args.workdir or tempfile.mkdtemp(prefix="nemo-bench-frame-"))
-    work.mkdir(parents=True, exist_ok=True)
-    image = work / "vesicle.tif"
-    if not image.exists():
-        subprocess.run([sys.executable, "-m", "nemo", "synth", str(image), "--radius", str(args.radius),
-                        "--spacing", *[str(args.spacing)] * 3], check=True, stdout=subprocess.DEVNULL)
+    work, image = vesicle_in_workdir(args.workdir, "nemo-bench-frame-", args.radius, args.spacing)
     cfg = {"datasets": {"v": {"path": str(image), "t": [0], "c": [0]}}, "report": {"summary": False}}
     config = work / "frame.yaml"
     config.write_text(yaml.safe_dump(cfg))
