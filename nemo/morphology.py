@@ -1022,10 +1022,10 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         ``curvature_df``: ``integral_K_fit``, ``gauss_bonnet_ratio_fit`` (None on an open
         surface whose fits are NaN along the rim: the sum misses that band), ``mean_H_fit``,
         ``mean_K_fit`` (over the vertices with a fit); ``n_objects``, ``snr``, ``noise`` and
-        ``saturated`` of the image the mesh was made from and ``rim_loops`` (where the image border cuts the
-        object), from NEMO's mesh step (None otherwise); ``notes`` (list of str). Coincident
-        vertices are merged (and the faces they collapse ignored) for the topology and the
-        angles.
+        ``saturated`` of the image the mesh was made from and ``rim_loops`` (where the image
+        border cuts the object), from NEMO's mesh step (None otherwise); ``notes`` (list of
+        str). Coincident vertices are merged (and the faces they collapse ignored) for the
+        topology and the angles.
     """
     check_mesh(mesh, manifold=False)  # a diagnostic: it reports a non-manifold surface in its notes
     notes: list[str] = []
