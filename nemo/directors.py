@@ -87,13 +87,18 @@ _CHUNK_ELEMENTS = 3_000_000
 # structure tensor (OrientationPy-equivalent, batched)
 
 
+def _kernel_radius(sigma: float, truncate: float = 4.0) -> int:
+    """Taps on each side of scipy's Gaussian kernel of ``sigma`` (its default ``truncate`` 4)."""
+    return int(truncate * float(sigma) + 0.5)
+
+
 def _centre_weights(n: int, sigma: float, truncate: float = 4.0) -> np.ndarray:
     """Weights of scipy's Gaussian filter (``mode="nearest"``) at the centre pixel ``n // 2``.
 
     ``gaussian_filter(f)[c] = Σ_x k(x) f[clip(c + x)]``, so the centre value of the filtered
     image equals ``Σ_i w[i] f[i]`` with the kernel taps folded onto the clipped indices.
     """
-    radius = int(truncate * float(sigma) + 0.5)
+    radius = _kernel_radius(sigma, truncate)
     x = np.arange(-radius, radius + 1)
     k = np.exp(-0.5 * x**2 / float(sigma) ** 2)
     k /= k.sum()
@@ -148,7 +153,7 @@ def structure_tensor_centre(
         images = images.astype(np.float64, copy=False)  # float32 stacks stay float32 (speed)
     if images.ndim == 2:
         images = images[None]
-    images, mask = _crop_to_reach(images, mask, int(4.0 * sigma + 0.5) + int(4.0 * grad_sigma + 0.5))
+    images, mask = _crop_to_reach(images, mask, _kernel_radius(sigma) + _kernel_radius(grad_sigma))
     _, h, w = images.shape
     g_r = ndimage.gaussian_filter(images, grad_sigma, order=(1, 0), mode="nearest", axes=(1, 2))
     g_c = ndimage.gaussian_filter(images, grad_sigma, order=(0, 1), mode="nearest", axes=(1, 2))
@@ -398,10 +403,7 @@ def support_half_width(sigma: float, smooth: float, grad_sigma: float = GRAD_SIG
     int
         The half-width ``h``: the micro-images need be no wider than ``2 h + 1`` pixels.
     """
-    def reach(s: float) -> int:
-        return int(4.0 * float(s) + 0.5)
-
-    return reach(sigma) + reach(grad_sigma) + reach(smooth) + 1
+    return _kernel_radius(sigma) + _kernel_radius(grad_sigma) + _kernel_radius(smooth) + 1
 
 
 def _check_grid(half: int, grid_radius: float, pixel: float, edge: float) -> int:

@@ -432,10 +432,8 @@ def _pilot_curvature_radius(vertices: np.ndarray, normals: np.ndarray, tree: cKD
     probe = order[d_rim[order] > radius]
     if len(probe) == 0:
         probe = np.argsort(-d_rim)
-    per_fit = max(1.0, float(np.mean(tree.query_ball_point(vertices[probe[:256]], radius, return_length=True))))
-    n = min(int(n_probe), max(PILOT_MIN_SAMPLES, int(PILOT_PAIR_BUDGET // per_fit)))
-    probe = np.sort(probe[:n])
-    chunk = max(1, int(_PAIRS_PER_CHUNK // per_fit))
+    _, per_fit, chunk = _plan_fits(tree, vertices, probe, radius, "quartic", np.random.default_rng(0))
+    probe = np.sort(probe[: min(int(n_probe), max(PILOT_MIN_SAMPLES, int(PILOT_PAIR_BUDGET // per_fit)))])
     out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, "quartic", chunk)
     kmax = np.fmax(np.abs(out["k1"]), np.abs(out["k2"]))
     kmax = kmax[np.isfinite(kmax)]
