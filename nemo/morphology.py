@@ -104,6 +104,9 @@ PILOT_PASSES = 5
 #: A pilot pass fits fewer vertices (at least :data:`PILOT_MIN_SAMPLES`) when theirs would hold
 #: more (vertex, neighbour) pairs than this (a quantile needs no more at a large radius).
 PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 500
+#: The pilot climbs to a wider fit while R_c grows by more than this factor per × √2 in the fit
+#: radius (:func:`default_radius`): the roughness of a noisy wall, not the shape, curves it.
+ROUGHNESS_GROWTH = 1.15
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -308,13 +311,17 @@ def default_radius(
 
     R_c comes from pilot passes: the :func:`curvature` fit (quartic) at up to ``n_probe``
     random vertices (away from the rim) at the current radius, R_c = the ``quantile`` of
-    1/|k|max over them. The first pass is at ``min_edges × h``; each next pass at the radius
-    the previous one gave, until it changes by less than 10 % (at most :data:`PILOT_PASSES`).
-    The passes go up from the smallest radius because a fit is trustworthy only below ~0.7 R
-    (beyond, the quartic underestimates |k|: on a sphere 1/|k| = 1.08 R at r = 0.9 R, 1.5 R at
-    1.2 R, meaningless beyond), while a small radius errs on the safe side (roughness raises
-    |k|). The object's size does not enter: a piece cut by the field of view (short stack,
-    cap) gets the radius of the whole object, unless the rim cap is smaller.
+    1/|k|max over them. The first pass is at ``min_edges × h``. A rough wall (noise) reads
+    more curved the smaller the fit, so the pilot first climbs a ladder of radii × √2 while R_c
+    grows by more than :data:`ROUGHNESS_GROWTH` per rung (:func:`_climb_out_of_roughness`; a
+    shape's R_c does not depend on the radius), and the passes after a climb stay at or above
+    its rung; on a closed surface the climb stops at ``fraction`` × its size √(A/4π). Each
+    next pass is at the radius the previous one gave, until it changes by less than 10 % (at
+    most :data:`PILOT_PASSES`). The passes go up from the smallest radius because a fit is
+    trustworthy only below ~0.7 R (beyond, the quartic underestimates |k|: on a sphere
+    1/|k| = 1.08 R at r = 0.9 R, 1.5 R at 1.2 R, meaningless beyond). Apart from that stop,
+    the object's size does not enter: a piece cut by the field of view (short stack, cap)
+    gets the radius of the whole object, unless the rim cap is smaller.
 
     Parameters
     ----------
@@ -345,9 +352,10 @@ def default_radius(
         JSON-serialisable: ``radius``, ``edge`` (h), ``radius_edges`` (radius / h),
         ``curvature_radius`` (R_c; None when the pilot found no curvature, e.g. a plane),
         ``rim_cap`` (½ the largest rim distance; None on a closed surface), ``limited_by``
-        (``"edges"``, ``"curvature"``, ``"rim"`` or ``"min_edges"``), ``pilot_radii`` (radius of
+        (``"edges"``, ``"curvature"``, ``"rim"``, ``"min_edges"`` or ``"roughness"``: the rung
+        the pilot climbed to), ``pilot_radii`` (radius of
         each pilot pass), ``n_probe`` (vertices fitted in the last pass), ``fraction``,
-        ``quantile``.
+        ``quantile``, ``rough`` (the pilot climbed out of the wall's roughness).
 
     Raises
     ------
@@ -370,28 +378,42 @@ def default_radius(
         raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
     tree = cKDTree(vertices)
     pilots: list[float] = []
-    for _ in range(PILOT_PASSES):
-        pilots.append(radius)
-        r_c, n_fit = _pilot_curvature_radius(vertices, normals, tree, order, d_rim, radius, n_probe, quantile)
+
+    def pilot(r):
+        pilots.append(r)
+        return _pilot_curvature_radius(vertices, normals, tree, order, d_rim, r, n_probe, quantile)
+
+    # on a closed surface the climb stops where a sphere of its size (√(A/4π)) would stop the fit
+    size_cap = fraction * math.sqrt(mesh.area / (4 * math.pi)) if rim_cap == math.inf else rim_cap
+    floor = radius
+    radius, (r_c, n_fit) = _climb_out_of_roughness(pilot, radius, min(edges * h, size_cap))
+    rough = radius > floor
+    floor = radius  # below the rung climbed to, the pilot reads the roughness again
+    for n_pass in range(1, PILOT_PASSES + 1):
         caps["curvature"] = fraction * r_c
-        new = min(max(min_edges * h, min(caps.values())), rim_cap)
-        if abs(new - radius) < 0.1 * radius:
+        new = min(max(floor, min(caps.values())), rim_cap)
+        if abs(new - radius) < 0.1 * radius or n_pass == PILOT_PASSES:
             break
         radius = new
+        r_c, n_fit = pilot(radius)
     radius = new
-    limited_by = "rim" if radius == rim_cap else min(caps, key=caps.get)
-    if limited_by != "rim" and caps[limited_by] < min_edges * h:
-        limited_by = "min_edges"
+    if radius == rim_cap:
+        limited_by = "rim"
+    elif min(caps.values()) < floor:
+        limited_by = "roughness" if rough else "min_edges"
+    else:
+        limited_by = min(caps, key=caps.get)
     info = {
         "radius": float(radius), "edge": float(h), "radius_edges": float(radius / h),
         "curvature_radius": float(r_c) if math.isfinite(r_c) else None,
         "rim_cap": float(rim_cap) if math.isfinite(rim_cap) else None, "limited_by": limited_by,
         "pilot_radii": [float(r) for r in pilots], "n_probe": int(n_fit), "fraction": float(fraction),
-        "quantile": float(quantile),
+        "quantile": float(quantile), "rough": rough,
     }
-    logger.info("curvature: default radius %.3g %s (%.1f edges; limited by %s; radius of curvature %s)",
+    logger.info("curvature: default radius %.3g %s (%.1f edges; limited by %s; radius of curvature %s%s)",
                 radius, _pretty_unit(_unit_name(mesh)), radius / h, limited_by,
-                "–" if info["curvature_radius"] is None else f"{r_c:.3g}")
+                "–" if info["curvature_radius"] is None else f"{r_c:.3g}",
+                f"; the wall's roughness read as curvature below {floor:.3g}" if rough else "")
     return float(radius), info
 
 
@@ -412,6 +434,32 @@ def _check_default_radius_args(fit: str, edges: float, min_edges: float, fractio
     if int(n_probe) < 10:
         raise NemoError(f"the pilot needs at least 10 vertices, got n_probe={n_probe}")
     return float(fraction)
+
+
+def _climb_out_of_roughness(pilot, radius: float, top: float) -> tuple[float, tuple[float, int]]:
+    """The radius at which the pilot reads the shape's curvature, not the wall's roughness.
+
+    A rough wall (a noisy image) reads more curved the smaller the fit: the roughness's |k| falls
+    steeply with the fit radius while a shape's stays (measured on noisy balls of R = 15 µm:
+    R_c 2.6, 4.9, 8.2, 11, 13 µm at r = 4, 5.7, 8, 11, 16 edges, against 14.6–15.0 noise-free).
+    From ``radius`` up a ladder of × √2 (not beyond ``top``), the first rung whose R_c the next
+    rung confirms (grows by less than :data:`ROUGHNESS_GROWTH`) is kept; ``pilot(r)`` returns
+    (R_c, n_fit).
+
+    Returns
+    -------
+    radius : float
+        The rung kept.
+    pilot_result : tuple
+        (R_c, n_fit) there.
+    """
+    result = pilot(radius)
+    while radius * math.sqrt(2.0) <= top:
+        above = pilot(radius * math.sqrt(2.0))
+        if above[0] < ROUGHNESS_GROWTH * result[0]:
+            break
+        radius, result = radius * math.sqrt(2.0), above
+    return radius, result
 
 
 def _pilot_curvature_radius(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, order: np.ndarray,

@@ -287,7 +287,8 @@ def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
     """The ``curvature`` section with its radius resolved on ``mesh`` (:func:`nemo.morphology.default_radius`).
 
     ``radius_from`` records what set a default radius: ``limited_by`` (``edges``, ``curvature``,
-    ``rim`` or ``min_edges``), the surface's radius of curvature, the mean edge and the rim cap.
+    ``rim``, ``min_edges`` or ``roughness``), the surface's radius of curvature, the mean edge,
+    the rim cap and ``rough`` (the pilot climbed out of a noisy wall's roughness).
     """
     from nemo.morphology import default_radius
 
@@ -297,7 +298,8 @@ def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
     p = nconfig.section("curvature", params)
     if p["radius"] is None:
         p["radius"], info = default_radius(mesh, fit=p["fit"], rng=int(p["seed"]))
-        p["radius_from"] = {k: info[k] for k in ("limited_by", "curvature_radius", "edge", "radius_edges", "rim_cap")}
+        p["radius_from"] = {k: info[k] for k in ("limited_by", "curvature_radius", "edge", "radius_edges", "rim_cap",
+                                                 "rough")}
     return p
 
 

@@ -697,6 +697,35 @@ def test_default_radius_droplets():
         assert np.mean(np.abs(df["H"] * R - 1)) <= 0.025
 
 
+def test_default_radius_climbs_out_of_a_noisy_walls_roughness():
+    """A ball of R = 15 µm at SNR ≈ 5 (0.5 µm voxels): at the floor radius (4 edges) the pilot
+    reads the wall's roughness (|H R − 1| ≈ 2.8 there), so the radius climbs to where R_c stops
+    depending on it; a fit at that radius is within ~6 % of 1/R per vertex."""
+    from nemo.morphology import default_radius, mean_edge_length
+
+    R = 15.0
+    vol, _ = render(lambda p: np.linalg.norm(p, axis=-1) - R, (R, R, R), (0.5, 0.5, 0.5), (1.0, 0.4, 0.4),
+                    noise=36.0, rng=1)
+    mesh = reconstructed(vol, (0.5, 0.5, 0.5))
+    radius, info = default_radius(mesh)
+    h = mean_edge_length(mesh)
+    assert info["rough"] and radius > 10 * h and info["curvature_radius"] > 0.75 * R, info
+    err = np.nanmedian(np.abs(curvature(mesh, radius, rng=0)["H"] * R - 1))
+    err_floor = np.nanmedian(np.abs(curvature(mesh, 4 * h, rng=0)["H"] * R - 1))
+    assert err < 0.1 and err_floor > 1.0, (err, err_floor)
+
+
+def test_climb_keeps_the_first_rung_the_next_one_confirms():
+    from nemo.morphology import ROUGHNESS_GROWTH, _climb_out_of_roughness
+
+    rough_then_shape = lambda r: (min(10.0, r**3), 100)  # noqa: E731 - R_c ∝ r³ until the shape's 10
+    radius, (r_c, _) = _climb_out_of_roughness(rough_then_shape, 1.0, 8.0)
+    assert radius == pytest.approx(2 * np.sqrt(2)) and r_c == 10.0  # R_c 1, 2.8, 8, 10, 10: kept 10
+    assert _climb_out_of_roughness(lambda r: (7.0, 100), 1.0, 8.0)[0] == 1.0  # a shape: no climb
+    assert _climb_out_of_roughness(lambda r: (r**3, 100), 1.0, 3.0)[0] == pytest.approx(2 * np.sqrt(2))  # top
+    assert ROUGHNESS_GROWTH > 1
+
+
 def test_default_radius_ellipsoid_dz2_targets(imaged_ellipsoid):
     """Issue 12: ellipsoid 60 × 40 × 30 µm at dz = 2 dx: median relative error of H ≤ 2 %,
     K ≤ 3 % at the default radius; "auto" takes the quartic fit there and it beats the
