@@ -772,8 +772,11 @@ def auto_sigma(
             "euler_ladder": ladder,
             **{key: (val * scale if key in ("background", "plateau", "noise", "background_noise", "dark_spread")
                      and val is not None else val) for key, val in stats.items()}}
+    dark = (stats.get("dark_spread") or 0.0) > (stats.get("background_noise") or 0.0)
     logger.info("auto sigma %.4g (default %.4g, raw SNR %s, limited by %s)", sigma, floor,
-                "n/a" if stats["snr"] is None else f"{stats['snr']:.3g}", limited)
+                "n/a" if stats["snr"] is None else f"{stats['snr']:.3g}" + (
+                    " from the object's dark spread: dim voxels inside it, noise or blurred structure" if dark else ""),
+                limited)
     return float(sigma), info
 
 
