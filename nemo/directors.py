@@ -31,6 +31,7 @@ median either way).
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -382,6 +383,49 @@ def directors(
         theta, coherency = _patch_angles(tree, vertices, intensity, centres, (t1, t2), radii, grid_radius,
                                          half, pixel, sigma, smooth, spacing_v)
     return _director_table(vertices, centres, theta, coherency, t1, t2)
+
+
+#: Patches of white noise :func:`noise_coherency` measures, and the quantile it returns.
+NOISE_PATCHES, NOISE_QUANTILE = 300, 0.9
+
+
+def noise_coherency(mesh: trimesh.Trimesh, rng: np.random.Generator | int | None = 0,
+                    n_patches: int = NOISE_PATCHES, quantile: float = NOISE_QUANTILE, **settings) -> float:
+    """Coherency that white noise reaches with these patch settings: the QC's texture floor.
+
+    A layer with no fibres (a wall without texture, a peel at a depth with nothing to see) still
+    gives directors, whose coherency is that of its noise through the micro-image gridding and
+    the structure tensor: about 0.3 in the median and 0.5 at the 90th percentile at the
+    defaults, whatever the image. This runs :func:`directors` on i.i.d. Gaussian intensities at
+    ``n_patches`` random vertices with the same ``settings`` (``patch_radius``, ``patch_k``,
+    ``pixel``, ``sigma``, ``frames``) and returns the ``quantile`` of their coherency: a layer
+    whose median coherency is below it shows no more orientation than noise.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The layer's surface (N vertices).
+    rng : Generator or int, optional
+        Random source for the noise and the centres.
+    n_patches : int
+        Patches measured (capped by N).
+    quantile : float
+        Quantile of the noise's coherency returned, in (0, 1).
+    **settings
+        Passed to :func:`directors`.
+
+    Returns
+    -------
+    float
+        The coherency quantile (NaN when no patch gave a director).
+    """
+    rng = np.random.default_rng(rng)
+    noise = rng.standard_normal(len(mesh.vertices))
+    n_patches = min(int(n_patches), len(mesh.vertices))
+    with step(f"texture floor: directors of white noise at {n_patches} patches"):
+        coherency = directors(mesh, noise, n_patches=n_patches, rng=rng, **settings)["coherency"].to_numpy()
+    coherency = coherency[np.isfinite(coherency)]
+    return float(np.quantile(coherency, quantile)) if coherency.size else math.nan
 
 
 def support_half_width(sigma: float, smooth: float, grad_sigma: float = GRAD_SIGMA) -> int:

@@ -389,8 +389,10 @@ def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
 
 def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
               params: dict | None = None) -> tuple[pd.DataFrame, dict]:
-    """Tangential directors at random patch centres (method note §5)."""
+    """Tangential directors at random patch centres (method note §5); the resolved parameters
+    also hold ``coherency_noise`` (:func:`nemo.directors.noise_coherency`, the QC's texture floor)."""
     from nemo.directors import directors as measure_directors
+    from nemo.directors import noise_coherency
 
     split = objects.parts(mesh)
     if split:  # patches never reach across objects; an object smaller than its patch gets none
@@ -400,9 +402,10 @@ def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
         empty = next(r for r in results if not isinstance(r, str))[0].iloc[:0]
         return _combined([(empty, {"skipped": r}) if isinstance(r, str) else r for r in results], split)
     p = directors_defaults(mesh, params)
-    df = measure_directors(mesh, intensity, patch_radius=p["patch_radius"], patch_k=p["patch_k"],
-                           n_patches=int(p["n_patches"]), pixel=float(p["pixel"]), sigma=p["sigma"],
-                           frames=p["frames"], rng=int(p["seed"]))
+    settings = {"patch_radius": p["patch_radius"], "patch_k": p["patch_k"], "pixel": float(p["pixel"]),
+                "sigma": p["sigma"], "frames": p["frames"]}
+    df = measure_directors(mesh, intensity, n_patches=int(p["n_patches"]), rng=int(p["seed"]), **settings)
+    p["coherency_noise"] = noise_coherency(mesh, rng=int(p["seed"]), **settings)  # the QC's texture floor
     return df, p
 
 

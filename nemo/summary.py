@@ -26,14 +26,14 @@ import numpy as np
 import pandas as pd
 
 from nemo.errors import NemoError
-from nemo.tables import read_table
+from nemo.tables import read_provenance, read_table
 
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
     "t", "c", "layer", "object", "surface", "n_objects", "centre_x", "centre_y", "centre_z", "snr", "saturated", "area",
     "volume", "euler_characteristic", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
-    "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
+    "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median", "coherency_noise",
     "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
     "qc_pass", "qc_flags",
 )
@@ -129,6 +129,14 @@ def _objects(m: Mapping) -> list[tuple[int, Mapping]]:
     return [(0, m)]
 
 
+def _coherency_noise(r: Mapping, label: int) -> float:
+    """The directors step's texture floor for object ``label`` (NaN: imported directors, older tables)."""
+    params = read_provenance(r["directors"]).get("parameters") or {}
+    if params.get("objects"):
+        params = next((o for o in params["objects"] if int(o.get("object", -1)) == label), {})
+    return _num(params.get("coherency_noise"))
+
+
 def _layer_columns(tables: Mapping[str, pd.DataFrame]) -> dict:
     # an imported layer (directors_from) has no peeled intensity
     intensity = tables["layer_table"]["intensity"] if "layer_table" in tables else None
@@ -157,7 +165,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     row : mapping
         The row's columns so far (``euler_characteristic``, ``charge_sum``, ``n_defects``,
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
-        ``order_nan_fraction``, ``coherency_median`` where computed).
+        ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
         ``n_boundary_loops``, ``n_objects``, ``saturated``).
@@ -193,8 +201,12 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     valid = row.get("thickness_valid", math.nan)
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID:
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices")
-    if "n_directors" not in row:
-        return flags
+    return flags + (_layer_flags(row, closed, chi) if "n_directors" in row else [])
+
+
+def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
+    """The layer's part of :func:`quality_flags` (directors, order, defects)."""
+    flags = []
     if not row["n_directors"] or not np.isfinite(row["S_mean"]):
         flags.append("no directors")
     for key, what in (("peel_nan_fraction", "no layer intensity (samples outside the image?)"),
@@ -202,9 +214,12 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         value = row.get(key, math.nan)
         if np.isfinite(value) and value > QC_MAX_NAN_FRACTION:
             flags.append(f"{100 * value:.0f} % of vertices have {what}")
-    coherency = row.get("coherency_median", math.nan)
+    coherency, floor = row.get("coherency_median", math.nan), row.get("coherency_noise", math.nan)
     if np.isfinite(coherency) and coherency < QC_MIN_COHERENCY:
         flags.append(f"median director coherency {coherency:.2f}: hardly any orientation")
+    elif np.isfinite(coherency) and np.isfinite(floor) and coherency < floor:
+        flags.append(f"median director coherency {coherency:.2f}, below white noise's {floor:.2f} with these "
+                     "patches: no texture to orient (noise, or no fibres at that depth)")
     charge = row["charge_sum"]
     if closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
         flags.append(f"Σ charge {charge:.2f} ≠ χ {chi:.0f} ({row['n_defects']} defects)")
@@ -237,7 +252,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
         tables = _read_tables(r)
         skipped = _skipped_searches(r)
         for label, mo in _objects(m):  # a loop over objects (one row each)
-            row = _frame_row(r, m, mo, _of_object(tables, label), skipped.get(label))
+            row = _frame_row(r, m, mo, _of_object(tables, label), skipped.get(label), label)
             row["object"] = label
             rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
@@ -250,14 +265,12 @@ def _skipped_searches(r: Mapping) -> dict[int, str]:
     """Objects whose defect search could not run (``nemo.stages``), with the reason."""
     if not r.get("defects"):
         return {}
-    from nemo.tables import read_provenance
-
     check = read_provenance(r["defects"]).get("euler_check") or {}
     return {int(o["object"]): o["skipped"] for o in check.get("objects") or [] if o.get("skipped")}
 
 
 def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.DataFrame],
-               skipped: str | None = None) -> dict:
+               skipped: str | None = None, label: int = 0) -> dict:
     """One row of ``frames.parquet``: the record ``r``, the surface's measure ``m``, the object's ``mo``."""
     centre = mo.get("centre") or [math.nan] * 3
     row = {"t": int(r["t"]), "c": int(r["c"]), "layer": str(r["layer"]),
@@ -280,6 +293,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
+        row["coherency_noise"] = _coherency_noise(r, label)
     flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped else [])
     row["qc_pass"] = not flags
     row["qc_flags"] = "; ".join(flags)

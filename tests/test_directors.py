@@ -128,6 +128,20 @@ def test_flat_stripes_at_the_default_scale(alpha_deg):
     assert np.median(err) < 1.0 and err.max() < 5.0, (np.median(err), err.max())
 
 
+def test_noise_coherency_is_a_floor_stripes_clear_and_noise_does_not(rng):
+    """White noise reaches ~0.5 at the 90th percentile with the default patches; stripes stay
+    far above it, and a layer of (other) noise has its median below it."""
+    from nemo.directors import noise_coherency
+
+    mesh, stripes, _, centres = flat_stripes(30.0)
+    floor = noise_coherency(mesh, rng=1, patch_radius=6.0)
+    assert 0.3 < floor < 0.7, floor
+    assert noise_coherency(mesh, rng=1, patch_radius=6.0) == floor  # reproducible
+    textured = directors(mesh, stripes + 0.3 * rng.standard_normal(len(stripes)), patch_radius=6.0, centres=centres)
+    blank = directors(mesh, rng.standard_normal(len(stripes)), patch_radius=6.0, centres=centres)
+    assert textured["coherency"].median() > floor + 0.2 and blank["coherency"].median() < floor
+
+
 def test_micro_images_cut_to_the_tensor_support_change_nothing(monkeypatch, rng):
     """At the default σ the centre's tensor reads a window narrower than a 12 µm patch: gridding
     only that window gives the directors of the whole patch (noise and NaN holes included)."""

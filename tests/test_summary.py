@@ -127,6 +127,10 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"order_nan_fraction": 0.5}, CLOSED,
      ["50 % of vertices have no order value (no tangent plane or director in reach)"]),
     ({"coherency_median": 0.12}, CLOSED, ["median director coherency 0.12: hardly any orientation"]),
+    ({"coherency_median": 0.35, "coherency_noise": 0.51}, CLOSED,
+     ["median director coherency 0.35, below white noise's 0.51 with these patches: no texture to orient "
+      "(noise, or no fibres at that depth)"]),
+    ({"coherency_median": 0.8, "coherency_noise": 0.51}, CLOSED, []),
     ({"curvature_nan_fraction": 0.5}, CLOSED, []),
     ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
