@@ -371,6 +371,10 @@ def default_radius(
         raise NemoError(f"the mesh's mean edge length is {h}: cannot set a curvature radius from it")
     d_rim = rim(mesh.faces, len(vertices), vertices)["distance"]
     rim_cap = 0.5 * float(d_rim.max()) if np.isfinite(d_rim).all() else math.inf
+    if not rim_cap > 0:
+        raise NemoError("every vertex of the mesh lies on its rim (an unwelded triangle soup, or a strip one "
+                        "triangle wide): no vertex has a surface around it to fit; merge the coincident vertices "
+                        "(trimesh: mesh.merge_vertices()) or give a surface mesh")
     caps = {"edges": edges * h}
     radius = min(min_edges * h, rim_cap)  # from below: a fit beyond ~0.7 R underestimates |k|
     order = _as_rng(rng).permutation(np.flatnonzero(np.isfinite(normals[:, 0])))
@@ -454,7 +458,7 @@ def _climb_out_of_roughness(pilot, radius: float, top: float) -> tuple[float, tu
         (R_c, n_fit) there.
     """
     result = pilot(radius)
-    while radius * math.sqrt(2.0) <= top:
+    while 0 < radius * math.sqrt(2.0) <= top:
         above = pilot(radius * math.sqrt(2.0))
         if above[0] < ROUGHNESS_GROWTH * result[0]:
             break

@@ -715,6 +715,17 @@ def test_default_radius_climbs_out_of_a_noisy_walls_roughness():
     assert err < 0.1 and err_floor > 1.0, (err, err_floor)
 
 
+def test_default_radius_refuses_an_unwelded_triangle_soup():
+    """Every vertex on the rim (no face shares a vertex): an error naming the fix, not a hang."""
+    from nemo.morphology import default_radius
+
+    mesh = sphere_mesh(8.0)
+    tri = mesh.vertices[mesh.faces].reshape(-1, 3)
+    soup = trimesh.Trimesh(tri, np.arange(len(tri)).reshape(-1, 3), process=False)
+    with pytest.raises(NemoError, match="merge the coincident vertices"):
+        default_radius(soup)
+
+
 def test_climb_keeps_the_first_rung_the_next_one_confirms():
     from nemo.morphology import ROUGHNESS_GROWTH, _climb_out_of_roughness
 
