@@ -35,6 +35,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from nemo.cli import main as nemo_main
+from nemo.errors import NemoWarning
 
 ROOT = Path(__file__).resolve().parents[1]
 NEMO = Path(sys.executable).with_name("nemo")
@@ -670,6 +671,26 @@ def test_output_equal_to_input_is_refused_and_the_input_kept(argv, victim, corpu
     code, _, err = run_case(Case(f"{argv[0]} -o {victim}", tuple(argv), "error"), corpus, tmp_path, capsys, monkeypatch)
     assert code == 2 and "input" in error_paragraph(argv[0], err)
     assert corpus.snapshot()[str(corpus[victim].relative_to(corpus.root))] == before
+
+
+def test_a_wall_is_never_written_over_the_input_surface(corpus, tmp_path, capsys):
+    """``nemo mesh --from-mesh W.inner.ply -o W.ply`` would write its inner wall over the input."""
+    import hashlib
+
+    surface = tmp_path / "w.inner.ply"
+    shutil.copy(corpus["mesh.whole"], surface)
+    before = hashlib.md5(surface.read_bytes()).hexdigest()
+    code, _, err = invoke(["mesh", str(corpus["img.valid"]), "--from-mesh", str(surface), "-o",
+                           str(tmp_path / "w.ply")], capsys, "mesh over its input's name")
+    assert code == 2 and "is the input" in err
+    assert hashlib.md5(surface.read_bytes()).hexdigest() == before
+
+
+def test_walls_of_an_earlier_run_are_named_when_not_replaced(corpus, tmp_path, capsys):
+    out = tmp_path / "m.ply"
+    assert invoke(["mesh", str(corpus["img.valid"]), "-o", str(out)], capsys, "split")[0] == 0
+    with pytest.warns(NemoWarning, match="left from an earlier run"):
+        assert invoke(["mesh", str(corpus["img.valid"]), "-o", str(out), "--split", "none"], capsys, "none")[0] == 0
 
 
 # ============================================================================ real processes

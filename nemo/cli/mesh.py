@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from nemo import atomic
 from nemo.cli.common import add_common, non_negative, number, output_path, positive
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 
 HELP = "reconstruct a surface mesh (PLY) from an image: blur, threshold, marching cubes"
 DESCRIPTION = """\
@@ -114,6 +116,22 @@ def _sibling(path: Path, tag: str) -> Path:
     return path.with_name(f"{path.stem}.{tag}{path.suffix}")
 
 
+def _check_side_outputs(paths: dict, inputs: list) -> None:
+    """Refuse to write a wall over an input (``-o`` itself is checked with the other commands'),
+    and warn about walls of an earlier run that this one does not replace."""
+    inputs = [i for i in inputs if i and os.path.isfile(i)]
+    for path in paths.values():
+        same = next((i for i in inputs if path.exists() and os.path.samefile(i, path)), None)
+        if same is not None:
+            raise NemoError(f"the output {path} is the input {same}: writing it would destroy the input; "
+                            "choose another -o name")
+    out = paths["whole"]
+    stale = [str(_sibling(out, tag)) for tag in ("inner", "outer") if tag not in paths and _sibling(out, tag).exists()]
+    if stale:
+        warnings.warn(f"{' and '.join(stale)}: left from an earlier run, not walls of this (unsplit) mesh; "
+                      "delete them", NemoWarning, stacklevel=2)
+
+
 def _describe(name: str, mesh) -> str:
     return f"{name}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, area {mesh.area:.6g} {mesh.units}²"
 
@@ -148,9 +166,11 @@ def run(args) -> int:
         meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
                                      unit=info.unit, centre=args.centre)
     del volume, mask
+    paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}
+    _check_side_outputs(paths, [args.image, args.from_mesh, args.mask])
     spheres = {}
     for name, mesh in meshes.items():
-        path = out if name == "whole" else _sibling(out, name)
+        path = paths[name]
         mesh.metadata["nemo_params"] = params
         save_mesh(mesh, path)
         line = _describe(name, mesh) + f" -> {path}"
