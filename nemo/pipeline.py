@@ -50,6 +50,27 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing) -> dict:
             "seg": cfg["segment_channel"] if seg is None else seg}
 
 
+def check_selection(cfg: dict, frame: dict, t: int, c: int) -> None:
+    """Refuse a dataset whose ``t``/``c`` selection the image does not have (as the workflow does);
+    warn when the frame asked for is not in it (the workflow would not analyse it)."""
+    if frame["dataset"] is None or not Path(frame["image"]).exists():
+        return
+    from nemo.io import read_info
+
+    d, shape = cfg["datasets"][frame["dataset"]], read_info(frame["image"]).shape
+    for axis, asked, what in (("t", t, "time points"), ("c", c, "channels")):
+        values, size = d.get(axis, "all"), shape[axis.upper()]
+        if values in (None, "all"):
+            continue
+        bad = [v for v in values if v >= size]
+        if bad:
+            raise NemoError(f"config key 'datasets.{frame['dataset']}.{axis}': {bad} out of range: {frame['image']} "
+                            f"has {size} {what} (valid: 0 to {size - 1})")
+        if asked not in values:
+            logger.warning("%s=%d is not in datasets.%s.%s %s: analysing it as asked (the workflow analyses %s)",
+                           axis, asked, frame["dataset"], axis, list(values), list(values))
+
+
 def run_frame(
     image: str | os.PathLike | None,
     outdir: str | os.PathLike,
@@ -89,6 +110,7 @@ def run_frame(
     """
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
     frame = frame_setup(cfg, dataset, image, spacing)
+    check_selection(cfg, frame, t, c)
     sections = nconfig.analysis(cfg, frame["dataset"])
     final = Path(outdir).resolve()  # `-o .`, `-o a/..` and symlinked folders: stage beside the real one
     _check_imports_outside(sections, final, frame["dataset"], t, c)
@@ -193,6 +215,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
 
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
     frame = frame_setup(cfg, dataset, image, spacing)
+    check_selection(cfg, frame, t, c)
     sections = nconfig.analysis(cfg, frame["dataset"])
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)

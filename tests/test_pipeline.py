@@ -328,6 +328,14 @@ def _morphology_config(path, **dataset):
             "thickness": None, "mesh": {"split": "none"}}
 
 
+def test_run_frame_refuses_a_dataset_selection_the_image_lacks(ball_and_labels):
+    """As the workflow does: `c: [3]` on a one-channel image is a config error, not channel 0."""
+    d = ball_and_labels
+    with pytest.raises(NemoError, match=r"datasets\.d\.c.*\[3\] out of range"):
+        run_frame(None, d / "out", _morphology_config(d / "img.tif", c=[3]), dataset="d")
+    assert not (d / "out").exists()
+
+
 def test_run_frame_with_a_label_mask_analyses_the_chosen_object(ball_and_labels):
     d = ball_and_labels
     cfg = _morphology_config(d / "img.tif", mask=str(d / "labels.tif"), mask_labels=[2])
