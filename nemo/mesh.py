@@ -81,6 +81,11 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
 
 
+#: An open user mesh is warned about when the area-weighted balance of its normals points this far
+#: towards its centroid (−1: all inward, +1: all outward; a flat sheet ≈ 0).
+OPEN_INWARD_SHARE = 0.5
+
+
 def orient_outward_(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """Make the winding consistent and outward, in place.
 
@@ -314,14 +319,33 @@ def load_mesh(path: str | os.PathLike, unit: str | None = None, manifold: bool =
         mesh.units = unit
     trusted = mesh.metadata.get("nemo_surface") is True  # written by NEMO's mesh step: manifold
     check_mesh(mesh, str(path), manifold=manifold and not trusted)
-    if not trusted and mesh.is_watertight and signed_volume(mesh.vertices, mesh.faces) < 0:
-        mesh.faces = mesh.faces[:, ::-1]
-        warnings.warn(
-            f"{path} is wound inward (negative enclosed volume): its faces were flipped so that "
-            "normals point outward. Re-export it with outward normals to silence this.",
-            NemoWarning, stacklevel=2,
-        )
+    if not trusted:
+        _orient_user_mesh(mesh, path)
     return mesh
+
+
+def _orient_user_mesh(mesh: trimesh.Trimesh, path: Path) -> None:
+    """Consistent, outward winding for a mesh from another tool, in place, with a warning for
+    each fix; an open surface (no enclosed volume to tell) is only warned about."""
+    if not mesh.is_winding_consistent:
+        trimesh.repair.fix_winding(mesh)  # trimesh's face-adjacency walk (as orient_outward_)
+        warnings.warn(f"{path} has faces wound both ways (some normals in, some out): made consistent. Re-export "
+                      "it with one winding to silence this.", NemoWarning, stacklevel=3)
+    if mesh.is_watertight:
+        if signed_volume(mesh.vertices, mesh.faces) < 0:
+            mesh.faces = mesh.faces[:, ::-1]
+            warnings.warn(f"{path} is wound inward (negative enclosed volume): its faces were flipped so that "
+                          "normals point outward. Re-export it with outward normals to silence this.",
+                          NemoWarning, stacklevel=3)
+        return
+    normals, areas = face_normals_areas(mesh.vertices, mesh.faces)
+    centres = mesh.vertices[mesh.faces].mean(axis=1)
+    away = np.sign(np.einsum("ij,ij->i", centres - np.average(centres, axis=0, weights=areas), normals))
+    if np.average(away, weights=areas) < -OPEN_INWARD_SHARE:
+        warnings.warn(f"{path} is open and most of its normals point towards its centre: if the object bulges "
+                      "outward there (a cap, a tissue cut by the field of view), its faces are wound inward and "
+                      "every depth and sign will be reversed; re-export it with outward normals", NemoWarning,
+                      stacklevel=3)
 
 
 def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh", manifold: bool = True) -> None:

@@ -56,6 +56,29 @@ def test_inward_wound_ply_is_flipped_with_a_warning(tmp_path):
     assert np.all(np.einsum("ij,ij->i", vertex_normals(back), centred) > 0)
 
 
+def test_mixed_winding_is_made_consistent_and_outward_with_a_warning(tmp_path):
+    mesh = _sphere_mesh()
+    faces = mesh.faces.copy()
+    faces[::2] = faces[::2, ::-1]  # half the faces wound inward
+    path = tmp_path / "mixed.ply"
+    save_mesh(trimesh.Trimesh(mesh.vertices, faces, process=False), path)
+    with pytest.warns(NemoWarning, match="wound both ways"):
+        back = load_mesh(path)
+    centred = back.vertices - back.vertices.mean(axis=0)
+    assert back.is_winding_consistent and np.all(np.einsum("ij,ij->i", vertex_normals(back), centred) > 0)
+
+
+def test_an_open_cap_wound_inward_is_warned_about(tmp_path, recwarn):
+    mesh = _sphere_mesh()
+    centred = mesh.vertices - mesh.vertices.mean(axis=0)
+    cap = mesh.faces[(centred[mesh.faces][:, :, 2] > 0.2 * np.abs(centred[:, 2]).max()).all(axis=1)]
+    for name, faces, warned in (("out", cap, False), ("in", cap[:, ::-1], True)):
+        save_mesh(trimesh.Trimesh(mesh.vertices, faces, process=False), tmp_path / f"{name}.ply")
+        recwarn.clear()
+        load_mesh(tmp_path / f"{name}.ply")
+        assert any("towards its centre" in str(w.message) for w in recwarn) == warned, name
+
+
 def test_ply_round_trip_keeps_vertices_faces_units_fields(tmp_path, rng):
     v, f = _sphere()
     h = rng.normal(size=len(v))
