@@ -54,12 +54,15 @@ def locate(path: str | os.PathLike) -> tuple[Path, str]:
     (``image.zarr/2``) reads that level.
     """
     p = Path(path)
+    if ((p / ".zarray").is_file() or _is_array_v3(p)) and not is_zarr(p.parent):
+        raise NemoError(f"{p} is a plain Zarr array without OME-NGFF metadata (axes, physical sizes): NEMO reads "
+                        "OME-Zarr images (write one with ome-zarr-py, bioformats2raw or napari)")
     if not (p / ".zarray").is_file() and not _is_array_v3(p):
         attrs = dict(_open_group(p).attrs)
         if attrs.get("ome", attrs).get("multiscales") or not is_zarr(p.parent):
-            return p, _multiscale(attrs, p)["datasets"][0]["path"]
+            return p, _datasets(_multiscale(attrs, p), p)[0]["path"]
     parent = _open_group(p.parent)
-    levels = [d["path"] for d in _multiscale(dict(parent.attrs), p.parent)["datasets"]]
+    levels = [d["path"] for d in _datasets(_multiscale(dict(parent.attrs), p.parent), p.parent)]
     if p.name not in levels:
         raise NemoError(f"{p} is not a resolution level of the OME-Zarr image {p.parent} "
                         f"(levels: {', '.join(levels)})")
@@ -73,16 +76,31 @@ def _is_array_v3(p: Path) -> bool:
     return meta.is_file() and json.loads(meta.read_text()).get("node_type") == "array"
 
 
-def _scale(ms: dict, level: str) -> list[float]:
-    """The level's physical size per axis (its scale times the multiscale's own, if any)."""
+def _scale(ms: dict, level: str, path: Path) -> list[float] | None:
+    """The level's physical size per axis (its scale times the multiscale's own, if any); None
+    when neither gives one (an uncalibrated image)."""
     dataset = next(d for d in ms["datasets"] if d["path"] == level)
-    scale = np.ones(len(ms["axes"]))
+    scale, found = np.ones(len(ms["axes"])), False
     for transforms in (dataset.get("coordinateTransformations", []),
                        ms.get("coordinateTransformations", [])):
         for tr in transforms:
             if tr.get("type") == "scale":
-                scale = scale * np.asarray(tr["scale"], dtype=float)
-    return scale.tolist()
+                factor = np.asarray(tr.get("scale"), dtype=float).ravel()
+                if factor.shape != scale.shape:
+                    raise NemoError(f"{path}: the 'scale' of level {level} has {factor.size} values for "
+                                    f"{scale.size} axes; fix the OME-Zarr metadata (.zattrs / zarr.json)")
+                scale, found = scale * factor, True
+    return scale.tolist() if found else None
+
+
+def _datasets(ms: dict, path: Path) -> list[dict]:
+    """The multiscale's resolution levels, each with a ``path`` (checked)."""
+    datasets = ms.get("datasets")
+    if not isinstance(datasets, list) or not datasets or not all(isinstance(d, dict) and "path" in d
+                                                                 for d in datasets):
+        raise NemoError(f"{path}: the OME-Zarr 'multiscales' metadata lists no resolution level ('datasets' "
+                        "with a 'path' each); fix the metadata or export the image again")
+    return datasets
 
 
 def describe(path: str | os.PathLike) -> dict:
@@ -98,17 +116,43 @@ def describe(path: str | os.PathLike) -> dict:
     group_path, level = locate(path)
     group = _open_group(group_path)
     ms = _multiscale(dict(group.attrs), group_path)
-    axes = [a["name"] if isinstance(a, dict) else a for a in ms["axes"]]
-    letters = "".join(a.upper() for a in axes)
-    array = group[level]
+    letters = _letters(ms, group_path)
+    array = _level_array(group, level, group_path)
     if len(letters) != array.ndim:
         raise NemoError(f"{group_path}: the metadata names {len(letters)} axes ({letters}) but level "
                         f"{level} has {array.ndim} dimensions")
-    scale = dict(zip(letters, _scale(ms, level)))
-    units = {a["name"].upper(): a.get("unit") for a in ms["axes"] if isinstance(a, dict)}
+    factors = _scale(ms, level, group_path)
+    scale = dict(zip(letters, factors or []))
+    # no scale: the sizes are unknown, whatever unit the axes name
+    units = {letter: a.get("unit") for letter, a in zip(letters, ms["axes"]) if isinstance(a, dict) and factors is not None}
     return {"axes": letters, "shape": dict(zip(letters, array.shape)), "dtype": str(array.dtype),
             "spacing": tuple(float(scale.get(a, 1.0)) for a in "ZYX"),
             "units": [units.get(a) for a in "ZYX"], "group": group_path, "level": level}
+
+
+def _letters(ms: dict, path: Path) -> str:
+    """One letter per axis (T, C, Z, Y, X): single-letter names as they are, ``time`` and
+    ``channel`` axes (by name or NGFF ``type``) as T and C."""
+    out = []
+    for a in ms.get("axes") or []:
+        name = str(a.get("name", "") if isinstance(a, dict) else a)
+        kind = a.get("type") if isinstance(a, dict) else None
+        named = {"time": "T", "channel": "C"}
+        letter = name.upper() if len(name) == 1 else named.get(name.lower()) or named.get(kind)
+        if letter is None or letter not in "TCZYX":
+            raise NemoError(f"{path}: OME-Zarr axis {name!r} is none of t, c, z, y, x (nor a 'time' or "
+                            "'channel' axis); fix the metadata's 'axes'")
+        out.append(letter)
+    return "".join(out)
+
+
+def _level_array(group, level: str, path: Path):
+    """The array of one resolution level (a NemoError when the metadata names a missing one)."""
+    try:
+        return group[level]
+    except (KeyError, ValueError, OSError) as exc:
+        raise NemoError(f"{path}: the metadata names resolution level {level!r} but the folder has no such "
+                        f"array ({exc}); copy the image again or fix the metadata") from None
 
 
 def levels(path: str | os.PathLike) -> list[dict]:
@@ -117,11 +161,12 @@ def levels(path: str | os.PathLike) -> list[dict]:
     group_path, _ = locate(path)
     group = _open_group(group_path)
     ms = _multiscale(dict(group.attrs), group_path)
-    letters = "".join((a["name"] if isinstance(a, dict) else a).upper() for a in ms["axes"])
+    letters = _letters(ms, group_path)
     out = []
-    for d in ms["datasets"]:
-        scale = dict(zip(letters, _scale(ms, d["path"])))
-        out.append({"path": str(group_path / d["path"]), "shape": dict(zip(letters, group[d["path"]].shape)),
+    for d in _datasets(ms, group_path):
+        scale = dict(zip(letters, _scale(ms, d["path"], group_path) or []))
+        out.append({"path": str(group_path / d["path"]),
+                    "shape": dict(zip(letters, _level_array(group, d["path"], group_path).shape)),
                     "spacing": tuple(float(scale.get(a, 1.0)) for a in "ZYX")})
     return out
 

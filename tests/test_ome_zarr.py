@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from nemo import ome_zarr
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.io import read_info, read_mask, read_stack, write_hyperstack
 from nemo.pipeline import run_frame
 from nemo.synthetic import write_vesicle
@@ -86,6 +86,48 @@ def test_folders_that_are_not_ome_zarr_are_refused(tmp_path):
     zpath = ome_zarr.write(tmp_path / "yx.zarr", np.zeros((5, 6), np.uint8), (1, 1, 1), axes="YX")
     with pytest.raises(NemoError, match="2-D image"):
         read_info(zpath)
+
+
+def _edit_metadata(zpath, change):
+    """Rewrite an NGFF 0.4 image's ``.zattrs`` multiscale with ``change(ms)``."""
+    import json
+
+    attrs = json.loads((zpath / ".zattrs").read_text())
+    change(attrs["multiscales"][0])
+    (zpath / ".zattrs").write_text(json.dumps(attrs))
+    return zpath
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda ms: ms["datasets"][0].update(coordinateTransformations=[{"type": "scale", "scale": [2, 2, 2]}]),
+     "has 3 values for 5 axes"),
+    (lambda ms: ms.update(datasets=[]), "lists no resolution level"),
+    (lambda ms: ms["datasets"][0].update(path="9"), "names resolution level '9' but the folder has no such array"),
+    (lambda ms: ms["axes"][0].update(name="when", type="space"), "axis 'when' is none of t, c, z, y, x"),
+], ids=["scale length", "no datasets", "missing level", "unknown axis"])
+def test_broken_ome_metadata_is_named(tmp_path, change, message):
+    zpath = ome_zarr.write(tmp_path / "v.zarr", np.zeros((1, 1, 4, 5, 6), np.uint8), (2, 1, 1))
+    with pytest.raises(NemoError, match=message):
+        read_info(_edit_metadata(zpath, change))
+
+
+def test_ome_zarr_without_a_scale_is_uncalibrated_and_named_axes_are_read(tmp_path):
+    def no_scale(ms):
+        ms["datasets"][0].pop("coordinateTransformations")
+        ms["axes"][0]["name"], ms["axes"][1]["name"] = "time", "channel"
+
+    zpath = _edit_metadata(ome_zarr.write(tmp_path / "v.zarr", np.ones((1, 1, 4, 5, 6), np.uint8), (2, 1, 1)),
+                           no_scale)
+    info = read_info(zpath)
+    assert info.axes == "TCZYX" and not info.calibrated and info.unit == "pixel"
+    with pytest.warns(NemoWarning, match="no spatial calibration"):
+        read_stack(zpath)
+    array = tmp_path / "plain.zarr"
+    import zarr
+
+    zarr.open_array(str(array), mode="w", shape=(2, 3, 4), dtype="u1", zarr_format=2)
+    with pytest.raises(NemoError, match="plain Zarr array without OME-NGFF metadata"):
+        read_info(array)
 
 
 def test_a_zarr_mask_selects_labels(tmp_path):
