@@ -436,6 +436,15 @@ def test_morphology_only_single_wall_uncalibrated_timelapse(tmp_path):
     assert len(_summary(tmp_path, "defects", "drops")) == 0 and len(_summary(tmp_path, "tracks", "drops")) == 0
 
 
+def test_an_uncalibrated_stack_is_named_at_parse_time(tmp_path):
+    """The dry run says the analysis would run in pixels (Snakemake hides Python warnings)."""
+    _droplets(tmp_path / "drops.tif", [8.0])
+    cfg = {"datasets": {"drops": {"path": "drops.tif"}}, "mesh": {"split": "none"}, "layers": {},
+           "thickness": None, "alignment": [], "report": {"summary": False}}
+    proc = smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    assert "drops.tif has no spatial calibration" in proc.stdout + proc.stderr
+
+
 def test_one_config_holds_a_vesicle_and_a_droplet(tmp_path):
     """Per-dataset overrides: the droplet is single-walled and morphology-only, the vesicle not."""
     _droplets(tmp_path / "drops.tif", [8.0, 9.0])

@@ -6,7 +6,6 @@ import os
 import re
 import shlex
 import sys
-import warnings
 from pathlib import Path
 
 import yaml
@@ -19,6 +18,11 @@ def _fail(message):
 
 def config_error(key, message):
     _fail(f"config key '{key}': {message}")
+
+
+def _warn(message):
+    """A parse-time warning the user sees (Snakemake hides `warnings.warn` from a Snakefile)."""
+    print(f"NEMO workflow: warning: {message}", file=sys.stderr)
 
 
 # the one parameter schema (nemo/schemas/config.schema.yaml), shared with `nemo run` and the
@@ -226,15 +230,16 @@ def _dataset_info(name, d):
         except (
             ImportError
         ) as exc:  # a Snakemake environment without nemo: trust the config
-            warnings.warn(f"cannot import nemo ({exc}); not checking {path}'s header")
+            _warn(f"cannot import nemo ({exc}); not checking {path}'s header")
             return None
         try:
             info = read_info(path)
         except NemoError as exc:
             config_error(f"{key}.path", str(exc))
         if not info.calibrated and d["spacing"] is None:
-            warnings.warn(
-                f"{path} has no spatial calibration; set {key}.spacing: [dz, dy, dx] (µm)"
+            _warn(
+                f"{path} has no spatial calibration (the analysis runs in pixels); "
+                f"set {key}.spacing: [dz, dy, dx] (µm)"
             )
         return info.shape
     if synth is None:
@@ -536,7 +541,7 @@ def _check_directors_files():
                     f"(relative to {os.getcwd()}): {', '.join(missing[:3])}{', ...' if len(missing) > 3 else ''}",
                 )
             if len(set(paths.values())) < len(paths):
-                warnings.warn(
+                _warn(
                     f"{key}: {pattern!r} names the same file for several frames (no {{t}} or {{c}}): "
                     "every frame gets the same directors"
                 )
