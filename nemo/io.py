@@ -537,6 +537,27 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     return mask
 
 
+def _warn_if_probabilities(data: np.ndarray, name: str) -> None:
+    """Warn when a mask read without a threshold looks like a probability map on another scale:
+    float values beyond 1 (cut at 0.5 they select nearly every nonzero voxel), or integers that
+    vary from voxel to voxel inside the object (a label image is constant within each label)."""
+    top = float(np.nanmax(data))
+    if np.issubdtype(data.dtype, np.floating):
+        if top > 1.0:
+            warnings.warn(f"{name} is a float image with values up to {top:.4g}: cut at 0.5 as a probability map "
+                          "in [0, 1]; if its scale is another, give mask_threshold (e.g. half its maximum)",
+                          NemoWarning, stacklevel=4)
+        return
+    left, right = data[:, :, :-1], data[:, :, 1:]
+    inside = (left != 0) & (right != 0)
+    varies = np.count_nonzero(inside & (left != right)) / max(1, np.count_nonzero(inside))
+    if varies > 0.5 and np.unique(data[:: max(1, data.shape[0] // 8)]).size > 16:
+        warnings.warn(f"{name} varies between neighbouring nonzero voxels ({100 * varies:.0f} % of them, values up "
+                      f"to {top:.4g}): it looks like a probability map saved as integers, read here as labels "
+                      "(every nonzero voxel is object); give mask_threshold (e.g. half its range) if it is one",
+                      NemoWarning, stacklevel=4)
+
+
 def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float | None,
                    name: str) -> np.ndarray:
     """Object voxels of a binary mask, label image or probability map (see :func:`read_mask`)."""
@@ -550,9 +571,15 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
             raise NemoError(f"{name} has none of the labels {list(labels)}; labels present: "
                             f"{present[:20].tolist()}{' …' if present.size > 20 else ''}")
         return mask
+    if threshold is None:
+        _warn_if_probabilities(data, name)
     if threshold is None and np.issubdtype(data.dtype, np.floating):
         threshold = 0.5
     mask = data > threshold if threshold is not None else data != 0
+    if mask.all():
+        rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"
+        raise NemoError(f"{name} selects every voxel (all are {rule}; the smallest value is {data.min():.4g}): no "
+                        "object boundary. If its background is not 0, give mask_threshold or mask_labels")
     if not mask.any():
         rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"
         raise NemoError(f"{name} is empty: no voxel is {rule}. Check the file and the frame, or lower "

@@ -352,11 +352,27 @@ def test_mask_from_a_probability_map(segmentation):
     d, labels = segmentation
     shape = labels.shape[1:]
     np.testing.assert_array_equal(read_mask(d / "prob.tif", 0, 0, shape), labels[0] == 3)  # default 0.5
-    np.testing.assert_array_equal(read_mask(d / "prob.tif", 0, 0, shape, threshold=0.1), np.ones(shape, bool))
+    with pytest.raises(NemoError, match=r"selects every voxel \(all are above the threshold 0.1; the smallest "
+                       r"value is 0.2\).*give mask_threshold"):
+        read_mask(d / "prob.tif", 0, 0, shape, threshold=0.1)
     with pytest.raises(NemoError, match="is empty: no voxel is above the threshold 0.9"):
         read_mask(d / "prob.tif", 0, 0, shape, threshold=0.9)
     with pytest.raises(NemoError, match="floating-point values, not labels"):
         read_mask(d / "prob.tif", 0, 0, shape, labels=[1])
+
+
+def test_probability_maps_on_another_scale_are_warned_about(tmp_path, rng):
+    """A map in 0..255 (float or uint8) read without a threshold, and a label image that is not."""
+    z, y, x = np.meshgrid(*(np.arange(n) for n in (12, 20, 20)), indexing="ij")
+    ball = 255 / (1 + np.exp(np.sqrt((z - 6) ** 2 + (y - 10) ** 2 + (x - 10) ** 2) - 6))
+    for name, data, warned in (("p8", np.clip(ball + rng.normal(0, 3, ball.shape), 0, 255).astype(np.uint8), True),
+                               ("pf", ball.astype(np.float32), True),
+                               ("labels", np.where(ball > 128, 7, 0).astype(np.uint16), False)):
+        write_hyperstack(tmp_path / f"{name}.tif", data, (1, 1, 1), axes="ZYX")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape)
+        assert any("probability map" in str(w.message) for w in caught) == warned, name
 
 
 def test_mask_options_need_a_mask(run_cli, segmentation):
