@@ -1125,6 +1125,9 @@ def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spac
         raise NemoError(f"refine must be true or false, got {refine!r}")
     if refine_sigma is not None and not (np.isfinite(float(refine_sigma)) and float(refine_sigma) >= 0):
         raise NemoError(f"refine_sigma must be a length >= 0 (µm), got {refine_sigma!r}")
+    if refine and source is None:
+        warnings.warn("refine is ignored with a mask: a binary mask has no sub-voxel edge to refine to (the "
+                      "surface records refine: false)", NemoWarning, stacklevel=3)
     if not refine or source is None or len(mesh.faces) == 0:
         return {"refine": False}
     if refine_sigma is None:
