@@ -30,6 +30,7 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 import pandas as pd
@@ -38,8 +39,9 @@ import trimesh
 from nemo import config as nconfig
 from nemo import objects
 from nemo._log import logger
-from nemo.errors import NemoError, ObjectTooSmallError
+from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
+from nemo.summary import QC_MIN_SNR
 
 __all__ = ["object_radius", "mesh", "measure", "curvature", "curvature_defaults", "thickness", "peel", "directors",
            "directors_defaults", "import_directors", "order", "defects", "tracking_distance"]
@@ -124,6 +126,10 @@ def mesh(
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
              else {"noise": None, "snr": None, "saturated": None})
+    if p["snr"] is not None and p["snr"] < QC_MIN_SNR:
+        warnings.warn(f"signal-to-noise ratio {p['snr']:.2g} of the segmented channel: the surface is uncertain (a "
+                      f"frame below {QC_MIN_SNR:g} is flagged in the summary); check the channel and the time point",
+                      NemoWarning, stacklevel=2)
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
         found = find_objects(whole)
         meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)

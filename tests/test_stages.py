@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from nemo import stages
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.mesh import make_mesh, mean_edge_length
 
 
@@ -467,3 +467,12 @@ def test_defects_search_again_when_the_charges_miss_chi():
     first = 0.5 * np.nanpercentile(s, 90)
     fixed, _, q = stages.defects(mesh, odf, ddf, {"refine": "none", "s_threshold": first}, avg_radius=15.0)
     assert q["topology_search"] == {"passes": 1, "relaxed_s_threshold": None} and len(fixed) == 3
+
+
+def test_a_low_snr_channel_is_warned_about_at_the_mesh_step(rng):
+    z, y, x = np.meshgrid(*(np.arange(40),) * 3, indexing="ij")
+    ball = np.sqrt((z - 20) ** 2 + (y - 20) ** 2 + (x - 20) ** 2) < 12
+    volume = np.clip(100 + 40 * ball + rng.normal(0, 30, ball.shape), 0, 255).astype(np.uint8)
+    with pytest.warns(NemoWarning, match="signal-to-noise ratio 1.* the surface is uncertain"):
+        _, p = stages.mesh(volume, (1.0, 1.0, 1.0), {"split": "none"})
+    assert p["snr"] < 3
