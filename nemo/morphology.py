@@ -689,6 +689,14 @@ def _warn_fit_problems(mesh: trimesh.Trimesh, out: dict, radius: float, vertices
     for the surface, and degenerate fits."""
     few = out["count"] < MIN_NEIGHBOURS
     n = len(out["count"])
+    diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    if few.any() and radius >= diagonal:  # no radius helps: too few vertices on a side of the surface
+        warnings.warn(
+            f"the surface is too coarse for a curvature fit at {int(few.sum())} of {n} sampled vertices: fewer "
+            f"than {MIN_NEIGHBOURS} vertices on their side of it even within {radius:g} {unit} (its whole extent, "
+            f"{len(vertices)} vertices); their H and K are NaN. Use a finer mesh (subdivide it)",
+            NemoWarning, stacklevel=3)
+        return
     if few.any():
         edge = mean_edge_length(mesh)
         warnings.warn(

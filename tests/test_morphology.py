@@ -863,3 +863,11 @@ def test_default_radius_bad_input(sphere15):
         default_radius(sphere15, n_probe=3)
     with pytest.raises(NemoError):
         default_radius(trimesh.Trimesh(vertices=np.zeros((3, 3)), faces=[[0, 1, 2]], process=False))
+
+
+def test_a_mesh_too_coarse_for_any_radius_says_so():
+    """An icosahedron: 5 neighbours per vertex whatever the radius; not 'use a larger radius'."""
+    ico = trimesh.creation.icosahedron()
+    with pytest.warns(NemoWarning, match="too coarse for a curvature fit at 12 of 12") as caught:
+        df = curvature(ico, 10.0, rng=0)
+    assert df["H"].isna().all() and not any("use a larger radius" in str(w.message) for w in caught)
