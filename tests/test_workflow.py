@@ -111,6 +111,7 @@ def tiny_stack(tmp_path_factory):
     d = tmp_path_factory.mktemp("stack")
     data = np.zeros((2, 8, 1, 16, 16), dtype=np.uint8)
     write_hyperstack(d / "stack.tif", data, spacing=(1, 1, 1), axes="TZCYX")
+    write_hyperstack(d / "mask_7_planes.tif", np.ones((7, 16, 16), np.uint8), spacing=(1, 1, 1), axes="ZYX")
     return d / "stack.tif"
 
 
@@ -158,6 +159,9 @@ def test_bad_config_fails_before_any_job_naming_the_key(tmp_path, name):
                      marks=pytest.mark.slow),
         pytest.param(lambda d: d.update(segment_channel=2), "datasets.cells.segment_channel", "channel 2",
                      id="segment-channel", marks=pytest.mark.slow),
+        pytest.param(lambda d: d.update(mask=str(Path(d["path"]).with_name("mask_7_planes.tif"))),
+                     "datasets.cells.mask", "(7, 16, 16) but the image has (8, 16, 16)", id="mask-shape",
+                     marks=pytest.mark.slow),
     ],
 )
 def test_hyperstack_header_checked_at_parse_time(tmp_path, tiny_stack, edit, key, words):

@@ -286,6 +286,22 @@ def _check_surface_meshes(name, pattern, times):
         )
 
 
+def _check_mask_header(name, path, shape):
+    """The mask's (Z, Y, X) size is the image's (read from its header, before any job starts)."""
+    from nemo.io import read_info
+
+    try:
+        m = read_info(path).shape
+    except NemoError as exc:
+        config_error(f"datasets.{name}.mask", str(exc))
+    if (m["Z"], m["Y"], m["X"]) != (shape["Z"], shape["Y"], shape["X"]):
+        config_error(
+            f"datasets.{name}.mask",
+            f"{path} has (Z, Y, X) = {(m['Z'], m['Y'], m['X'])} but the image has "
+            f"{(shape['Z'], shape['Y'], shape['X'])}; give a mask of the same size",
+        )
+
+
 def _datasets():
     out = {}
     for name, d in config["datasets"].items():
@@ -331,6 +347,8 @@ def _datasets():
                 entry["stack_mb"] = shape["Z"] * shape["Y"] * shape["X"] * 4 / 1e6
         if d["mask"] is not None and not Path(d["mask"]).exists():
             config_error(f"datasets.{name}.mask", f"file not found: {d['mask']}")
+        if d["mask"] is not None and shape is not None and shape.get("Z"):
+            _check_mask_header(name, d["mask"], shape)
         if d["surface_mesh"] is not None:
             _check_surface_meshes(name, d["surface_mesh"], entry["t"])
         out[name] = entry
