@@ -130,9 +130,24 @@ def _staging_folder(final: Path) -> Path:
     if final.exists() and not final.is_dir():
         raise NemoError(f"the output {final} is a file: give a folder (-o OUTDIR)")
     stage = atomic.make_folder(final.parent) / f".{final.name}.partial{os.getpid()}"
+    for old in final.parent.glob(f".{final.name}.partial*"):  # left by a killed run (its process is gone)
+        pid = old.name.rpartition(".partial")[2]
+        if old != stage and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
     return stage
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this id runs (on this machine)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def _publish(stage: Path, final: Path, written: list[str]) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -326,6 +327,18 @@ def ball_and_labels(tmp_path):
 def _morphology_config(path, **dataset):
     return {"datasets": {"d": {"path": str(path), **dataset}}, "layers": {}, "curvature": None,
             "thickness": None, "mesh": {"split": "none"}}
+
+
+def test_a_killed_runs_staging_folder_is_removed_by_the_next_run(tmp_path):
+    from nemo.pipeline import _staging_folder
+
+    final = tmp_path / "out"
+    dead = tmp_path / ".out.partial999999999"  # no such process
+    mine = tmp_path / f".other.partial{os.getpid()}"  # another output's folder: not this run's business
+    for folder in (dead, mine):
+        folder.mkdir()
+    stage = _staging_folder(final)
+    assert stage.is_dir() and not dead.exists() and mine.exists()
 
 
 def test_run_frame_refuses_a_dataset_selection_the_image_lacks(ball_and_labels):
