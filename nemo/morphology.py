@@ -458,7 +458,7 @@ def _climb_out_of_roughness(pilot, radius: float, top: float) -> tuple[float, tu
         (R_c, n_fit) there.
     """
     result = pilot(radius)
-    while 0 < radius * math.sqrt(2.0) <= top:
+    while math.isfinite(result[0]) and 0 < radius * math.sqrt(2.0) <= top:  # inf: no curvature to climb out of
         above = pilot(radius * math.sqrt(2.0))
         if above[0] < ROUGHNESS_GROWTH * result[0]:
             break

@@ -733,6 +733,7 @@ def test_climb_keeps_the_first_rung_the_next_one_confirms():
     radius, (r_c, _) = _climb_out_of_roughness(rough_then_shape, 1.0, 8.0)
     assert radius == pytest.approx(2 * np.sqrt(2)) and r_c == 10.0  # R_c 1, 2.8, 8, 10, 10: kept 10
     assert _climb_out_of_roughness(lambda r: (7.0, 100), 1.0, 8.0)[0] == 1.0  # a shape: no climb
+    assert _climb_out_of_roughness(lambda r: (np.inf, 100), 1.0, 8.0)[0] == 1.0  # a plane: none either
     assert _climb_out_of_roughness(lambda r: (r**3, 100), 1.0, 3.0)[0] == pytest.approx(2 * np.sqrt(2))  # top
     assert ROUGHNESS_GROWTH > 1
 
