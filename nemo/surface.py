@@ -1048,9 +1048,9 @@ def reconstruct(
     if border not in ("open", "closed"):
         raise NemoError(f"border must be 'open' or 'closed', got {border!r}")
     source, shape, scale, mask = _source(volume, mask)
-    if min(shape) < 2 * step:
+    if min(shape) <= step:
         raise NemoError(f"step {step} (voxels) leaves fewer than 2 samples along an axis of the stack "
-                        f"(Z, Y, X) = {tuple(shape)}: give a step of at most {max(1, min(shape) // 2)}")
+                        f"(Z, Y, X) = {tuple(shape)}: give a step of at most {max(1, min(shape) - 1)}")
 
     sig_vox = (sigma / dz, sigma / dy, sigma / dx)
     with log_step(f"blurring {shape[0]}x{shape[1]}x{shape[2]} voxels (sigma {sigma:g} {unit})"):

@@ -747,5 +747,5 @@ def test_auto_level_ignores_blips_in_the_sparse_bright_tail():
 def test_a_step_wider_than_the_stack_is_named():
     volume = np.zeros((20, 30, 30), np.float32)
     volume[5:15, 10:20, 10:20] = 1.0
-    with pytest.raises(NemoError, match=r"step 11 \(voxels\) leaves fewer than 2 samples.*at most 10"):
-        reconstruct(volume, (1.0, 1.0, 1.0), step=11)
+    with pytest.raises(NemoError, match=r"step 20 \(voxels\) leaves fewer than 2 samples.*at most 19"):
+        reconstruct(volume, (1.0, 1.0, 1.0), step=20)
