@@ -440,6 +440,7 @@ def test_morphology_only_single_wall_uncalibrated_timelapse(tmp_path):
     assert len(_summary(tmp_path, "defects", "drops")) == 0 and len(_summary(tmp_path, "tracks", "drops")) == 0
 
 
+@pytest.mark.slow  # a dry run ≈ 15 s; the default suite's budget
 def test_an_uncalibrated_stack_is_named_at_parse_time(tmp_path):
     """The dry run says the analysis would run in pixels (Snakemake hides Python warnings)."""
     _droplets(tmp_path / "drops.tif", [8.0])
