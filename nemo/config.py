@@ -250,6 +250,26 @@ def analysis(cfg: Mapping, dataset: str | None = None) -> dict:
     return resolve_surfaces(out)
 
 
+def selected_indices(name: str, dataset: Mapping, axis: str, size: int) -> list[int]:
+    """The time points (``axis`` "T") or channels ("C") that ``datasets.NAME`` selects from an
+    image with ``size`` of them, sorted: the workflow's frames and ``nemo run``'s check.
+
+    Raises
+    ------
+    NemoError
+        An index the image does not have, naming the config key.
+    """
+    values = dataset.get(axis.lower(), "all")
+    if values in (None, "all"):
+        return list(range(size))
+    bad = [v for v in values if v >= size]
+    if bad:
+        what = "time points" if axis == "T" else "channels"
+        raise NemoError(f"config key 'datasets.{name}.{axis.lower()}': {bad} out of range: {dataset['path']} has "
+                        f"{size} {what} (valid: 0 to {size - 1})")
+    return sorted(values)
+
+
 def resolve_surfaces(sections: dict) -> dict:
     """Resolve the null surfaces and check that every surface used is written by the mesh step.
 

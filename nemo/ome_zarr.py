@@ -133,11 +133,10 @@ def describe(path: str | os.PathLike) -> dict:
 def _letters(ms: dict, path: Path) -> str:
     """One letter per axis (T, C, Z, Y, X): single-letter names as they are, ``time`` and
     ``channel`` axes (by name or NGFF ``type``) as T and C."""
-    out = []
+    named, out = {"time": "T", "channel": "C"}, []
     for a in ms.get("axes") or []:
         name = str(a.get("name", "") if isinstance(a, dict) else a)
         kind = a.get("type") if isinstance(a, dict) else None
-        named = {"time": "T", "channel": "C"}
         letter = name.upper() if len(name) == 1 else named.get(name.lower()) or named.get(kind)
         if letter is None or letter not in "TCZYX":
             raise NemoError(f"{path}: OME-Zarr axis {name!r} is none of t, c, z, y, x (nor a 'time' or "

@@ -58,17 +58,11 @@ def check_selection(cfg: dict, frame: dict, t: int, c: int) -> None:
     from nemo.io import read_info
 
     d, shape = cfg["datasets"][frame["dataset"]], read_info(frame["image"]).shape
-    for axis, asked, what in (("t", t, "time points"), ("c", c, "channels")):
-        values, size = d.get(axis, "all"), shape[axis.upper()]
-        if values in (None, "all"):
-            continue
-        bad = [v for v in values if v >= size]
-        if bad:
-            raise NemoError(f"config key 'datasets.{frame['dataset']}.{axis}': {bad} out of range: {frame['image']} "
-                            f"has {size} {what} (valid: 0 to {size - 1})")
-        if asked not in values:
-            logger.warning("%s=%d is not in datasets.%s.%s %s: analysing it as asked (the workflow analyses %s)",
-                           axis, asked, frame["dataset"], axis, list(values), list(values))
+    for axis, asked in (("T", t), ("C", c)):
+        selected = nconfig.selected_indices(frame["dataset"], {**d, "path": frame["image"]}, axis, shape[axis])
+        if asked not in selected:
+            logger.warning("%s=%d is not in datasets.%s.%s %s: analysing it as asked (the workflow analyses those)",
+                           axis.lower(), asked, frame["dataset"], axis.lower(), selected)
 
 
 def run_frame(

@@ -115,12 +115,8 @@ def output_path(path: str | Path, suffixes: tuple[str, ...] = (".parquet",)) -> 
 OUTPUT_OPTIONS = ("output", "refined", "linked", "candidates")
 
 
-def check_outputs_are_not_inputs(args: argparse.Namespace) -> None:
-    """Refuse a command whose output file is one of its input files (it would be replaced).
-
-    Every argument that names an existing file and is not an output counts as an input.
-    """
-    outputs = {name: getattr(args, name) for name in OUTPUT_OPTIONS if getattr(args, name, None)}
+def input_files(args: argparse.Namespace) -> list[str]:
+    """Every argument that names an existing file and is not an output (:data:`OUTPUT_OPTIONS`)."""
     inputs = []
     for name, value in vars(args).items():
         if name in OUTPUT_OPTIONS or name.startswith("_"):
@@ -130,16 +126,27 @@ def check_outputs_are_not_inputs(args: argparse.Namespace) -> None:
                 continue
             # FILE or FILE:COLUMN (e.g. nemo peel --shift thickness.parquet:thickness)
             inputs += [path for path in (item, item.rpartition(":")[0]) if path and os.path.isfile(path)]
-    for name, out in outputs.items():
-        if not os.path.exists(out):
-            continue
-        same = next((i for i in inputs if os.path.samefile(i, out)), None)
-        if same is not None:
-            flag = "-o" if name == "output" else f"--{name}"
-            raise NemoError(
-                f"the output {out} ({flag}) is the input {same}: writing it would destroy the input; "
-                "choose another output file name"
-            )
+    return inputs
+
+
+def refuse_to_overwrite(out: str | os.PathLike, inputs: list[str], flag: str = "-o") -> None:
+    """Raise :class:`NemoError` when the output ``out`` is one of ``inputs`` (it would be replaced)."""
+    if not os.path.exists(out):
+        return
+    same = next((i for i in inputs if os.path.samefile(i, out)), None)
+    if same is not None:
+        raise NemoError(
+            f"the output {out} ({flag}) is the input {same}: writing it would destroy the input; "
+            "choose another output file name"
+        )
+
+
+def check_outputs_are_not_inputs(args: argparse.Namespace) -> None:
+    """Refuse a command whose output file is one of its input files (:func:`input_files`)."""
+    inputs = input_files(args)
+    for name in OUTPUT_OPTIONS:
+        if getattr(args, name, None):
+            refuse_to_overwrite(getattr(args, name), inputs, "-o" if name == "output" else f"--{name}")
 
 
 def print_json(obj) -> None:

@@ -33,8 +33,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--radius", type=positive(float), metavar="UM",
                         help="fitting radius in the mesh unit (µm): several edge lengths, below the "
                              "smallest radius of curvature of interest (default from the surface: 15 mean "
-                             "edges, at most 0.6 × its radius of curvature, at least 4 edges; "
-                             "nemo.morphology.default_radius)")
+                             "edges, at most 0.6 × its radius of curvature, at least 4 edges, more on a noisy wall "
+                             "whose roughness reads as curvature at small radii; nemo.morphology.default_radius)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--samples", type=positive(int), metavar="N",
                        help="number of randomly chosen vertices to fit (default: all vertices of small "

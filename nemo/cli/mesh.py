@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import time
 import warnings
 from pathlib import Path
@@ -11,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from nemo import atomic
-from nemo.cli.common import add_common, non_negative, number, output_path, positive
+from nemo.cli.common import add_common, input_files, non_negative, number, output_path, positive, refuse_to_overwrite
 from nemo.errors import NemoError, NemoWarning
 
 HELP = "reconstruct a surface mesh (PLY) from an image: blur, threshold, marching cubes"
@@ -116,15 +115,11 @@ def _sibling(path: Path, tag: str) -> Path:
     return path.with_name(f"{path.stem}.{tag}{path.suffix}")
 
 
-def _check_side_outputs(paths: dict, inputs: list) -> None:
-    """Refuse to write a wall over an input (``-o`` itself is checked with the other commands'),
-    and warn about walls of an earlier run that this one does not replace."""
-    inputs = [i for i in inputs if i and os.path.isfile(i)]
+def _check_side_outputs(paths: dict, inputs: list[str]) -> None:
+    """Refuse to write a wall over an input, and warn about walls of an earlier run that this
+    one does not replace."""
     for path in paths.values():
-        same = next((i for i in inputs if path.exists() and os.path.samefile(i, path)), None)
-        if same is not None:
-            raise NemoError(f"the output {path} is the input {same}: writing it would destroy the input; "
-                            "choose another -o name")
+        refuse_to_overwrite(path, inputs, "-o, a wall")
     out = paths["whole"]
     stale = [str(_sibling(out, tag)) for tag in ("inner", "outer") if tag not in paths and _sibling(out, tag).exists()]
     if stale:
@@ -167,7 +162,7 @@ def run(args) -> int:
                                      unit=info.unit, centre=args.centre)
     del volume, mask
     paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}
-    _check_side_outputs(paths, [args.image, args.from_mesh, args.mask])
+    _check_side_outputs(paths, input_files(args))
     spheres = {}
     for name, mesh in meshes.items():
         path = paths[name]

@@ -256,18 +256,10 @@ def _dataset_info(name, d):
 
 
 def _indices(name, d, axis, size):
-    key = f"datasets.{name}.{axis.lower()}"
-    values = d[axis.lower()]
-    if values == "all":
-        return list(range(size))
-    bad = [v for v in values if v >= size]
-    if bad:
-        what = "time points" if axis == "T" else "channels"
-        config_error(
-            key,
-            f"{bad} out of range: {d['path']} has {size} {what} (valid: 0 to {size - 1})",
-        )
-    return sorted(values)
+    try:
+        return nconfig.selected_indices(name, d, axis, size)
+    except NemoError as exc:
+        _fail(str(exc))
 
 
 def _check_surface_meshes(name, pattern, times):
