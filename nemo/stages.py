@@ -118,14 +118,15 @@ def mesh(
         p["sigma"] = default_sigma(spacing, p["step"])
     whole = reconstruct(volume, spacing, sigma=float(p["sigma"]), threshold=p["threshold"], mask=mask,
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit,
-                        border=p["border"], refine=bool(p["refine"]), refine_sigma=p["refine_sigma"])
+                        border=p["border"], refine=bool(p["refine"]), refine_sigma=p["refine_sigma"],
+                        refine_to=p["refine_to"])
     surface = whole.metadata["nemo_surface"]
     surface["keep"] = p["keep"]
     p["level"] = float(surface["level"])
     p["refine_sigma"] = surface.get("refine_sigma")
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
-             else {"noise": None, "snr": None, "saturated": None})
+             else {"noise": None, "snr": None, "saturated": None, "background": None})
     if p["snr"] is not None and p["snr"] < QC_MIN_SNR:
         warnings.warn(f"signal-to-noise ratio {p['snr']:.2g} of the segmented channel: the surface is uncertain (a "
                       f"frame below {QC_MIN_SNR:g} is flagged in the summary); check the channel and the time point",

@@ -399,21 +399,22 @@ def image_noise(volume: np.ndarray, level: float) -> dict:
         by one sample (:func:`_split_sample`); ``snr``: (median of the object's core − background
         centre) / ``noise``; ``saturated``: the fraction of the core's voxels at the detector's
         full scale (:func:`saturated_fraction`; None for a two-valued image, a mask saved as an
-        image). None where undefined (no noise, or too few voxels on a side).
+        image); ``background``: the background's centre (:func:`background_spread`). None where
+        undefined (no noise, or too few voxels on a side).
     """
     step = max(1, int(np.ceil((volume.size / NOISE_SAMPLE_VOXELS) ** (1 / 3))))
     raw = np.asarray(volume[::step, ::step, ::step])
     sample = np.nan_to_num(raw.astype(np.float32, copy=False))
     _, background, core = _split_sample(sample, ndi.gaussian_filter(sample, 1.0), level)
     if core.size < 10:
-        return {"noise": None, "snr": None, "saturated": None}
+        return {"noise": None, "snr": None, "saturated": None, "background": None}
     binary = np.unique(sample.ravel()[:: max(1, sample.size // 100_000)]).size <= 2  # a mask saved as an image
     saturated = None if binary else saturated_fraction(core, raw.dtype)
     centre, noise = background_spread(background)
     if centre is None:
-        return {"noise": None, "snr": None, "saturated": saturated}
+        return {"noise": None, "snr": None, "saturated": saturated, "background": None}
     snr = (float(np.median(core)) - centre) / noise if noise > 0 else None
-    return {"noise": noise, "snr": snr, "saturated": saturated}
+    return {"noise": noise, "snr": snr, "saturated": saturated, "background": centre}
 
 
 def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all"] = "largest",
@@ -807,16 +808,18 @@ def parse_threshold(threshold) -> str | float:
     return value
 
 
-def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float]:
-    """(classification threshold, iso-level) of an automatic threshold on a blurred volume."""
+def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float, float | None]:
+    """(classification threshold, iso-level, background) of an automatic threshold on a blurred volume.
+
+    The background is the mode of the class below the threshold (None when every or no sample
+    lies below it).
+    """
     from skimage import filters
 
     # the histogram of a strided subsample is indistinguishable from the full one and 10x faster
     k = max(1, int(np.ceil((field.size / _MAX_THRESHOLD_SAMPLES) ** (1 / 3))))
     sample = np.ascontiguousarray(field[::k, ::k, ::k]).ravel()
     thr = float(filters.threshold_yen(sample) if method == "yen" else filters.threshold_otsu(sample))
-    if edge == "threshold":
-        return thr, thr
     # The two dominant intensity populations of the blurred image: the background (mode of the
     # class below the threshold) and the object plateau (the most populated histogram peak
     # above it). Peaks rather than class medians/modes: robust to the many edge voxels of thin
@@ -827,8 +830,11 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
     centres = 0.5 * (edges[1:] + edges[:-1])
     below = centres <= thr
     if below.all() or not below.any():
-        return thr, thr
+        return thr, thr, None
     b0 = int(np.argmax(np.where(below, counts, -1.0)))
+    background = float(centres[b0])
+    if edge == "threshold":
+        return thr, thr, background
     # local maxima above the background peak that rise >= 1/3 above the lowest point between
     # the background and them (a prominence test; scipy.signal costs 1 s of import time)
     ext = np.r_[-np.inf, counts, 0.0]  # a plateau in the top bin counts as a peak
@@ -842,12 +848,12 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
         # half-way to the object's median instead, never below the threshold: a textured noisy
         # wall gets its half-maximum level, a blob (median near the threshold) the threshold
         above = sample[sample > thr]
-        level = max(thr, 0.5 * (float(centres[b0]) + float(np.median(above)))) if above.size else thr
+        level = max(thr, 0.5 * (background + float(np.median(above)))) if above.size else thr
         logger.info("no object plateau in the intensity histogram: surface %s",
                     f"at the {method} threshold" if level == thr else "half-way to the object's median")
-        return thr, level
+        return thr, level, background
     top = peaks[ok][np.argmax(counts[peaks[ok]])]
-    return thr, 0.5 * (float(centres[b0]) + float(centres[top]))
+    return thr, 0.5 * (background + float(centres[top])), background
 
 
 def _cancel_duplicate_faces(faces: np.ndarray) -> np.ndarray:
@@ -977,6 +983,7 @@ def reconstruct(
     border: Literal["open", "closed"] = "open",
     refine: bool = False,
     refine_sigma: float | None = None,
+    refine_to: Literal["level", "steepest"] = "level",
 ) -> trimesh.Trimesh:
     """Reconstruct the surface of the bright object(s) in a 3-D image as a triangle mesh.
 
@@ -1027,6 +1034,12 @@ def reconstruct(
         Blur σ (physical) of the image the refinement reads. Default: none for a clean image,
         else the smallest σ giving the profiles a signal-to-noise ratio of :data:`REFINE_SNR`
         (:func:`blur_noise_gain`), at most ``sigma``.
+    refine_to : {"level", "steepest"}
+        The edge the refinement moves to: where the profile crosses the iso-level (``"level"``),
+        or where the profile (averaged over neighbouring vertices) falls most steeply between
+        the background and the plateau (``"steepest"``: stays on the edge of a thin wall under
+        an elongated PSF and of a noisy or clipped one, where the half level does not, but is
+        pulled towards a bright layer a few PSF widths inside the wall; :mod:`nemo.refine`).
 
     Returns
     -------
@@ -1062,7 +1075,7 @@ def reconstruct(
     del field
     inner = padded[_PAD:-_PAD, _PAD:-_PAD, _PAD:-_PAD]
     vmin, vmax = float(inner.min()), float(inner.max())
-    level, thr, how = _iso_level(inner, vmin, vmax, mask is not None, threshold, edge, scale)
+    level, thr, how, background = _iso_level(inner, vmin, vmax, mask is not None, threshold, edge, scale)
     logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
     del inner
 
@@ -1080,7 +1093,7 @@ def reconstruct(
             smoothed = _taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band)
             mesh.vertices = np.clip(smoothed, 0.0, box)
     ref_info = _refine(mesh, source if mask is None else None, level, (dz, dy, dx), step, refine,
-                       refine_sigma, sigma, box)
+                       refine_sigma, sigma, box, refine_to, background)
     mesh, rim_info = _apply_border(mesh, border, box)
     mesh.metadata["nemo_surface"] = {
         "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
@@ -1112,12 +1125,15 @@ def _snap(mesh: trimesh.Trimesh, padded: np.ndarray, level: float, spacing: tupl
 
 
 def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spacing: tuple[float, float, float],
-            step: int, refine: bool, refine_sigma: float | None, sigma: float, box: np.ndarray) -> dict:
+            step: int, refine: bool, refine_sigma: float | None, sigma: float, box: np.ndarray,
+            refine_to: str = "level", background: float | None = None) -> dict:
     """Refine ``mesh``'s vertices in place (:func:`nemo.refine.refine_vertices`); the record.
 
     ``source`` None (a mask) or ``refine`` False: no refinement. The profile image is ``source``
     blurred by ``refine_sigma`` (default :data:`REFINE_SNR` from :func:`image_noise`, at most
-    ``sigma``; none for a clean image).
+    ``sigma``; none for a clean image). ``refine_to`` "steepest" needs the background: the
+    level's (:func:`_auto_level`), else the raw background's centre (:func:`image_noise`, a
+    given threshold); without one it falls back to the level crossing (recorded).
     """
     from nemo.refine import refine_vertices
 
@@ -1128,11 +1144,17 @@ def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spac
     if refine and source is None:
         warnings.warn("refine is ignored with a mask: a binary mask has no sub-voxel edge to refine to (the "
                       "surface records refine: false)", NemoWarning, stacklevel=3)
+    if refine_to not in ("steepest", "level"):
+        raise NemoError(f"refine_to must be 'steepest' or 'level', got {refine_to!r}")
     if not refine or source is None or len(mesh.faces) == 0:
         return {"refine": False}
+    noise = image_noise(source, level)
     if refine_sigma is None:
-        snr = image_noise(source, level)["snr"]
-        refine_sigma = _sigma_for_snr(snr, spacing, REFINE_SNR, 0.0, sigma)
+        refine_sigma = _sigma_for_snr(noise["snr"], spacing, REFINE_SNR, 0.0, sigma)
+    background = noise["background"] if background is None else background
+    if refine_to == "steepest" and (background is None or not background < level):
+        logger.info("refinement: no background level measured, so to the level crossing, not the steepest point")
+        refine_to = "level"
     refine_sigma = float(refine_sigma)
     image = source
     if refine_sigma > 0:
@@ -1141,11 +1163,11 @@ def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spac
     code = np.asarray(mesh.vertex_attributes[_CODE])
     with log_step(f"refining {len(mesh.vertices)} vertices"):
         new, info = refine_vertices(np.asarray(mesh.vertices), np.asarray(mesh.faces), _vertex_normals(mesh), image,
-                                    spacing, level, step=step, fixed=code != 0)
+                                    spacing, level, step=step, fixed=code != 0, to=refine_to, background=background)
     mesh.vertices = np.clip(new, 0.0, box)
     logger.info("refinement: %d vertices on an edge, %d without one; median shift %.3g, |shift| p95 %.3g",
                 info["refined"], info["rejected"], info["shift_median"], info["shift_abs_p95"])
-    return {"refine": True, "refine_sigma": refine_sigma, **info}
+    return {"refine": True, "refine_sigma": refine_sigma, "refine_to": refine_to, **info}
 
 
 def _vertex_normals(mesh: trimesh.Trimesh) -> np.ndarray:
@@ -1279,8 +1301,9 @@ def _pad_with_minimum(field: np.ndarray) -> np.ndarray:
 
 
 def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, threshold, edge: str,
-               scale: float) -> tuple[float, float, str | float]:
-    """Iso-level of the blurred (scaled) field, the threshold it came from and how it was found.
+               scale: float) -> tuple[float, float, str | float, float | None]:
+    """Iso-level of the blurred (scaled) field, the threshold it came from, how it was found and
+    the background (:func:`_auto_level`; None for a mask or a given level).
 
     A mask is cut at 0.5 (mid-range when the blur is wider than the object); an automatic
     threshold goes through :func:`_auto_level`; a number is used as given (divided by
@@ -1290,15 +1313,16 @@ def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, thr
         level, thr, how = 0.5, 0.5, "mask"
         if not vmin < level < vmax:  # blur wider than the object
             level = 0.5 * (vmin + vmax)
-        return level, thr, how
+        return level, thr, how, None
     how = parse_threshold(threshold)
     if vmin == vmax:
         raise NemoError(
             f"the image is constant (every voxel = {vmin * scale:g}, e.g. an all-dark stack): no object to "
             "threshold; check the time point/channel and the file, or give a `mask`"
         )
+    background = None
     if isinstance(how, str):
-        thr, level = _auto_level(inner, how, edge)
+        thr, level, background = _auto_level(inner, how, edge)
     else:
         thr = level = how / scale  # the volume was divided by scale (_float32_safe)
     rng = f"blurred intensities {vmin * scale:.4g} to {vmax * scale:.4g}"
@@ -1312,7 +1336,7 @@ def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, thr
             f"threshold {threshold!r} (level {level * scale:.4g}) selects every voxel ({rng}): there is no "
             "boundary; raise `threshold` or use 'yen'/'otsu'"
         )
-    return level, thr, how
+    return level, thr, how, background
 
 
 def _marching_cubes(padded: np.ndarray, level: float, spacing: tuple[float, float, float], step: int,

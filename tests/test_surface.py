@@ -733,14 +733,14 @@ def test_auto_level_ignores_blips_in_the_sparse_bright_tail():
     background = rng.normal(0.1, 0.01, 60_000)
     blips = np.r_[np.full(4, 0.95), [1.0]]
     flat = np.r_[background, rng.uniform(0.1, 0.7, 30_000), blips]
-    thr, level = _auto_level(flat.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
+    thr, level, _ = _auto_level(flat.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
     above = flat[flat > thr]
     assert level == pytest.approx(0.5 * (0.1 + np.median(above)), abs=0.01) and level < 0.4
     plateau = np.r_[background, rng.normal(0.6, 0.02, 20_000), blips]
-    thr, level = _auto_level(plateau.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
+    thr, level, _ = _auto_level(plateau.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
     assert level == pytest.approx(0.35, abs=0.02)
     blob = np.r_[background, 0.1 + 0.8 * rng.uniform(0, 1, 5_000) ** 4]  # a bright core, mostly edge
-    thr, level = _auto_level(blob.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
+    thr, level, _ = _auto_level(blob.reshape(1, 1, -1).astype(np.float32), "otsu", "half")
     assert level == thr
 
 
