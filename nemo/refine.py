@@ -99,7 +99,7 @@ def _neighbour_matrix(faces: np.ndarray, n: int) -> sparse.csr_matrix:
 
 
 def _profiles(image: np.ndarray, points: np.ndarray, normals: np.ndarray, reach: np.ndarray,
-              spacing_xyz: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              spacing_xyz: np.ndarray, k: int, order: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The image along each vertex normal: offsets ``t``, trilinear samples and leaving-the-image rows.
 
     Parameters
@@ -112,6 +112,8 @@ def _profiles(image: np.ndarray, points: np.ndarray, normals: np.ndarray, reach:
     spacing_xyz : ndarray, shape (3,)
     k : int
         Samples on each side (``2 k + 1`` per profile).
+    order : {1, 3}
+        Trilinear, or cubic B-spline on an ``image`` already spline-filtered.
 
     Returns
     -------
@@ -128,7 +130,8 @@ def _profiles(image: np.ndarray, points: np.ndarray, normals: np.ndarray, reach:
         coords[2 - a] += np.float32(points[:, a] / spacing_xyz[a])[:, None]
     hi = np.array(image.shape, dtype=np.float32)[:, None, None] - 1
     outside = ((coords < 0) | (coords > hi)).any(axis=(0, 2))
-    prof = ndi.map_coordinates(image, coords.reshape(3, -1), order=1, mode="nearest", output=np.float32)
+    prof = ndi.map_coordinates(image, coords.reshape(3, -1), order=order, mode="nearest", output=np.float32,
+                               prefilter=False)
     return t, prof.reshape(t.shape), outside
 
 
@@ -286,11 +289,14 @@ def refine_vertices(
     prof = np.zeros_like(t)
     outside = np.ones(n, dtype=bool)
     sampled = np.isfinite(normals).all(axis=1)  # fixed vertices' profiles still inform their neighbours
+    order = 1
+    if to == "steepest":  # trilinear slopes are constant between planes: the steepest point would lock to them
+        image, order = ndi.spline_filter(image, order=3, mode="nearest", output=np.float32), 3
     idx = np.flatnonzero(sampled)
     chunk = max(1, _CHUNK_SAMPLES // (2 * k + 1))
     for s in range(0, len(idx), chunk):
         i = idx[s:s + chunk]
-        t[i], prof[i], outside[i] = _profiles(image, vertices[i], normals[i], reach[i], sp, k)
+        t[i], prof[i], outside[i] = _profiles(image, vertices[i], normals[i], reach[i], sp, k, order)
     if to == "level":
         shift = _crossings(t, prof, level)
     else:
