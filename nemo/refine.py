@@ -80,8 +80,9 @@ REFINE_PROFILE_PASSES = 30
 #: contrast (plateau − background) either side of the level. A brighter layer next to the wall
 #: (fibres 3 µm inside a vesicle wall) raises the profile's upper part and pulls the steepest
 #: point towards it: on the paper's vesicle the inner wall read +0.64 µm at 0.35, +0.29 µm at 0.2
-#: and +0.25 µm at 0.1, while thin untextured shells read the same at 0.1-0.35 and the
-#: noisy 8-bit shells drift at 0.1 (docs/validation.md, "The steepest point of the edge").
+#: and +0.25 µm at 0.1 (trilinear profiles), while thin untextured shells read the same at
+#: 0.1-0.35 and the noisy 8-bit shells drift at 0.1 (docs/validation.md, "The steepest point of
+#: the edge").
 _STEEPEST_BAND = 0.2
 #: Profile samples per voxel of search distance (on each side of the vertex); the image is
 #: trilinear between voxels, so half-voxel samples locate a crossing to a small fraction of one.

@@ -290,7 +290,7 @@ def test_steepest_edge_keeps_a_thin_wall_under_a_z_psf(snr):
     histogram's plateau peak lies below the true half level and both walls move outward; the
     steepest point of the edge stays on it. Measured (median thickness, T = 4 µm; the mesh blur
     from auto_sigma, as the mesh step): clean / SNR 10 / SNR 5: level 4.65 / 4.41 / 4.83 µm,
-    steepest 4.12 / 4.13 / 4.28 µm."""
+    steepest 4.07 / 4.12 / 4.21 µm (seeds 1, 2: 4.14-4.17 / 4.21-4.27)."""
     from nemo.morphology import thickness
 
     spacing, psf = (2.0, 1.0, 1.0), (1.5, 0.6, 0.6)
@@ -302,7 +302,7 @@ def test_steepest_edge_keeps_a_thin_wall_under_a_z_psf(snr):
         assert mesh.metadata["nemo_surface"]["refine_to"] == to
         inner, outer = split_mesh(mesh, centre=c, keep="largest")
         widths[to] = float(np.nanmedian(thickness(inner, outer)))
-    assert abs(widths["steepest"] - 4.0) < (0.2 if snr is None or snr >= 10 else 0.35), widths
+    assert abs(widths["steepest"] - 4.0) < (0.2 if snr is None or snr >= 10 else 0.3), widths
     assert widths["level"] - 4.0 > abs(widths["steepest"] - 4.0) + 0.1, widths
 
 
