@@ -14,7 +14,8 @@ edge of the object at the resolution of the image, not of the mesh blur.
    ``max_shift`` voxels measured *along the normal* (``|n ⊙ (dx, dy, dz)| × step``: a z-normal
    on 2.5 µm planes searches 2.5 times further than an x-normal on 1 µm pixels). Positions are
    physical, converted to (z, y, x) voxel coordinates by the spacing, and interpolated
-   trilinearly (:func:`scipy.ndimage.map_coordinates`), all vertices at once in chunks.
+   trilinearly (``"steepest"``: by a cubic B-spline; :func:`scipy.ndimage.map_coordinates`),
+   all vertices at once in chunks.
 2. Edge, one of two (``to``):
 
    * ``"level"``: the crossing of the iso-level from above (inside) to below (outside)
@@ -101,7 +102,7 @@ def _neighbour_matrix(faces: np.ndarray, n: int) -> sparse.csr_matrix:
 
 def _profiles(image: np.ndarray, points: np.ndarray, normals: np.ndarray, reach: np.ndarray,
               spacing_xyz: np.ndarray, k: int, order: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The image along each vertex normal: offsets ``t``, trilinear samples and leaving-the-image rows.
+    """The image along each vertex normal: offsets ``t``, interpolated samples and leaving-the-image rows.
 
     Parameters
     ----------
@@ -181,7 +182,9 @@ def _steepest(t: np.ndarray, prof: np.ndarray, band: tuple[float, float]) -> np.
     -------
     ndarray, shape (M,)
         Offset in ``[-D, D]``; NaN where the steepest descent in the band is at either end of
-        the profile or the profile never enters the band.
+        the profile, where the profile does not fall there, or where it never enters the band.
+        The band is centred on the level: a level that is not the half level moves it (the
+        caller refines to the level crossing then, :func:`nemo.surface.reconstruct`).
     """
     h = t[:, 1:] - t[:, :-1]
     slope = (prof[:, 1:] - prof[:, :-1]) / np.where(h > 0, h, 1.0)  # at the sample midpoints
@@ -189,10 +192,12 @@ def _steepest(t: np.ndarray, prof: np.ndarray, band: tuple[float, float]) -> np.
     in_band = (mid > band[0]) & (mid < band[1])
     j = np.argmin(np.where(in_band, slope, np.inf), axis=1)
     rows = np.arange(len(t))
-    ok = in_band[rows, j] & (slope[rows, j] < 0) & (j > 0) & (j < slope.shape[1] - 1)
     jj = np.clip(j, 1, slope.shape[1] - 2)
     a, b, c = slope[rows, jj - 1], slope[rows, jj], slope[rows, jj + 1]
     curv = a - 2.0 * b + c
+    # the band's steepest sample, even on the band's boundary: a bright layer merged into the edge
+    # (its flank steeper, outside the band) leaves the wall's edge no slope minimum of its own
+    ok = (j > 0) & (j < slope.shape[1] - 1) & in_band[rows, jj] & (b < 0)
     frac = np.clip(np.where(curv > 0, 0.5 * (a - c) / np.where(curv > 0, curv, 1.0), 0.0), -0.5, 0.5)
     out = 0.5 * (t[rows, jj] + t[rows, jj + 1]) + frac * h[rows, jj]
     return np.where(ok, out, np.nan).astype(np.float64)
@@ -237,8 +242,9 @@ def refine_vertices(
         Vertices that must not move (e.g. on the image border).
     to : {"level", "steepest"}
         The edge: where the profile crosses ``level``, or where it falls most steeply (within
-        the intensities between ``background`` and the plateau ``2 level − background``;
-        profiles averaged over :data:`REFINE_PROFILE_PASSES` passes of mesh neighbours first).
+        the intensities ``level ± _STEEPEST_BAND × 2 (level − background)``, i.e. between the
+        background and the plateau when ``level`` is the half level; cubic B-spline profiles
+        averaged over :data:`REFINE_PROFILE_PASSES` passes of mesh neighbours first).
         The steepest point stays on the edge when a thin wall under an elongated PSF never
         reaches its plateau and when noise or clipping moves the half level; the level crossing
         inherits the level's error.
@@ -250,7 +256,7 @@ def refine_vertices(
     vertices : ndarray, shape (N, 3)
         The refined positions.
     info : dict
-        ``refined`` (vertices with a clear edge), ``rejected`` (no crossing in reach: moved with
+        ``refined`` (vertices with a clear edge), ``rejected`` (no edge in reach: moved with
         their neighbours), ``shift_median`` and ``shift_abs_p95`` (physical, along the normal,
         after regularisation).
 
@@ -301,11 +307,7 @@ def refine_vertices(
     if to == "level":
         shift = _crossings(t, prof, level)
     else:
-        if not sampled.all():  # rows without a normal: their sampled neighbours' mean profile
-            weight = np.maximum(mean @ sampled.astype(np.float32), 1e-12)
-            prof[~sampled] = ((mean @ prof) / weight[:, None])[~sampled]
-        for _ in range(REFINE_PROFILE_PASSES):  # neighbours' profiles are the same edge: average the noise out
-            prof = 0.5 * prof + 0.5 * (mean @ prof)
+        prof = _average_profiles(prof, sampled & ~outside, mean, REFINE_PROFILE_PASSES)
         half = 2.0 * (level - background) * _STEEPEST_BAND
         shift = _steepest(t, prof, (level - half, level + half))
     shift[outside | ~movable] = np.nan
@@ -317,6 +319,32 @@ def refine_vertices(
             "shift_median": float(np.median(moved)) if moved.size else 0.0,
             "shift_abs_p95": float(np.percentile(np.abs(moved), 95)) if moved.size else 0.0}
     return out, info
+
+
+def _average_profiles(prof: np.ndarray, valid: np.ndarray, mean: sparse.csr_matrix, passes: int) -> np.ndarray:
+    """Each profile averaged with its neighbours' ``passes`` times (half its own, half their mean),
+    counting only the ``valid`` ones (a normal, inside the image); a row with no valid profile
+    within reach comes out NaN.
+
+    Parameters
+    ----------
+    prof : ndarray, shape (N, S)
+    valid : ndarray of bool, shape (N,)
+    mean : sparse matrix, shape (N, N)
+        Row-normalised adjacency (:func:`_neighbour_matrix`).
+    passes : int
+
+    Returns
+    -------
+    ndarray, shape (N, S)
+    """
+    weight = valid.astype(np.float64)
+    total = np.where(valid[:, None], prof, 0.0)
+    for _ in range(passes):  # neighbours' profiles are the same edge: average the noise out
+        total = 0.5 * total + 0.5 * (mean @ total)
+        weight = 0.5 * weight + 0.5 * (mean @ weight)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return total / np.where(weight > 0, weight, np.nan)[:, None]
 
 
 def _regularise(shift: np.ndarray, found: np.ndarray, movable: np.ndarray, reach: np.ndarray,

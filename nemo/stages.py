@@ -93,7 +93,8 @@ def mesh(
         ``whole`` and, when split, ``inner`` and ``outer`` (trimesh.Trimesh, physical x, y, z).
     resolved : dict
         The section with ``step`` and ``sigma`` as numbers, the iso-level used, the image's
-        ``noise``, ``snr`` and ``saturated`` (:func:`nemo.surface.image_noise`; None with a mask),
+        ``noise``, ``snr``, ``saturated`` and ``background`` (:func:`nemo.surface.image_noise`;
+        None with a mask), ``refine_to`` as applied,
         ``n_objects`` (:func:`nemo.surface.find_objects`), ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
@@ -124,6 +125,7 @@ def mesh(
     surface["keep"] = p["keep"]
     p["level"] = float(surface["level"])
     p["refine_sigma"] = surface.get("refine_sigma")
+    p["refine_to"] = surface.get("refine_to", p["refine_to"])  # level when steepest could not be used
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
              else {"noise": None, "snr": None, "saturated": None, "background": None})
@@ -237,7 +239,7 @@ def import_mesh(path: str | os.PathLike, volume: np.ndarray | None, spacing: tup
     ratio = _check_extent(mesh, volume, spacing, path, given) if volume is not None else None
     mesh.metadata["nemo_surface"] = {"method": "imported", "source": str(path)}
     p.update(source=str(path), mesh_unit=given, scale=scale.tolist(), extent_ratio=ratio,
-             n_objects=len(find_objects(mesh)), noise=None, snr=None, saturated=None)
+             n_objects=len(find_objects(mesh)), noise=None, snr=None, saturated=None, background=None)
     return _walls(mesh, p, centre), p
 
 

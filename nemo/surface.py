@@ -983,7 +983,7 @@ def reconstruct(
     border: Literal["open", "closed"] = "open",
     refine: bool = False,
     refine_sigma: float | None = None,
-    refine_to: Literal["level", "steepest"] = "level",
+    refine_to: Literal["level", "steepest"] | None = "level",
 ) -> trimesh.Trimesh:
     """Reconstruct the surface of the bright object(s) in a 3-D image as a triangle mesh.
 
@@ -1034,8 +1034,8 @@ def reconstruct(
         Blur σ (physical) of the image the refinement reads. Default: none for a clean image,
         else the smallest σ giving the profiles a signal-to-noise ratio of :data:`REFINE_SNR`
         (:func:`blur_noise_gain`), at most ``sigma``.
-    refine_to : {"level", "steepest"}
-        The edge the refinement moves to: where the profile crosses the iso-level (``"level"``),
+    refine_to : {"level", "steepest"} or None
+        The edge the refinement moves to (None: ``"level"``): where the profile crosses the iso-level (``"level"``),
         or where the profile (averaged over neighbouring vertices) falls most steeply between
         the background and the plateau (``"steepest"``: stays on the edge of a thin wall under
         an elongated PSF and of a noisy or clipped one, where the half level does not, but is
@@ -1048,8 +1048,8 @@ def reconstruct(
         the object. ``mesh.metadata["nemo_surface"]`` records the iso-level and parameters,
         ``border``, ``cap_faces`` (faces on the border planes), ``rim_vertices`` and
         ``rim_loops`` (the open rim; 0 for a closed surface), and the refinement: ``refine``
-        (applied or not), ``refine_sigma``, ``refined``/``rejected`` vertices and the shifts'
-        ``shift_median``/``shift_abs_p95`` (:func:`nemo.refine.refine_vertices`).
+        (applied or not), ``refine_sigma``, ``refine_to`` (the edge used), ``refined``/``rejected``
+        vertices and the shifts' ``shift_median``/``shift_abs_p95`` (:func:`nemo.refine.refine_vertices`).
 
     Raises
     ------
@@ -1058,6 +1058,9 @@ def reconstruct(
         selects no voxel or every voxel.
     """
     (dz, dy, dx), step, sigma = _check_reconstruct_args(spacing, sigma, keep, edge, step, smooth_iter, pass_band)
+    refine_to = "level" if refine_to is None else refine_to
+    if refine_to not in ("level", "steepest"):
+        raise NemoError(f"refine_to must be 'level' or 'steepest', got {refine_to!r}")
     if border not in ("open", "closed"):
         raise NemoError(f"border must be 'open' or 'closed', got {border!r}")
     source, shape, scale, mask = _source(volume, mask)
@@ -1093,7 +1096,7 @@ def reconstruct(
             smoothed = _taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band)
             mesh.vertices = np.clip(smoothed, 0.0, box)
     ref_info = _refine(mesh, source if mask is None else None, level, (dz, dy, dx), step, refine,
-                       refine_sigma, sigma, box, refine_to, background)
+                       refine_sigma, sigma, box, refine_to, background, edge == "half" or not isinstance(how, str))
     mesh, rim_info = _apply_border(mesh, border, box)
     mesh.metadata["nemo_surface"] = {
         "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
@@ -1126,14 +1129,14 @@ def _snap(mesh: trimesh.Trimesh, padded: np.ndarray, level: float, spacing: tupl
 
 def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spacing: tuple[float, float, float],
             step: int, refine: bool, refine_sigma: float | None, sigma: float, box: np.ndarray,
-            refine_to: str = "level", background: float | None = None) -> dict:
+            refine_to: str = "level", background: float | None = None, half_level: bool = True) -> dict:
     """Refine ``mesh``'s vertices in place (:func:`nemo.refine.refine_vertices`); the record.
 
     ``source`` None (a mask) or ``refine`` False: no refinement. The profile image is ``source``
     blurred by ``refine_sigma`` (default :data:`REFINE_SNR` from :func:`image_noise`, at most
-    ``sigma``; none for a clean image). ``refine_to`` "steepest" needs the background: the
-    level's (:func:`_auto_level`), else the raw background's centre (:func:`image_noise`, a
-    given threshold); without one it falls back to the level crossing (recorded).
+    ``sigma``; none for a clean image). ``refine_to`` "steepest" needs a half level and the
+    background (:func:`_steepest_background`); without them it falls back to the level
+    crossing (warned, recorded).
     """
     from nemo.refine import refine_vertices
 
@@ -1144,17 +1147,14 @@ def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spac
     if refine and source is None:
         warnings.warn("refine is ignored with a mask: a binary mask has no sub-voxel edge to refine to (the "
                       "surface records refine: false)", NemoWarning, stacklevel=3)
-    if refine_to not in ("steepest", "level"):
-        raise NemoError(f"refine_to must be 'steepest' or 'level', got {refine_to!r}")
     if not refine or source is None or len(mesh.faces) == 0:
         return {"refine": False}
     noise = image_noise(source, level)
     if refine_sigma is None:
         refine_sigma = _sigma_for_snr(noise["snr"], spacing, REFINE_SNR, 0.0, sigma)
-    background = noise["background"] if background is None else background
-    if refine_to == "steepest" and (background is None or not background < level):
-        logger.info("refinement: no background level measured, so to the level crossing, not the steepest point")
-        refine_to = "level"
+    if refine_to == "steepest":
+        background = _steepest_background(background, noise["background"], level, half_level)
+        refine_to = "steepest" if background is not None else "level"
     refine_sigma = float(refine_sigma)
     image = source
     if refine_sigma > 0:
@@ -1168,6 +1168,24 @@ def _refine(mesh: trimesh.Trimesh, source: np.ndarray | None, level: float, spac
     logger.info("refinement: %d vertices on an edge, %d without one; median shift %.3g, |shift| p95 %.3g",
                 info["refined"], info["rejected"], info["shift_median"], info["shift_abs_p95"])
     return {"refine": True, "refine_sigma": refine_sigma, "refine_to": refine_to, **info}
+
+
+def _steepest_background(background: float | None, raw_background: float | None, level: float,
+                         half_level: bool) -> float | None:
+    """The background the steepest-edge band is built on, or None (warned) to refine to the level.
+
+    The band is centred on the level, so the level must be the half level: an automatic
+    threshold with ``edge: half`` (background from :func:`_auto_level`) or a given intensity
+    (background: the raw image's, :func:`image_noise`), not ``edge: threshold``.
+    """
+    background = raw_background if background is None else background
+    if half_level and background is not None and background < level:
+        return background
+    why = "the surface is at the automatic threshold (edge: threshold), not the half level" if not half_level \
+        else "no background level was measured below it"
+    warnings.warn(f"refine_to steepest needs the half level between background and plateau, but {why}: refining "
+                  "to the level crossing instead (the surface records refine_to: level)", NemoWarning, stacklevel=4)
+    return None
 
 
 def _vertex_normals(mesh: trimesh.Trimesh) -> np.ndarray:

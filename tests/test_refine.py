@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage as ndi
 from scipy.spatial.transform import Rotation
 
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.refine import refine_vertices
 from nemo.surface import auto_sigma, blur_noise_gain, default_sigma, reconstruct, split_mesh
 
@@ -341,3 +341,27 @@ def test_refine_to_bad_inputs():
     vol[3:7, 3:7, 3:7] = 1
     with pytest.raises(NemoError, match="refine_to"):
         reconstruct(vol, (1, 1, 1), refine=True, refine_to="middle")
+
+
+def test_steepest_point_of_a_profile_and_its_band():
+    """``_steepest`` finds a tanh edge between samples; a profile that does not fall within the
+    band (flat, rising, or outside its intensities) gives no edge."""
+    from nemo.refine import _steepest
+
+    t = np.tile(np.linspace(-3.0, 3.0, 25), (3, 1))
+    edges = np.array([0.13, -0.41, 0.0])
+    prof = 50.0 - 40.0 * np.tanh((t - edges[:, None]) / 0.8)  # background 10, plateau 90, half level 50
+    np.testing.assert_allclose(_steepest(t, prof, (50 - 16, 50 + 16)), edges, atol=0.02)
+    assert np.isnan(_steepest(t, prof[:, ::-1], (50 - 16, 50 + 16))).all()  # rising outward
+    assert np.isnan(_steepest(t, np.full_like(t, 50.0), (50 - 16, 50 + 16))).all()  # flat
+    assert np.isnan(_steepest(t, prof, (200, 300))).all()  # never in the band
+
+
+def test_steepest_falls_back_to_the_level_at_the_automatic_threshold():
+    R, spacing, psf = 10.0, (1.0, 1.0, 1.0), (1.0, 1.0, 1.0)
+    shape, c = _setup(R, 0.0, spacing, psf)
+    vol = _image(shape, spacing, lambda x, y, z: (x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2 < R**2, psf)
+    with pytest.warns(NemoWarning, match="edge: threshold"):
+        mesh = reconstruct(vol, spacing, edge="threshold", refine=True, refine_to="steepest")
+    assert mesh.metadata["nemo_surface"]["refine_to"] == "level"
+    assert reconstruct(vol, spacing, refine=True, refine_to=None).metadata["nemo_surface"]["refine_to"] == "level"

@@ -72,7 +72,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--refine-to", choices=("level", "steepest"), default=None,
                         help="edge the refinement moves to: the iso-level crossing (default) or the steepest "
                              "point of the intensity profile between background and plateau (thin, noisy or "
-                             "z-blurred walls without bright texture next to the edge)")
+                             "z-blurred walls without bright texture next to the edge; needs the half level, "
+                             "not --edge threshold)")
     parser.add_argument("--threshold", type=_threshold, default=None, metavar="yen|otsu|VALUE",
                         help="automatic threshold or an intensity iso-level (default yen)")
     parser.add_argument("--edge", choices=("half", "threshold"), default=None,
