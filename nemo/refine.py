@@ -292,24 +292,7 @@ def refine_vertices(
     per_voxel = _SAMPLES_PER_VOXEL * (2 if to == "steepest" else 1)  # a slope needs finer samples
     k = int(np.ceil(per_voxel * max_shift * max(1, int(step))))
     mean = _neighbour_matrix(faces, n)
-    t = np.zeros((n, 2 * k + 1), dtype=np.float32)
-    prof = np.zeros_like(t)
-    outside = np.ones(n, dtype=bool)
-    sampled = np.isfinite(normals).all(axis=1)  # fixed vertices' profiles still inform their neighbours
-    order = 1
-    if to == "steepest":  # trilinear slopes are constant between planes: the steepest point would lock to them
-        image, order = ndi.spline_filter(image, order=3, mode="nearest", output=np.float32), 3
-    idx = np.flatnonzero(sampled)
-    chunk = max(1, _CHUNK_SAMPLES // (2 * k + 1))
-    for s in range(0, len(idx), chunk):
-        i = idx[s:s + chunk]
-        t[i], prof[i], outside[i] = _profiles(image, vertices[i], normals[i], reach[i], sp, k, order)
-    if to == "level":
-        shift = _crossings(t, prof, level)
-    else:
-        prof = _average_profiles(prof, sampled & ~outside, mean, REFINE_PROFILE_PASSES)
-        half = 2.0 * (level - background) * _STEEPEST_BAND
-        shift = _steepest(t, prof, (level - half, level + half))
+    shift, outside = _edge_offsets(image, vertices, normals, reach, sp, k, mean, to, level, background)
     shift[outside | ~movable] = np.nan
     found = np.isfinite(shift)
     shift = _regularise(shift, found, movable, reach, mean, int(smooth))
@@ -319,6 +302,34 @@ def refine_vertices(
             "shift_median": float(np.median(moved)) if moved.size else 0.0,
             "shift_abs_p95": float(np.percentile(np.abs(moved), 95)) if moved.size else 0.0}
     return out, info
+
+
+def _edge_offsets(image: np.ndarray, vertices: np.ndarray, normals: np.ndarray, reach: np.ndarray,
+                  spacing_xyz: np.ndarray, k: int, mean: sparse.csr_matrix, to: str, level: float,
+                  background: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Every vertex's offset to its edge along the normal (NaN: none) and the profiles that leave the image.
+
+    Profiles are sampled in chunks (all rows with a normal: fixed vertices' profiles still inform
+    their neighbours'), then read as :func:`_crossings` or, averaged, :func:`_steepest`.
+    """
+    n = len(vertices)
+    t = np.zeros((n, 2 * k + 1), dtype=np.float32)
+    prof = np.zeros_like(t)
+    outside = np.ones(n, dtype=bool)
+    sampled = np.isfinite(normals).all(axis=1)
+    order = 1
+    if to == "steepest":  # trilinear slopes are constant between planes: the steepest point would lock to them
+        image, order = ndi.spline_filter(image, order=3, mode="nearest", output=np.float32), 3
+    idx = np.flatnonzero(sampled)
+    chunk = max(1, _CHUNK_SAMPLES // (2 * k + 1))
+    for s in range(0, len(idx), chunk):
+        i = idx[s:s + chunk]
+        t[i], prof[i], outside[i] = _profiles(image, vertices[i], normals[i], reach[i], spacing_xyz, k, order)
+    if to == "level":
+        return _crossings(t, prof, level), outside
+    prof = _average_profiles(prof, sampled & ~outside, mean, REFINE_PROFILE_PASSES)
+    half = 2.0 * (level - background) * _STEEPEST_BAND
+    return _steepest(t, prof, (level - half, level + half)), outside
 
 
 def _average_profiles(prof: np.ndarray, valid: np.ndarray, mean: sparse.csr_matrix, passes: int) -> np.ndarray:
