@@ -85,8 +85,9 @@ REFINE_PROFILE_PASSES = 30
 #: 0.1-0.35 and the noisy 8-bit shells drift at 0.1 (docs/validation.md, "The steepest point of
 #: the edge").
 _STEEPEST_BAND = 0.2
-#: Profile samples per voxel of search distance (on each side of the vertex); the image is
-#: trilinear between voxels, so half-voxel samples locate a crossing to a small fraction of one.
+#: Profile samples per voxel of search distance (on each side of the vertex; twice as many for
+#: ``to`` "steepest"); the image is trilinear between voxels, so half-voxel samples locate a
+#: crossing to a small fraction of one.
 _SAMPLES_PER_VOXEL = 2
 #: Profile samples interpolated per chunk (bounds the memory of the (N, K) profile arrays).
 _CHUNK_SAMPLES = 4_000_000

@@ -1026,8 +1026,9 @@ def reconstruct(
     refine : bool
         Sub-voxel refinement (:mod:`nemo.refine`, default off: on noisy anisotropic images it
         roughens the wall, docs/validation.md): after the smoothing, every vertex
-        moves along its normal to where the lightly blurred image crosses the iso-level (at most
-        1.5 samples, shifts regularised over neighbours), undoing the pull of the mesh blur
+        moves along its normal to the edge of the lightly blurred image (``refine_to``: its
+        iso-level crossing or its steepest point; at most 1.5 samples, shifts regularised over
+        neighbours), undoing the pull of the mesh blur
         and the marching-cubes step. Vertices on the image border stay. Skipped for a ``mask``
         (a binary mask has no sub-voxel edge: its blurred 0.5 level already is the surface).
     refine_sigma : float, optional
