@@ -7,9 +7,10 @@ Method note §3, paper methods "Morphological analysis".
   vertices, inverse-distance interpolated to every vertex (paper eq. ``mesh-interpolation``).
   On an open surface (cut by the image border) vertices within the radius of the rim are NaN:
   a fit there sees the surface on one side only.
-* :func:`default_radius` -- the fitting radius from the surface itself: 15 mean edges at most,
-  0.6 × the radius of curvature of the most curved quarter (pilot fits) at most, 4 edges at
-  least, and on an open surface half the largest distance to the rim at most.
+* :func:`default_radius` -- the fitting radius from the surface itself: where the curvature of
+  pilot fits changes least with the radius (past the wall's roughness, short of the shape's
+  change), between 4 and 32 mean edges, and on an open surface at most half the largest
+  distance to the rim.
 * :func:`thickness` -- distance along the vertex normal from one surface to another, by ray
   casting (Embree through trimesh when available); NaN where the ray finds nothing.
 * :func:`measure` -- area, enclosed volume, Euler characteristic, genus, components, discrete
@@ -85,28 +86,24 @@ AUTO_QUARTIC_NEIGHBOURS = 60
 #: warns that the fits average over too much of the surface (the quadric/quadratic fits are
 #: biased by ~(r k)²/4 there; the quartic fit, without that bias, is warned at twice the value).
 LARGE_RADIUS_RK = 0.5
-#: Default fitting radius (:func:`default_radius`): at most this many mean edge lengths (the
-#: fit averages the mesh's roughness over ~800 neighbours; more only blurs the shape).
-DEFAULT_RADIUS_EDGES = 15.0
-#: ... and at least this many (~60 neighbours: enough for a quartic fit), whatever the curvature.
+#: Default fitting radius (:func:`default_radius`): at least this many mean edge lengths
+#: (~60 neighbours: enough for a quartic fit), whatever the curvature ...
 DEFAULT_MIN_EDGES = 4.0
-#: ... and at most this fraction of the surface's radius of curvature (the quartic fit of a
-#: sphere is biased by −0.4 / −1 / −2 % at r = 0.5 / 0.6 / 0.7 R); quadric and quadratic fits,
-#: biased by ~(r/R)²/4, get :data:`DEFAULT_FRACTION_QUADRATIC`.
+#: ... at most this many (~3000 neighbours per fit: the pilot's cost; the roughness of an SNR-5
+#: wall is averaged out below it, measured in docs/validation.md) ...
+MAX_RADIUS_EDGES = 32.0
+#: ... and on a closed surface at most this fraction of its size √(A/4π) (the quartic fit of a
+#: sphere is biased by −0.4 / −1 / −2 % at r = 0.5 / 0.6 / 0.7 R).
 DEFAULT_FRACTION = 0.6
-DEFAULT_FRACTION_QUADRATIC = 0.25
-#: The radius of curvature is this quantile of 1/|k|max over the pilot fits: the most curved
-#: quarter of the surface sets the radius (robust to noise and outliers, unlike the minimum).
+#: The most curved (most changing) quarter of the surface sets the radius: the pilot compares
+#: radii by this upper quantile of the change of the curvature, and reports R_c as this quantile
+#: of 1/|k|max (robust to noise and outliers, unlike the extremes).
 DEFAULT_CURVATURE_QUANTILE = 0.25
-#: Vertices fitted by each pilot pass of :func:`default_radius`, and the most passes.
+#: Vertices fitted by the pilot of :func:`default_radius` ...
 PILOT_SAMPLES = 2000
-PILOT_PASSES = 5
-#: A pilot pass fits fewer vertices (at least :data:`PILOT_MIN_SAMPLES`) when theirs would hold
-#: more (vertex, neighbour) pairs than this (a quantile needs no more at a large radius).
+#: ... fewer (at least :data:`PILOT_MIN_SAMPLES`) when their fits at the largest radius would
+#: hold more (vertex, neighbour) pairs than this (a quantile needs no more).
 PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 500
-#: The pilot climbs to a wider fit while R_c grows by more than this factor per × √2 in the fit
-#: radius (:func:`default_radius`): the roughness of a noisy wall, not the shape, curves it.
-ROUGHNESS_GROWTH = 1.15
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -294,52 +291,46 @@ def _fit_chunk(
 def default_radius(
     mesh: trimesh.Trimesh,
     fit: FitKind = "auto",
-    edges: float = DEFAULT_RADIUS_EDGES,
     min_edges: float = DEFAULT_MIN_EDGES,
-    fraction: float | None = None,
+    fraction: float = DEFAULT_FRACTION,
     quantile: float = DEFAULT_CURVATURE_QUANTILE,
     n_probe: int = PILOT_SAMPLES,
     rng: np.random.Generator | int | None = 0,
 ) -> tuple[float, dict]:
-    """Default fitting radius of :func:`curvature`, from the surface itself.
+    """Default fitting radius of :func:`curvature`, from the surface itself: the scale at which
+    its curvature is most stable.
 
-    ``radius = min(max(min(edges × h, fraction × R_c), min_edges × h), ½ d_rim)``: as many
-    mesh edges (h: the mean edge length) as averages the mesh's roughness away, but at most a
-    fraction of the surface's radius of curvature R_c, and never fewer than ``min_edges``
-    edges; on an open surface at most half the largest distance of a vertex to the rim
-    (a larger radius leaves no vertex whose fit stays off the rim: every H would be NaN).
-
-    R_c comes from pilot passes: the :func:`curvature` fit (quartic) at up to ``n_probe``
-    random vertices (away from the rim) at the current radius, R_c = the ``quantile`` of
-    1/|k|max over them. The first pass is at ``min_edges × h``. A rough wall (noise) reads
-    more curved the smaller the fit, so the pilot first climbs a ladder of radii × √2 while R_c
-    grows by more than :data:`ROUGHNESS_GROWTH` per rung (:func:`_climb_out_of_roughness`; a
-    shape's R_c does not depend on the radius), and the passes after a climb stay at or above
-    its rung; on a closed surface the climb stops at ``fraction`` × its size √(A/4π). Each
-    next pass is at the radius the previous one gave, until it changes by less than 10 % (at
-    most :data:`PILOT_PASSES`). The passes go up from the smallest radius because a fit is
-    trustworthy only below ~0.7 R (beyond, the quartic underestimates |k|: on a sphere
-    1/|k| = 1.08 R at r = 0.9 R, 1.5 R at 1.2 R, meaningless beyond). Apart from that stop,
-    the object's size does not enter: a piece cut by the field of view (short stack, cap)
-    gets the radius of the whole object, unless the rim cap is smaller.
+    A fit's error has two parts: the wall's roughness (noise, facets), which falls steeply with
+    the radius, and the shape's change within the disc, which grows with it. Neither is known,
+    but their sum shows in how much the estimate moves when the radius changes. The pilot fits
+    the same probe vertices on a ladder of radii × √2, from ``min_edges`` mean edges up to the
+    largest radius (:data:`MAX_RADIUS_EDGES` edges; on a closed surface ``fraction`` × its size
+    √(A/4π); on an open one half the largest distance of a vertex to the rim, beyond which no
+    vertex has a fit off the rim). For each pair of neighbouring rungs it measures the change of
+    (k1, k2), the ``1 − quantile`` quantile over the probes (the most changing quarter: its most
+    curved parts are not averaged away by the flat ones), per √2 in radius. The radius is the
+    geometric mean of the pair that changes least (where both estimates agree: past the
+    roughness, short of the shape's change); the top rung when the change still falls there.
+    On a noisy wall this climbs to a wide fit (the roughness dominates), on a clean one it stays
+    at a few edges; the fit that :func:`curvature` will use (``fit``) is the one compared, so
+    the quadratic fit's larger bias keeps its radius smaller. Apart from the top, the object's
+    size does not enter: a piece cut by the field of view gets the radius of the whole object.
 
     Parameters
     ----------
     mesh : trimesh.Trimesh
         Surface with outward normals, vertices in physical units; closed or open.
     fit : {"auto", "quadric", "quadratic", "quartic"}
-        The fit the radius is for: the default ``fraction`` is :data:`DEFAULT_FRACTION` for
-        ``auto``/``quartic`` and :data:`DEFAULT_FRACTION_QUADRATIC` for ``quadric`` and
-        ``quadratic`` (biased by ~(r/R)²/4).
-    edges, min_edges : float
-        Largest and smallest radius in mean edge lengths (:data:`DEFAULT_RADIUS_EDGES`,
-        :data:`DEFAULT_MIN_EDGES`).
-    fraction : float, optional
-        Largest radius as a fraction of the radius of curvature R_c, in (0, 2].
+        The fit the radius is for (as :func:`curvature` resolves it at each radius).
+    min_edges : float
+        Smallest radius in mean edge lengths (:data:`DEFAULT_MIN_EDGES`), > 0.
+    fraction : float
+        On a closed surface, the largest radius as a fraction of its size √(A/4π), in (0, 2].
     quantile : float
-        Quantile of 1/|k|max taken as R_c, in (0, 1) (:data:`DEFAULT_CURVATURE_QUANTILE`).
+        The most curved / most changing share of the surface that sets the radius, in (0, 1)
+        (:data:`DEFAULT_CURVATURE_QUANTILE`); also the quantile of 1/|k|max reported as R_c.
     n_probe : int
-        Most vertices fitted per pilot pass (:data:`PILOT_SAMPLES`; fewer at a large radius, see
+        Most vertices the pilot fits (:data:`PILOT_SAMPLES`; fewer at a large radius, see
         :data:`PILOT_PAIR_BUDGET`); ≥ 10.
     rng : numpy.random.Generator or int, optional
         Which vertices the pilot fits (by index: the result does not depend on the pose).
@@ -350,12 +341,13 @@ def default_radius(
         Fitting radius in the mesh unit.
     info : dict
         JSON-serialisable: ``radius``, ``edge`` (h), ``radius_edges`` (radius / h),
-        ``curvature_radius`` (R_c; None when the pilot found no curvature, e.g. a plane),
-        ``rim_cap`` (½ the largest rim distance; None on a closed surface), ``limited_by``
-        (``"edges"``, ``"curvature"``, ``"rim"``, ``"min_edges"`` or ``"roughness"``: the rung
-        the pilot climbed to), ``pilot_radii`` (radius of
-        each pilot pass), ``n_probe`` (vertices fitted in the last pass), ``fraction``,
-        ``quantile``, ``rough`` (the pilot climbed out of the wall's roughness).
+        ``curvature_radius`` (R_c, the ``quantile`` of 1/|k|max at the rung below the radius;
+        None when the pilot found no curvature, e.g. a plane), ``rim_cap`` (½ the largest rim
+        distance; None on a closed surface), ``limited_by`` (``"stability"``: the pair that
+        changes least; ``"size"``, ``"rim"`` or ``"edges"``: the top rung, the change still
+        falling there; ``"min_edges"``: no room for a ladder), ``ladder`` (each rung's radius
+        and the change from it to the next, 1/length), ``n_probe`` (vertices fitted),
+        ``fraction``, ``quantile``.
 
     Raises
     ------
@@ -363,7 +355,7 @@ def default_radius(
         Unusable mesh, parameters out of range, an unknown ``fit``.
     """
     check_mesh(mesh)
-    fraction = _check_default_radius_args(fit, edges, min_edges, fraction, quantile, n_probe)
+    _check_default_radius_args(fit, min_edges, fraction, quantile, n_probe)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     normals = vertex_normals(mesh)
     h = mean_edge_length(mesh)
@@ -375,124 +367,111 @@ def default_radius(
         raise NemoError("every vertex of the mesh lies on its rim (an unwelded triangle soup, or a strip one "
                         "triangle wide): no vertex has a surface around it to fit; merge the coincident vertices "
                         "(trimesh: mesh.merge_vertices()) or give a surface mesh")
-    caps = {"edges": edges * h}
-    radius = min(min_edges * h, rim_cap)  # from below: a fit beyond ~0.7 R underestimates |k|
     order = _as_rng(rng).permutation(np.flatnonzero(np.isfinite(normals[:, 0])))
     if len(order) == 0:
         raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
-    tree = cKDTree(vertices)
-    pilots: list[float] = []
-
-    def pilot(r):
-        pilots.append(r)
-        return _pilot_curvature_radius(vertices, normals, tree, order, d_rim, r, n_probe, quantile)
-
-    # on a closed surface the climb stops where a sphere of its size (√(A/4π)) would stop the fit
-    size_cap = fraction * math.sqrt(mesh.area / (4 * math.pi)) if rim_cap == math.inf else rim_cap
-    floor = radius
-    radius, (r_c, n_fit) = _climb_out_of_roughness(pilot, radius, min(edges * h, size_cap))
-    rough = radius > floor
-    floor = radius  # below the rung climbed to, the pilot reads the roughness again
-    for n_pass in range(1, PILOT_PASSES + 1):
-        caps["curvature"] = fraction * r_c
-        new = min(max(floor, min(caps.values())), rim_cap)
-        if abs(new - radius) < 0.1 * radius or n_pass == PILOT_PASSES:
-            break
-        radius = new
-        r_c, n_fit = pilot(radius)
-    radius = new
-    if radius == rim_cap:
-        limited_by = "rim"
-    elif min(caps.values()) < floor:
-        limited_by = "roughness" if rough else "min_edges"
-    else:
-        limited_by = min(caps, key=caps.get)
+    tops = {"edges": MAX_RADIUS_EDGES * h,
+            "size" if rim_cap == math.inf else "rim":
+                fraction * math.sqrt(mesh.area / (4 * math.pi)) if rim_cap == math.inf else rim_cap}
+    top_by = min(tops, key=tops.get)
+    radii = _ladder(min(min_edges * h, rim_cap), tops[top_by])
+    ks, n_fit = _ladder_fits(vertices, normals, order, d_rim, radii, fit, n_probe, quantile)
+    radii = radii[: len(ks)]  # the climb may stop early
+    change = _ladder_change(ks, radii, quantile)
+    radius, low, limited_by = _stablest(radii, change, top_by, "rim" if rim_cap < min_edges * h else "min_edges")
+    kmax = np.fmax(np.abs(ks[low][:, 0]), np.abs(ks[low][:, 1]))
+    kmax = kmax[np.isfinite(kmax)]
+    kq = float(np.quantile(kmax, 1.0 - quantile)) if len(kmax) else 0.0
+    r_c = 1.0 / kq if kq > 0 else math.inf
     info = {
         "radius": float(radius), "edge": float(h), "radius_edges": float(radius / h),
         "curvature_radius": float(r_c) if math.isfinite(r_c) else None,
         "rim_cap": float(rim_cap) if math.isfinite(rim_cap) else None, "limited_by": limited_by,
-        "pilot_radii": [float(r) for r in pilots], "n_probe": int(n_fit), "fraction": float(fraction),
-        "quantile": float(quantile), "rough": rough,
+        "ladder": [{"radius": float(r), "change": None if not math.isfinite(c) else float(c)}
+                   for r, c in zip(radii, [*change, math.nan])],
+        "n_probe": int(n_fit), "fraction": float(fraction), "quantile": float(quantile),
     }
-    logger.info("curvature: default radius %.3g %s (%.1f edges; limited by %s; radius of curvature %s%s)",
-                radius, _pretty_unit(_unit_name(mesh)), radius / h, limited_by,
-                "–" if info["curvature_radius"] is None else f"{r_c:.3g}",
-                f"; the wall's roughness read as curvature below {floor:.3g}" if rough else "")
+    logger.info("curvature: default radius %.3g %s (%.1f edges; %s; radius of curvature %s)",
+                radius, _pretty_unit(_unit_name(mesh)), radius / h,
+                {"stability": "where the curvature changes least with the radius",
+                 "min_edges": "the fewest edges"}.get(limited_by, f"the largest radius ({limited_by})"),
+                "–" if info["curvature_radius"] is None else f"{r_c:.3g}")
     return float(radius), info
 
 
-def _check_default_radius_args(fit: str, edges: float, min_edges: float, fraction: float | None,
-                               quantile: float, n_probe: int) -> float:
-    """The fraction of the radius of curvature (its default for ``fit``); NemoError when out of range."""
+def _check_default_radius_args(fit: str, min_edges: float, fraction: float, quantile: float,
+                               n_probe: int) -> None:
+    """NemoError naming the parameter out of range."""
     if fit not in ("auto", "quadric", "quadratic", "quartic"):
         raise NemoError(f"unknown curvature fit {fit!r}: use auto, quadric, quadratic or quartic")
-    if not (math.isfinite(edges) and math.isfinite(min_edges) and 0 < min_edges <= edges):
-        raise NemoError(f"the radius bounds must satisfy 0 < min_edges ≤ edges (in edge lengths), got "
-                        f"min_edges={min_edges}, edges={edges}")
-    if fraction is None:
-        fraction = DEFAULT_FRACTION_QUADRATIC if fit in ("quadric", "quadratic") else DEFAULT_FRACTION
+    if not (math.isfinite(min_edges) and 0 < min_edges <= MAX_RADIUS_EDGES):
+        raise NemoError(f"min_edges (the smallest radius, in edge lengths) must be in (0, {MAX_RADIUS_EDGES:g}], "
+                        f"got {min_edges}")
     if not (math.isfinite(fraction) and 0 < fraction <= 2):
-        raise NemoError(f"fraction of the radius of curvature must be in (0, 2], got {fraction}")
+        raise NemoError(f"fraction of the surface's size must be in (0, 2], got {fraction}")
     if not (0 < quantile < 1):
         raise NemoError(f"quantile must be in (0, 1), got {quantile}")
     if int(n_probe) < 10:
         raise NemoError(f"the pilot needs at least 10 vertices, got n_probe={n_probe}")
-    return float(fraction)
 
 
-def _climb_out_of_roughness(pilot, radius: float, top: float) -> tuple[float, tuple[float, int]]:
-    """The radius at which the pilot reads the shape's curvature, not the wall's roughness.
+def _ladder(bottom: float, top: float) -> list[float]:
+    """Radii × √2 from ``bottom``, ending at ``top`` (a last, shorter step when it is not a rung)."""
+    radii = [bottom]
+    while radii[-1] * math.sqrt(2.0) <= top:
+        radii.append(radii[-1] * math.sqrt(2.0))
+    if top > 1.05 * radii[-1]:
+        radii.append(top)
+    return radii
 
-    A rough wall (a noisy image) reads more curved the smaller the fit: the roughness's |k| falls
-    steeply with the fit radius while a shape's stays (measured on noisy balls of R = 15 µm:
-    R_c 2.6, 4.9, 8.2, 11, 13 µm at r = 4, 5.7, 8, 11, 16 edges, against 14.6–15.0 noise-free).
-    From ``radius`` up a ladder of × √2 (not beyond ``top``), the first rung whose R_c the next
-    rung confirms (grows by less than :data:`ROUGHNESS_GROWTH`) is kept; ``pilot(r)`` returns
-    (R_c, n_fit).
 
-    Returns
-    -------
-    radius : float
-        The rung kept.
-    pilot_result : tuple
-        (R_c, n_fit) there.
+def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d_rim: np.ndarray,
+                 radii: list[float], fit: str, n_probe: int, quantile: float) -> tuple[list[np.ndarray], int]:
+    """(k1, k2) of the same probe vertices up the ladder, shape (P, 2) per rung, and P.
+
+    The probes are the first of ``order`` whose ball stays off the rim at the largest radius
+    (those farthest from the rim if none does): ``n_probe`` at most, fewer (not below
+    :data:`PILOT_MIN_SAMPLES`) when their fits at the largest radius would exceed
+    :data:`PILOT_PAIR_BUDGET` (vertex, neighbour) pairs. The climb stops early once the change
+    (:func:`_ladder_change`) has grown for two pairs past its smallest: the largest fits cost most.
     """
-    result = pilot(radius)
-    while math.isfinite(result[0]) and 0 < radius * math.sqrt(2.0) <= top:  # inf: no curvature to climb out of
-        above = pilot(radius * math.sqrt(2.0))
-        if above[0] < ROUGHNESS_GROWTH * result[0]:
-            break
-        radius, result = radius * math.sqrt(2.0), above
-    return radius, result
-
-
-def _pilot_curvature_radius(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, order: np.ndarray,
-                            d_rim: np.ndarray, radius: float, n_probe: int, quantile: float) -> tuple[float, int]:
-    """The ``quantile`` of 1/|k|max from quartic fits at ``radius`` (inf: no curvature found).
-
-    The first ``n_probe`` vertices of ``order`` whose ball stays off the rim are fitted (those
-    farthest from the rim if none does), fewer (not below :data:`PILOT_MIN_SAMPLES`) when their
-    neighbours would exceed :data:`PILOT_PAIR_BUDGET`.
-
-    Returns
-    -------
-    r_c : float
-        Radius of curvature in the mesh unit.
-    n : int
-        Number of finite fits it comes from.
-    """
-    probe = order[d_rim[order] > radius]
+    tree = cKDTree(vertices)
+    probe = order[d_rim[order] > radii[-1]]
     if len(probe) == 0:
         probe = np.argsort(-d_rim)
-    _, per_fit, chunk = _plan_fits(tree, vertices, probe, radius, "quartic", np.random.default_rng(0))
+    _, per_fit, _ = _plan_fits(tree, vertices, probe, radii[-1], fit, np.random.default_rng(0))
     probe = np.sort(probe[: min(int(n_probe), max(PILOT_MIN_SAMPLES, int(PILOT_PAIR_BUDGET // per_fit)))])
-    out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, "quartic", chunk)
-    kmax = np.fmax(np.abs(out["k1"]), np.abs(out["k2"]))
-    kmax = kmax[np.isfinite(kmax)]
-    if len(kmax) == 0:
-        return math.inf, 0
-    kq = float(np.quantile(kmax, 1.0 - quantile))
-    return (1.0 / kq if kq > 0 else math.inf), len(kmax)
+    ks: list[np.ndarray] = []
+    for radius in radii:  # a handful of rungs, each fit vectorised over the probes
+        kind, _, chunk = _plan_fits(tree, vertices, probe, radius, fit, np.random.default_rng(0))
+        out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, kind, chunk)
+        ks.append(np.stack([out["k1"], out["k2"]], axis=1))
+        change = _ladder_change(ks, radii[: len(ks)], quantile)
+        if len(change) >= 3 and min(change) < change[-2] < change[-1]:
+            break
+    return ks, len(probe)
+
+
+def _ladder_change(ks: list[np.ndarray], radii: list[float], quantile: float) -> list[float]:
+    """Per pair of rungs, the ``1 − quantile`` quantile over the probes of |Δ(k1, k2)|, per √2."""
+    change = []
+    for j in range(len(radii) - 1):
+        d = np.linalg.norm(ks[j + 1] - ks[j], axis=1)
+        d = d[np.isfinite(d)]
+        per_step = math.log(math.sqrt(2.0)) / math.log(radii[j + 1] / radii[j])
+        change.append(float(np.quantile(d, 1.0 - quantile)) * per_step if len(d) else math.nan)
+    return change
+
+
+def _stablest(radii: list[float], change: list[float], top_by: str, bottom_by: str) -> tuple[float, int, str]:
+    """The radius from the ladder: (radius, index of the rung at or below it, limited_by)."""
+    finite = [j for j, c in enumerate(change) if math.isfinite(c)]
+    if not finite:  # one rung, or no probe fitted at two
+        return radii[0], 0, bottom_by
+    j = min(finite, key=lambda i: change[i])
+    if j == len(change) - 1:  # still falling at the top
+        return radii[-1], len(radii) - 1, top_by
+    return math.sqrt(radii[j] * radii[j + 1]), j, "stability"
 
 
 def curvature(

@@ -295,9 +295,10 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
 def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:
     """The ``curvature`` section with its radius resolved on ``mesh`` (:func:`nemo.morphology.default_radius`).
 
-    ``radius_from`` records what set a default radius: ``limited_by`` (``edges``, ``curvature``,
-    ``rim``, ``min_edges`` or ``roughness``), the surface's radius of curvature, the mean edge,
-    the rim cap and ``rough`` (the pilot climbed out of a noisy wall's roughness).
+    ``radius_from`` records what set a default radius: ``limited_by`` (``stability``: where the
+    curvature changes least with the radius; ``size``, ``rim`` or ``edges``: the largest radius;
+    ``min_edges``), the surface's radius of curvature, the mean edge, the rim cap and the pilot's
+    ``ladder`` (each radius and the change of the curvature from it to the next).
     """
     from nemo.morphology import default_radius
 
@@ -308,7 +309,7 @@ def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
     if p["radius"] is None:
         p["radius"], info = default_radius(mesh, fit=p["fit"], rng=int(p["seed"]))
         p["radius_from"] = {k: info[k] for k in ("limited_by", "curvature_radius", "edge", "radius_edges", "rim_cap",
-                                                 "rough")}
+                                                 "ladder")}
     return p
 
 

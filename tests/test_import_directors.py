@@ -190,7 +190,8 @@ def _angle_at(sphere, df: pd.DataFrame) -> float:
 def test_opposite_vectors_on_one_vertex_average_as_a_nematic(sphere, theta):
     df, counts = import_directors(sphere, _on_vertex(sphere, 100, [theta, theta + 180.0]))
     assert len(df) == 1 and df["vertex"].item() == 100 and counts["n_shared"] == 1
-    assert _angle_at(sphere, df) == pytest.approx(theta, abs=1e-6)  # θ, not θ + 90° nor undefined
+    off = (_angle_at(sphere, df) - theta + 90.0) % 180.0 - 90.0  # nematic: 180° − ε is θ = 0
+    assert off == pytest.approx(0.0, abs=1e-6)  # θ, not θ + 90° nor undefined
     assert df["coherency"].item() == pytest.approx(1.0)
 
 

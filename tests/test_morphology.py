@@ -671,7 +671,7 @@ def test_default_radius_spheres(R, spacing):
     mesh = sphere_mesh(R, spacing)
     radius, info = default_radius(mesh)
     # R = 6 µm is only 6.3 edges: the radius of 4 edges (the fewest) is 0.63 R there
-    assert info["limited_by"] == ("min_edges" if R < 8 else "curvature") and info["rim_cap"] is None
+    assert info["limited_by"] in (("min_edges",) if R < 8 else ("stability", "size")) and info["rim_cap"] is None
     assert info["curvature_radius"] == pytest.approx(R, rel=0.05)
     assert radius <= 0.7 * R and radius == info["radius"]
     df = curvature(mesh, radius, n_samples=3000, rng=0)
@@ -692,15 +692,16 @@ def test_default_radius_droplets():
                         (sz, sxy, sxy), rng=i)
         mesh = reconstructed(vol, (1.0, 0.4, 0.4))
         radius, info = default_radius(mesh)
-        assert 0.55 * R < radius < 0.7 * R, info
+        assert radius < 0.7 * R, info
         df = curvature(mesh, radius, rng=0)
         assert np.mean(np.abs(df["H"] * R - 1)) <= 0.025
 
 
-def test_default_radius_climbs_out_of_a_noisy_walls_roughness():
-    """A ball of R = 15 µm at SNR ≈ 5 (0.5 µm voxels): at the floor radius (4 edges) the pilot
-    reads the wall's roughness (|H R − 1| ≈ 2.8 there), so the radius climbs to where R_c stops
-    depending on it; a fit at that radius is within ~6 % of 1/R per vertex."""
+def test_default_radius_widens_on_a_noisy_wall():
+    """A ball of R = 15 µm at SNR ≈ 5 (0.5 µm voxels): at the floor radius (4 edges) the fits
+    read the wall's roughness (|H R − 1| ≈ 2.8 there); the pilot's curvature keeps changing with
+    the radius up to its top (0.6 × the size), so the radius goes there, and a fit there is within
+    5 % of 1/R per vertex (the former rule, 15 edges, read 6.5 %)."""
     from nemo.morphology import default_radius, mean_edge_length
 
     R = 15.0
@@ -709,10 +710,29 @@ def test_default_radius_climbs_out_of_a_noisy_walls_roughness():
     mesh = reconstructed(vol, (0.5, 0.5, 0.5))
     radius, info = default_radius(mesh)
     h = mean_edge_length(mesh)
-    assert info["rough"] and radius > 10 * h and info["curvature_radius"] > 0.75 * R, info
+    assert info["limited_by"] == "size" and radius > 15 * h and info["curvature_radius"] > 0.75 * R, info
     err = np.nanmedian(np.abs(curvature(mesh, radius, rng=0)["H"] * R - 1))
     err_floor = np.nanmedian(np.abs(curvature(mesh, 4 * h, rng=0)["H"] * R - 1))
-    assert err < 0.1 and err_floor > 1.0, (err, err_floor)
+    assert err < 0.05 and err_floor > 1.0, (err, err_floor)
+
+
+def test_default_radius_on_a_noisy_ellipsoid_beats_a_fixed_number_of_edges():
+    """Ellipsoid 60 × 40 × 30 µm at dz = 2 dx, PSF σ 2.5 / 1 / 1 µm, shot + Gaussian noise (SNR
+    ≈ 7): the noise, not the shape, limits a fit of 15 edges (the former default: H ≈ 6 %,
+    K ≈ 13 %); the radius where the curvature is stablest (19 edges) brings them to 3.1–3.3 % and
+    7.2–7.7 % over seeds 1–3 (still above issue 12's 2 / 3 %: the noise's share)."""
+    from nemo.morphology import default_radius, mean_edge_length
+
+    vol, c = render(lambda p: ellipsoid_sdf(p, BIG_ELL), BIG_ELL, (2.0, 1.0, 1.0), (2.5, 1.0, 1.0),
+                    noise=18.0, photons=2.0, rng=3)
+    mesh = reconstructed(vol, (2.0, 1.0, 1.0))
+    H_true, K_true = ellipsoid_HK(closest_on_ellipsoid(np.asarray(mesh.vertices) - c, BIG_ELL), BIG_ELL)
+    radius, info = default_radius(mesh)
+    h = mean_edge_length(mesh)
+    eh, ek = median_rel_errors(curvature(mesh, radius, rng=0), H_true, K_true)
+    eh15, ek15 = median_rel_errors(curvature(mesh, 15 * h, rng=0), H_true, K_true)
+    assert radius > 16 * h and eh < 0.7 * eh15 and ek < 0.7 * ek15, (info, eh, ek, eh15, ek15)
+    assert eh < 0.04 and ek < 0.09, (eh, ek)
 
 
 def test_default_radius_refuses_an_unwelded_triangle_soup():
@@ -726,16 +746,21 @@ def test_default_radius_refuses_an_unwelded_triangle_soup():
         default_radius(soup)
 
 
-def test_climb_keeps_the_first_rung_the_next_one_confirms():
-    from nemo.morphology import ROUGHNESS_GROWTH, _climb_out_of_roughness
+def test_the_ladder_and_its_stablest_pair():
+    from nemo.morphology import _ladder, _ladder_change, _stablest
 
-    rough_then_shape = lambda r: (min(10.0, r**3), 100)  # noqa: E731 - R_c ∝ r³ until the shape's 10
-    radius, (r_c, _) = _climb_out_of_roughness(rough_then_shape, 1.0, 8.0)
-    assert radius == pytest.approx(2 * np.sqrt(2)) and r_c == 10.0  # R_c 1, 2.8, 8, 10, 10: kept 10
-    assert _climb_out_of_roughness(lambda r: (7.0, 100), 1.0, 8.0)[0] == 1.0  # a shape: no climb
-    assert _climb_out_of_roughness(lambda r: (np.inf, 100), 1.0, 8.0)[0] == 1.0  # a plane: none either
-    assert _climb_out_of_roughness(lambda r: (r**3, 100), 1.0, 3.0)[0] == pytest.approx(2 * np.sqrt(2))  # top
-    assert ROUGHNESS_GROWTH > 1
+    radii = _ladder(1.0, 5.0)  # 1, √2, 2, 2√2, 4 and the top 5
+    assert radii[:5] == pytest.approx([1, 2**0.5, 2, 8**0.5, 4]) and radii[-1] == 5.0
+    assert _ladder(1.0, 4.1) == pytest.approx([1, 2**0.5, 2, 8**0.5, 4])  # a top within 5 %: no stub
+    assert _stablest([1, 2, 3, 4, 5], [3.0, 1.0, 2.0, 4.0], "size", "min_edges") == (pytest.approx(6**0.5), 1,
+                                                                                      "stability")
+    assert _stablest([1, 2, 3], [3.0, 1.0], "rim", "min_edges") == (3, 2, "rim")  # still falling: the top
+    assert _stablest([1.0], [], "size", "min_edges") == (1.0, 0, "min_edges")
+    assert _stablest([1, 2], [np.nan], "size", "rim") == (1, 0, "rim")
+    # the change per √2: the quantile of |Δ(k1, k2)| over the probes, scaled for a shorter step
+    ks = [np.zeros((4, 2)), np.array([[0, 0], [0, 0], [0, 0], [4.0, 0]]), np.full((4, 2), np.nan)]
+    change = _ladder_change(ks, [1.0, 2**0.5, 2**0.75], 0.25)
+    assert change[0] == pytest.approx(1.0) and np.isnan(change[1])  # 75th percentile of 0, 0, 0, 4
 
 
 def test_default_radius_ellipsoid_dz2_targets(imaged_ellipsoid):
@@ -747,7 +772,7 @@ def test_default_radius_ellipsoid_dz2_targets(imaged_ellipsoid):
     mesh, c = imaged_ellipsoid
     H_true, K_true = ellipsoid_HK(closest_on_ellipsoid(np.asarray(mesh.vertices) - c, BIG_ELL), BIG_ELL)
     radius, info = default_radius(mesh)
-    assert info["limited_by"] == "curvature" and 12.0 < radius < 17.0, info
+    assert info["limited_by"] in ("stability", "size"), info
     df = curvature(mesh, radius, n_samples=6000, rng=0)
     assert df.attrs["fit"] == "quartic"
     eh, ek = median_rel_errors(df, H_true, K_true)
@@ -775,14 +800,14 @@ def test_user_radius_8um_on_the_ellipsoid_dz2_targets():
 
 def test_default_radius_torus_targets():
     """Issue 12: torus R 50 / r 18 µm at dz = 1.5 dx: median relative error H ≤ 3 %, K ≤ 5 %
-    (the old default, 15 edges = 15.6 µm ≈ 0.9 r, gave H 3.2 %)."""
+    (15 edges = 15.6 µm ≈ 0.9 r gave H 3.2 %; the stablest radius is 14 µm: 2.0 / 3.6 %)."""
     from nemo.morphology import default_radius
 
     Rt, r = 50.0, 18.0
     vol, c = render(lambda p: torus_sdf(p, Rt, r), (Rt + r, Rt + r, r), (1.5, 1.0, 1.0), (0.9, 0.4, 0.4))
     mesh = reconstructed(vol, (1.5, 1.0, 1.0))
     radius, info = default_radius(mesh)
-    assert info["curvature_radius"] == pytest.approx(r, rel=0.05) and radius < 0.7 * r
+    assert info["curvature_radius"] == pytest.approx(r, rel=0.05) and radius < r
     df = curvature(mesh, radius, n_samples=6000, rng=0)
     H_true, K_true = torus_HK(np.asarray(mesh.vertices) - c, Rt, r)
     eh, ek = median_rel_errors(df, H_true, K_true)
@@ -835,7 +860,7 @@ def test_default_radius_open_cap_independent_of_the_cut(sphere15):
         sub = sphere15.submesh([keep], append=True)
         cap = make_mesh(sub.vertices, sub.faces, orient_outward=False)
         radius, info = default_radius(cap)
-        assert info["rim_cap"] is not None and info["limited_by"] == "curvature", info
+        assert info["rim_cap"] is not None and info["limited_by"] == "stability", info
         radii.append(radius)
     assert max(radii) / min(radii) < 1.03 and radii[0] == pytest.approx(whole, rel=0.03)
     # a band |z| < 7 µm of the sphere (a short stack): the old min(15 edges, 0.5 R_obj ≈ 6.8 µm)
@@ -859,7 +884,9 @@ def test_default_radius_bad_input(sphere15):
     with pytest.raises(NemoError, match="quantile"):
         default_radius(sphere15, quantile=1.0)
     with pytest.raises(NemoError, match="min_edges"):
-        default_radius(sphere15, edges=3.0, min_edges=5.0)
+        default_radius(sphere15, min_edges=0.0)
+    with pytest.raises(NemoError, match="min_edges"):
+        default_radius(sphere15, min_edges=40.0)
     with pytest.raises(NemoError, match="at least 10"):
         default_radius(sphere15, n_probe=3)
     with pytest.raises(NemoError):

@@ -32,9 +32,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("mesh", help="surface mesh (PLY/OBJ) with outward normals")
     parser.add_argument("--radius", type=positive(float), metavar="UM",
                         help="fitting radius in the mesh unit (µm): several edge lengths, below the "
-                             "smallest radius of curvature of interest (default from the surface: 15 mean "
-                             "edges, at most 0.6 × its radius of curvature, at least 4 edges, more on a noisy wall "
-                             "whose roughness reads as curvature at small radii; nemo.morphology.default_radius)")
+                             "smallest radius of curvature of interest (default from the surface: where pilot "
+                             "fits' curvature changes least with the radius, between 4 and 32 mean edges, wider "
+                             "on a noisy wall; nemo.morphology.default_radius)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--samples", type=positive(int), metavar="N",
                        help="number of randomly chosen vertices to fit (default: all vertices of small "
