@@ -108,11 +108,12 @@ def main() -> None:
 
 def bench_default_radius(mesh, R: float, args) -> None:
     """Issue 12: the default radius (pilot fits) against the fit it is for."""
-    (radius, info), _ = timed("default_radius (pilot passes of 2000 quartic fits)",
+    (radius, info), _ = timed("default_radius (pilot ladder of quartic fits)",
                               lambda: default_radius(mesh), args.repeat)
+    rungs = ", ".join(f"{x['radius']:.2f}: {x['change'] or 0:.2g}" for x in info["ladder"])
     print(f"{'':58s} radius {radius:.2f} µm = {info['radius_edges']:.1f} edges, limited by "
           f"{info['limited_by']}, R_c {info['curvature_radius']:.1f} µm (object R ≈ {R:.0f}), "
-          f"pilot radii {', '.join(f'{r:.2f}' for r in info['pilot_radii'])}")
+          f"ladder (radius: change) {rungs}, {info['n_probe']} probes")
     df, _ = timed(f"curvature auto at that radius, {args.samples} samples + IDW",
                   lambda: curvature(mesh, radius, n_samples=args.samples, rng=0), args.repeat)
     print(f"{'':58s} fit {df.attrs['fit']}, median H = {np.nanmedian(df['H']):.5f} 1/µm (1/R = {1 / R:.5f})")

@@ -102,8 +102,9 @@ DEFAULT_CURVATURE_QUANTILE = 0.25
 #: Vertices fitted by the pilot of :func:`default_radius` ...
 PILOT_SAMPLES = 2000
 #: ... fewer (at least :data:`PILOT_MIN_SAMPLES`) when their fits at the largest radius would
-#: hold more (vertex, neighbour) pairs than this (a quantile needs no more).
-PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 500
+#: hold more (vertex, neighbour) pairs than this (a quantile needs no more; 200 keep a paper
+#: frame's ladder to ~0.8 s per wall).
+PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 200
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -370,19 +371,19 @@ def default_radius(
     order = _as_rng(rng).permutation(np.flatnonzero(np.isfinite(normals[:, 0])))
     if len(order) == 0:
         raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
-    tops = {"edges": MAX_RADIUS_EDGES * h,
-            "size" if rim_cap == math.inf else "rim":
-                fraction * math.sqrt(mesh.area / (4 * math.pi)) if rim_cap == math.inf else rim_cap}
+    # the largest radius: a closed surface's size (the quartic's bias), an open one's rim, the cost
+    tops = {"edges": MAX_RADIUS_EDGES * h}
+    if rim_cap == math.inf:
+        tops["size"] = fraction * math.sqrt(mesh.area / (4 * math.pi))
+    else:
+        tops["rim"] = rim_cap
     top_by = min(tops, key=tops.get)
     radii = _ladder(min(min_edges * h, rim_cap), tops[top_by])
     ks, n_fit = _ladder_fits(vertices, normals, order, d_rim, radii, fit, n_probe, quantile)
     radii = radii[: len(ks)]  # the climb may stop early
     change = _ladder_change(ks, radii, quantile)
     radius, low, limited_by = _stablest(radii, change, top_by, "rim" if rim_cap < min_edges * h else "min_edges")
-    kmax = np.fmax(np.abs(ks[low][:, 0]), np.abs(ks[low][:, 1]))
-    kmax = kmax[np.isfinite(kmax)]
-    kq = float(np.quantile(kmax, 1.0 - quantile)) if len(kmax) else 0.0
-    r_c = 1.0 / kq if kq > 0 else math.inf
+    r_c = _quantile_radius_of_curvature(ks[low], quantile)
     info = {
         "radius": float(radius), "edge": float(h), "radius_edges": float(radius / h),
         "curvature_radius": float(r_c) if math.isfinite(r_c) else None,
@@ -450,6 +451,14 @@ def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d
         if len(change) >= 3 and min(change) < change[-2] < change[-1]:
             break
     return ks, len(probe)
+
+
+def _quantile_radius_of_curvature(k: np.ndarray, quantile: float) -> float:
+    """The ``quantile`` of 1/|k|max over fits (k1, k2), shape (P, 2); inf when none is curved."""
+    kmax = np.fmax(np.abs(k[:, 0]), np.abs(k[:, 1]))
+    kmax = kmax[np.isfinite(kmax)]
+    kq = float(np.quantile(kmax, 1.0 - quantile)) if len(kmax) else 0.0
+    return 1.0 / kq if kq > 0 else math.inf
 
 
 def _ladder_change(ks: list[np.ndarray], radii: list[float], quantile: float) -> list[float]:
