@@ -395,7 +395,9 @@ def default_radius(
     logger.info("curvature: default radius %.3g %s (%.1f edges; %s; radius of curvature %s)",
                 radius, _pretty_unit(_unit_name(mesh)), radius / h,
                 {"stability": "where the curvature changes least with the radius",
-                 "min_edges": "the fewest edges"}.get(limited_by, f"the largest radius ({limited_by})"),
+                 "min_edges": "the fewest edges", "rim": "half the largest distance to the rim",
+                 "size": f"{fraction:g} × the surface's size, the curvature still settling there",
+                 "edges": f"{MAX_RADIUS_EDGES:g} edges, the curvature still settling there"}[limited_by],
                 "–" if info["curvature_radius"] is None else f"{r_c:.3g}")
     return float(radius), info
 
