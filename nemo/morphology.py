@@ -307,7 +307,9 @@ def default_radius(
     the same probe vertices on a ladder of radii × √2, from ``min_edges`` mean edges up to the
     largest radius (:data:`MAX_RADIUS_EDGES` edges; on a closed surface ``fraction`` × its size
     √(A/4π); on an open one half the largest distance of a vertex to the rim, beyond which no
-    vertex has a fit off the rim). For each pair of neighbouring rungs it measures the change of
+    vertex has a fit off the rim). On an open surface the radius is then at most the median
+    distance to the rim (not below the smallest radius): a fit needs its ball off the rim, so at
+    least half the vertices keep one. For each pair of neighbouring rungs it measures the change of
     (k1, k2), the ``1 − quantile`` quantile over the probes (the most changing quarter: its most
     curved parts are not averaged away by the flat ones), per √2 in radius. The radius is the
     geometric mean of the pair that changes least (where both estimates agree: past the
@@ -346,7 +348,8 @@ def default_radius(
         None when the pilot found no curvature, e.g. a plane), ``rim_cap`` (½ the largest rim
         distance; None on a closed surface), ``limited_by`` (``"stability"``: the pair that
         changes least; ``"size"``, ``"rim"`` or ``"edges"``: the top rung, the change still
-        falling there; ``"min_edges"``: no room for a ladder), ``ladder`` (each rung's radius
+        falling there; ``"min_edges"``: no room for a ladder; ``"coverage"``: the median
+        distance to the rim of an open surface), ``ladder`` (each rung's radius
         and the change from it to the next, 1/length), ``n_probe`` (vertices fitted),
         ``fraction``, ``quantile``.
 
@@ -383,6 +386,9 @@ def default_radius(
     radii = radii[: len(ks)]  # the climb may stop early
     change = _ladder_change(ks, radii, quantile)
     radius, low, limited_by = _stablest(radii, change, top_by, "rim" if rim_cap < min_edges * h else "min_edges")
+    coverage = 0.99 * float(np.median(d_rim))  # just inside: a vertex needs d_rim > radius for a fit
+    if rim_cap < math.inf and radius > max(coverage, min(min_edges * h, rim_cap)):
+        radius, limited_by = max(coverage, min(min_edges * h, rim_cap)), "coverage"
     r_c = _quantile_radius_of_curvature(ks[low], quantile)
     info = {
         "radius": float(radius), "edge": float(h), "radius_edges": float(radius / h),
@@ -397,7 +403,8 @@ def default_radius(
                 {"stability": "where the curvature changes least with the radius",
                  "min_edges": "the fewest edges", "rim": "half the largest distance to the rim",
                  "size": f"{fraction:g} × the surface's size, the curvature still settling there",
-                 "edges": f"{MAX_RADIUS_EDGES:g} edges, the curvature still settling there"}[limited_by],
+                 "edges": f"{MAX_RADIUS_EDGES:g} edges, the curvature still settling there",
+                 "coverage": "the median distance to the rim: half the vertices keep a fit"}[limited_by],
                 "–" if info["curvature_radius"] is None else f"{r_c:.3g}")
     return float(radius), info
 

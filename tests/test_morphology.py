@@ -874,6 +874,24 @@ def test_default_radius_open_cap_independent_of_the_cut(sphere15):
     assert abs(np.nanmedian(df["H"]) * R - 1) < 0.05
 
 
+def test_default_radius_keeps_half_of_a_rough_open_patch():
+    """A flat 100 × 100 µm patch with 0.2 µm roughness (a tissue cut by the field): the
+    curvature keeps falling with the radius up to the rim cap (25 µm, which leaves 75 % of the
+    vertices without a fit), so the radius stops at the median distance to the rim; H ≈ 0."""
+    from nemo.morphology import default_radius
+
+    x, y = np.meshgrid(np.arange(101.0), np.arange(101.0))
+    z = np.random.default_rng(0).normal(0, 0.2, x.shape)
+    a = (np.arange(100)[:, None] * 101 + np.arange(100)[None, :]).ravel()
+    faces = np.concatenate([np.stack([a, a + 1, a + 101], 1), np.stack([a + 1, a + 102, a + 101], 1)])
+    patch = trimesh.Trimesh(np.stack([x.ravel(), y.ravel(), z.ravel()], 1), faces, process=False)
+    radius, info = default_radius(patch)
+    assert info["limited_by"] == "coverage" and 10.0 < radius < info["rim_cap"] == pytest.approx(25.0, rel=0.02)
+    df = curvature(patch, radius, rng=0)
+    assert 0.5 < df["H"].notna().mean() < 0.6
+    assert abs(np.nanmedian(df["H"])) < 1e-3 and np.nanpercentile(np.abs(df["H"]), 90) < 0.01
+
+
 def test_default_radius_bad_input(sphere15):
     from nemo.morphology import default_radius
 
