@@ -9,8 +9,8 @@ Method note §3, paper methods "Morphological analysis".
   a fit there sees the surface on one side only.
 * :func:`default_radius` -- the fitting radius from the surface itself: where the curvature of
   pilot fits changes least with the radius (past the wall's roughness, short of the shape's
-  change), between 4 and 32 mean edges, and on an open surface at most half the largest
-  distance to the rim.
+  change), between 4 and 32 mean edges; on an open surface at most half the largest distance
+  to the rim, and then at most the median one (half the vertices keep a fit).
 * :func:`thickness` -- distance along the vertex normal from one surface to another, by ray
   casting (Embree through trimesh when available); NaN where the ray finds nothing.
 * :func:`measure` -- area, enclosed volume, Euler characteristic, genus, components, discrete
@@ -89,8 +89,8 @@ LARGE_RADIUS_RK = 0.5
 #: Default fitting radius (:func:`default_radius`): at least this many mean edge lengths
 #: (~60 neighbours: enough for a quartic fit), whatever the curvature ...
 DEFAULT_MIN_EDGES = 4.0
-#: ... at most this many (~3000 neighbours per fit: the pilot's cost; the roughness of an SNR-5
-#: wall is averaged out below it, measured in docs/validation.md) ...
+#: ... at most this many (~3000-4000 neighbours per fit: bounds the pilot's cost; on the
+#: validation's noisy shapes the best radius lay at 25 edges or less, docs/validation.md) ...
 MAX_RADIUS_EDGES = 32.0
 #: ... and on a closed surface at most this fraction of its size √(A/4π) (the quartic fit of a
 #: sphere is biased by −0.4 / −1 / −2 % at r = 0.5 / 0.6 / 0.7 R).
@@ -102,8 +102,8 @@ DEFAULT_CURVATURE_QUANTILE = 0.25
 #: Vertices fitted by the pilot of :func:`default_radius` ...
 PILOT_SAMPLES = 2000
 #: ... fewer (at least :data:`PILOT_MIN_SAMPLES`) when their fits at the largest radius would
-#: hold more (vertex, neighbour) pairs than this (a quantile needs no more; 200 keep a paper
-#: frame's ladder to ~0.8 s per wall).
+#: hold more (vertex, neighbour) pairs than this (a quantile needs no more; with 200, a paper
+#: frame's ladder takes ~1.1 s per wall, 1.85 s with 500).
 PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 200
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
@@ -307,13 +307,13 @@ def default_radius(
     the same probe vertices on a ladder of radii × √2, from ``min_edges`` mean edges up to the
     largest radius (:data:`MAX_RADIUS_EDGES` edges; on a closed surface ``fraction`` × its size
     √(A/4π); on an open one half the largest distance of a vertex to the rim, beyond which no
-    vertex has a fit off the rim). On an open surface the radius is then at most the median
-    distance to the rim (not below the smallest radius): a fit needs its ball off the rim, so at
-    least half the vertices keep one. For each pair of neighbouring rungs it measures the change of
+    vertex has a fit off the rim). For each pair of neighbouring rungs it measures the change of
     (k1, k2), the ``1 − quantile`` quantile over the probes (the most changing quarter: its most
     curved parts are not averaged away by the flat ones), per √2 in radius. The radius is the
     geometric mean of the pair that changes least (where both estimates agree: past the
     roughness, short of the shape's change); the top rung when the change still falls there.
+    On an open surface the radius is then at most the median distance to the rim (not below the
+    smallest radius): a fit needs its ball off the rim, so at least half the vertices keep one.
     On a noisy wall this climbs to a wide fit (the roughness dominates), on a clean one it stays
     at a few edges; the fit that :func:`curvature` will use (``fit``) is the one compared, so
     the quadratic fit's larger bias keeps its radius smaller. Apart from the top, the object's
@@ -456,7 +456,7 @@ def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d
         kind, _, chunk = _plan_fits(tree, vertices, probe, radius, fit, np.random.default_rng(0))
         out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, kind, chunk)
         ks.append(np.stack([out["k1"], out["k2"]], axis=1))
-        change = _ladder_change(ks, radii[: len(ks)], quantile)
+        change = [c for c in _ladder_change(ks, radii[: len(ks)], quantile) if math.isfinite(c)]
         if len(change) >= 3 and min(change) < change[-2] < change[-1]:
             break
     return ks, len(probe)
