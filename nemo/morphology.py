@@ -9,8 +9,9 @@ Method note §3, paper methods "Morphological analysis".
   a fit there sees the surface on one side only.
 * :func:`default_radius` -- the fitting radius from the surface itself: where the curvature of
   pilot fits changes least with the radius (past the wall's roughness, short of the shape's
-  change), between 4 and 32 mean edges; on an open surface at most half the largest distance
-  to the rim, and then at most the median one (half the vertices keep a fit).
+  change), between 4 and 32 mean edges, at most 0.6 × the size √(A/4π) of a closed surface's
+  largest piece; on an open surface at most half the largest distance to the rim, and then at
+  most the median one (half the vertices keep a fit).
 * :func:`thickness` -- distance along the vertex normal from one surface to another, by ray
   casting (Embree through trimesh when available); NaN where the ray finds nothing.
 * :func:`measure` -- area, enclosed volume, Euler characteristic, genus, components, discrete
@@ -105,6 +106,8 @@ PILOT_SAMPLES = 2000
 #: hold more (vertex, neighbour) pairs than this (a quantile needs no more; with 200, a paper
 #: frame's ladder takes ~1.1 s per wall, 1.85 s with 500).
 PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 200
+#: The ladder's top is lowered until at least this many vertices keep a fit off the rim there.
+LADDER_MIN_PROBES = 50
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -305,8 +308,8 @@ def default_radius(
     the radius, and the shape's change within the disc, which grows with it. Neither is known,
     but their sum shows in how much the estimate moves when the radius changes. The pilot fits
     the same probe vertices on a ladder of radii × √2, from ``min_edges`` mean edges up to the
-    largest radius (:data:`MAX_RADIUS_EDGES` edges; on a closed surface ``fraction`` × its size
-    √(A/4π); on an open one half the largest distance of a vertex to the rim, beyond which no
+    largest radius (:data:`MAX_RADIUS_EDGES` edges; on a closed surface ``fraction`` × the size
+    √(A/4π) of its largest connected piece; on an open one half the largest distance of a vertex to the rim, beyond which no
     vertex has a fit off the rim). For each pair of neighbouring rungs it measures the change of
     (k1, k2), the ``1 − quantile`` quantile over the probes (the most changing quarter: its most
     curved parts are not averaged away by the flat ones), per √2 in radius. The radius is the
@@ -348,8 +351,8 @@ def default_radius(
         None when the pilot found no curvature, e.g. a plane), ``rim_cap`` (½ the largest rim
         distance; None on a closed surface), ``limited_by`` (``"stability"``: the pair that
         changes least; ``"size"``, ``"rim"`` or ``"edges"``: the top rung, the change still
-        falling there; ``"min_edges"``: no room for a ladder; ``"coverage"``: the median
-        distance to the rim of an open surface), ``ladder`` (each rung's radius
+        falling there; ``"min_edges"``: no room for a ladder, or the median distance to an open
+        surface's rim is below the fewest edges; ``"coverage"``: that median distance), ``ladder`` (each rung's radius
         and the change from it to the next, 1/length), ``n_probe`` (vertices fitted),
         ``fraction``, ``quantile``.
 
@@ -376,8 +379,8 @@ def default_radius(
         raise NemoError("no vertex of the mesh has a usable normal (all faces have zero area); repair the mesh")
     # the largest radius: a closed surface's size (the quartic's bias), an open one's rim, the cost
     tops = {"edges": MAX_RADIUS_EDGES * h}
-    if rim_cap == math.inf:
-        tops["size"] = fraction * math.sqrt(mesh.area / (4 * math.pi))
+    if rim_cap == math.inf:  # the largest object's size, not the mesh's (several objects in one mesh)
+        tops["size"] = fraction * math.sqrt(_largest_component_area(mesh) / (4 * math.pi))
     else:
         tops["rim"] = rim_cap
     top_by = min(tops, key=tops.get)
@@ -387,8 +390,9 @@ def default_radius(
     change = _ladder_change(ks, radii, quantile)
     radius, low, limited_by = _stablest(radii, change, top_by, "rim" if rim_cap < min_edges * h else "min_edges")
     coverage = 0.99 * float(np.median(d_rim))  # just inside: a vertex needs d_rim > radius for a fit
-    if rim_cap < math.inf and radius > max(coverage, min(min_edges * h, rim_cap)):
-        radius, limited_by = max(coverage, min(min_edges * h, rim_cap)), "coverage"
+    if rim_cap < math.inf and radius > max(coverage, radii[0]):
+        radius, limited_by = (coverage, "coverage") if coverage > radii[0] else (radii[0], "min_edges")
+        low = max(i for i, r in enumerate(radii) if r <= radius * (1 + 1e-9))
     r_c = _quantile_radius_of_curvature(ks[low], quantile)
     info = {
         "radius": float(radius), "edge": float(h), "radius_edges": float(radius / h),
@@ -417,7 +421,7 @@ def _check_default_radius_args(fit: str, min_edges: float, fraction: float, quan
     if not (math.isfinite(min_edges) and 0 < min_edges <= MAX_RADIUS_EDGES):
         raise NemoError(f"min_edges (the smallest radius, in edge lengths) must be in (0, {MAX_RADIUS_EDGES:g}], "
                         f"got {min_edges}")
-    if not (math.isfinite(fraction) and 0 < fraction <= 2):
+    if not (isinstance(fraction, (int, float)) and math.isfinite(fraction) and 0 < fraction <= 2):
         raise NemoError(f"fraction of the surface's size must be in (0, 2], got {fraction}")
     if not (0 < quantile < 1):
         raise NemoError(f"quantile must be in (0, 1), got {quantile}")
@@ -426,29 +430,36 @@ def _check_default_radius_args(fit: str, min_edges: float, fraction: float, quan
 
 
 def _ladder(bottom: float, top: float) -> list[float]:
-    """Radii × √2 from ``bottom``, ending at ``top`` (a last, shorter step when it is not a rung)."""
+    """Radii × √2 from ``bottom``, ending at ``top`` with one more, shorter step when the top is
+    more than × 1.1 above the last rung (a shorter step's change, scaled per √2, magnifies its
+    noise by up to × 3.6, which leans against the top: the safe side)."""
     radii = [bottom]
     while radii[-1] * math.sqrt(2.0) <= top:
         radii.append(radii[-1] * math.sqrt(2.0))
-    if top > 1.05 * radii[-1]:
+    if top > 1.1 * radii[-1]:
         radii.append(top)
     return radii
 
 
 def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d_rim: np.ndarray,
                  radii: list[float], fit: str, n_probe: int, quantile: float) -> tuple[list[np.ndarray], int]:
-    """(k1, k2) of the same probe vertices up the ladder, shape (P, 2) per rung, and P.
+    """(k1, k2) of the same probe vertices up the ladder, shape (P, 2) per rung, and P; the rungs
+    fitted are the first ``len(ks)`` of ``radii``.
 
     The probes are the first of ``order`` whose ball stays off the rim at the largest radius
     (those farthest from the rim if none does): ``n_probe`` at most, fewer (not below
     :data:`PILOT_MIN_SAMPLES`) when their fits at the largest radius would exceed
-    :data:`PILOT_PAIR_BUDGET` (vertex, neighbour) pairs. The climb stops early once the change
-    (:func:`_ladder_change`) has grown for two pairs past its smallest: the largest fits cost most.
+    :data:`PILOT_PAIR_BUDGET` (vertex, neighbour) pairs. On an open surface the ladder ends
+    below any rung at which fewer than :data:`LADDER_MIN_PROBES` vertices stay off the rim. The
+    climb stops early once the change (:func:`_ladder_change`) has grown for two pairs past its
+    smallest: the largest fits cost most.
     """
     tree = cKDTree(vertices)
+    while len(radii) > 1 and np.count_nonzero(d_rim[order] > radii[-1]) < LADDER_MIN_PROBES:
+        radii = radii[:-1]  # too few vertices keep a fit off the rim at the top: a lower top
     probe = order[d_rim[order] > radii[-1]]
     if len(probe) == 0:
-        probe = np.argsort(-d_rim)
+        probe = order[np.argsort(-d_rim[order], kind="stable")]
     _, per_fit, _ = _plan_fits(tree, vertices, probe, radii[-1], fit, np.random.default_rng(0))
     probe = np.sort(probe[: min(int(n_probe), max(PILOT_MIN_SAMPLES, int(PILOT_PAIR_BUDGET // per_fit)))])
     ks: list[np.ndarray] = []
@@ -460,6 +471,17 @@ def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d
         if len(change) >= 3 and min(change) < change[-2] < change[-1]:
             break
     return ks, len(probe)
+
+
+def _largest_component_area(mesh: trimesh.Trimesh) -> float:
+    """Area of the mesh's largest connected piece (faces joined by vertices)."""
+    edges = np.asarray(mesh.edges_unique)
+    n = len(mesh.vertices)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    n_parts, labels = connected_components(graph, directed=False)
+    if n_parts == 1:
+        return float(mesh.area)
+    return float(np.bincount(labels[mesh.faces[:, 0]], weights=mesh.area_faces, minlength=n_parts).max())
 
 
 def _quantile_radius_of_curvature(k: np.ndarray, quantile: float) -> float:

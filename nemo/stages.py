@@ -296,9 +296,10 @@ def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
     """The ``curvature`` section with its radius resolved on ``mesh`` (:func:`nemo.morphology.default_radius`).
 
     ``radius_from`` records what set a default radius: ``limited_by`` (``stability``: where the
-    curvature changes least with the radius; ``size``, ``rim`` or ``edges``: the largest radius;
-    ``min_edges``), the surface's radius of curvature, the mean edge, the rim cap and the pilot's
-    ``ladder`` (each radius and the change of the curvature from it to the next).
+    curvature changes least with the radius; ``size``, ``rim`` or ``edges``: the largest
+    radius; ``coverage``: the median distance to an open surface's rim; ``min_edges``), the
+    surface's radius of curvature, the mean edge, the rim cap and the pilot's ``ladder`` (each
+    radius and the change of the curvature from it to the next).
     """
     from nemo.morphology import default_radius
 

@@ -751,16 +751,21 @@ def test_the_ladder_and_its_stablest_pair():
 
     radii = _ladder(1.0, 5.0)  # 1, √2, 2, 2√2, 4 and the top 5
     assert radii[:5] == pytest.approx([1, 2**0.5, 2, 8**0.5, 4]) and radii[-1] == 5.0
-    assert _ladder(1.0, 4.1) == pytest.approx([1, 2**0.5, 2, 8**0.5, 4])  # a top within 5 %: no stub
+    assert _ladder(1.0, 4.3) == pytest.approx([1, 2**0.5, 2, 8**0.5, 4])  # a top within × 1.1: no stub
+    assert _ladder(1.0, 1.2) == pytest.approx([1, 1.2]) and _ladder(1.0, 0.9) == [1.0]
     assert _stablest([1, 2, 3, 4, 5], [3.0, 1.0, 2.0, 4.0], "size", "min_edges") == (pytest.approx(6**0.5), 1,
                                                                                       "stability")
     assert _stablest([1, 2, 3], [3.0, 1.0], "rim", "min_edges") == (3, 2, "rim")  # still falling: the top
     assert _stablest([1.0], [], "size", "min_edges") == (1.0, 0, "min_edges")
     assert _stablest([1, 2], [np.nan], "size", "rim") == (1, 0, "rim")
     # the change per √2: the quantile of |Δ(k1, k2)| over the probes, scaled for a shorter step
-    ks = [np.zeros((4, 2)), np.array([[0, 0], [0, 0], [0, 0], [4.0, 0]]), np.full((4, 2), np.nan)]
-    change = _ladder_change(ks, [1.0, 2**0.5, 2**0.75], 0.25)
+    ks = [np.zeros((4, 2)), np.array([[0, 0], [0, 0], [0, 0], [4.0, 0]]), np.full((4, 2), np.nan),
+          np.array([[0, 0], [0, 0], [0, 0], [4.0, 3.0]])]
+    change = _ladder_change(ks, [1.0, 2**0.5, 2**0.75, 2**0.875], 0.25)
     assert change[0] == pytest.approx(1.0) and np.isnan(change[1])  # 75th percentile of 0, 0, 0, 4
+    # a step of 2^(1/8) is a quarter of √2: its change (75th percentile of 0, 0, 0, 3) counts × 4
+    ks[2] = ks[1].copy()
+    assert _ladder_change(ks, [1.0, 2**0.5, 2**0.75, 2**0.875], 0.25)[2] == pytest.approx(0.75 * 4)
 
 
 def test_default_radius_ellipsoid_dz2_targets(imaged_ellipsoid):
@@ -892,6 +897,18 @@ def test_default_radius_keeps_half_of_a_rough_open_patch():
     assert abs(np.nanmedian(df["H"])) < 1e-3 and np.nanpercentile(np.abs(df["H"]), 90) < 0.01
 
 
+def test_default_radius_of_several_objects_in_one_mesh():
+    """Two balls of R = 8 µm in one mesh: the top is 0.6 × the size of the larger piece, not of
+    the whole mesh (which let the fits grow past the balls: 2 R on nine of them)."""
+    from nemo.morphology import default_radius
+
+    ball = sphere_mesh(8.0)
+    two = trimesh.util.concatenate([ball, ball.copy().apply_translation((40.0, 0.0, 0.0))])
+    r_one, _ = default_radius(ball)
+    r_two, info = default_radius(two)
+    assert r_two <= 0.6 * 8.0 * 1.06 and r_two == pytest.approx(r_one, rel=0.15), info
+
+
 def test_default_radius_bad_input(sphere15):
     from nemo.morphology import default_radius
 
@@ -899,6 +916,8 @@ def test_default_radius_bad_input(sphere15):
         default_radius(sphere15, fit="cubic")
     with pytest.raises(NemoError, match="fraction"):
         default_radius(sphere15, fraction=0.0)
+    with pytest.raises(NemoError, match="fraction"):
+        default_radius(sphere15, fraction=None)
     with pytest.raises(NemoError, match="quantile"):
         default_radius(sphere15, quantile=1.0)
     with pytest.raises(NemoError, match="min_edges"):
