@@ -385,9 +385,8 @@ def default_radius(
         tops["rim"] = rim_cap
     top_by = min(tops, key=tops.get)
     radii = _ladder(min(min_edges * h, rim_cap), tops[top_by])
-    ks, n_fit = _ladder_fits(vertices, normals, order, d_rim, radii, fit, n_probe, quantile)
+    ks, change, n_fit = _ladder_fits(vertices, normals, order, d_rim, radii, fit, n_probe, quantile)
     radii = radii[: len(ks)]  # the climb may stop early
-    change = _ladder_change(ks, radii, quantile)
     radius, low, limited_by = _stablest(radii, change, top_by, "rim" if rim_cap < min_edges * h else "min_edges")
     coverage = 0.99 * float(np.median(d_rim))  # just inside: a vertex needs d_rim > radius for a fit
     if rim_cap < math.inf and radius > max(coverage, radii[0]):
@@ -442,9 +441,11 @@ def _ladder(bottom: float, top: float) -> list[float]:
 
 
 def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d_rim: np.ndarray,
-                 radii: list[float], fit: str, n_probe: int, quantile: float) -> tuple[list[np.ndarray], int]:
-    """(k1, k2) of the same probe vertices up the ladder, shape (P, 2) per rung, and P; the rungs
-    fitted are the first ``len(ks)`` of ``radii``.
+                 radii: list[float], fit: str, n_probe: int,
+                 quantile: float) -> tuple[list[np.ndarray], list[float], int]:
+    """(k1, k2) of the same probe vertices up the ladder, shape (P, 2) per rung, the change per
+    pair of rungs (:func:`_ladder_change`) and P; the rungs fitted are the first ``len(ks)`` of
+    ``radii``.
 
     The probes are the first of ``order`` whose ball stays off the rim at the largest radius
     (those farthest from the rim if none does): ``n_probe`` at most, fewer (not below
@@ -463,25 +464,25 @@ def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d
     _, per_fit, _ = _plan_fits(tree, vertices, probe, radii[-1], fit, np.random.default_rng(0))
     probe = np.sort(probe[: min(int(n_probe), max(PILOT_MIN_SAMPLES, int(PILOT_PAIR_BUDGET // per_fit)))])
     ks: list[np.ndarray] = []
-    for radius in radii:  # a handful of rungs, each fit vectorised over the probes
+    change: list[float] = []
+    for j, radius in enumerate(radii):  # a handful of rungs, each fit vectorised over the probes
         kind, _, chunk = _plan_fits(tree, vertices, probe, radius, fit, np.random.default_rng(0))
         out, _, _ = _fit_samples(vertices, normals, tree, probe, radius, kind, chunk)
         ks.append(np.stack([out["k1"], out["k2"]], axis=1))
-        change = [c for c in _ladder_change(ks, radii[: len(ks)], quantile) if math.isfinite(c)]
-        if len(change) >= 3 and min(change) < change[-2] < change[-1]:
+        if j:
+            change += _ladder_change(ks[-2:], radii[j - 1:j + 1], quantile)
+        finite = [c for c in change if math.isfinite(c)]
+        if len(finite) >= 3 and min(finite) < finite[-2] < finite[-1]:
             break
-    return ks, len(probe)
+    return ks, change, len(probe)
 
 
 def _largest_component_area(mesh: trimesh.Trimesh) -> float:
-    """Area of the mesh's largest connected piece (faces joined by vertices)."""
-    edges = np.asarray(mesh.edges_unique)
-    n = len(mesh.vertices)
-    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    n_parts, labels = connected_components(graph, directed=False)
-    if n_parts == 1:
-        return float(mesh.area)
-    return float(np.bincount(labels[mesh.faces[:, 0]], weights=mesh.area_faces, minlength=n_parts).max())
+    """Area of the mesh's largest connected piece (:func:`nemo.surface.face_components`)."""
+    from nemo.surface import face_components
+
+    labels = face_components(mesh.faces, len(mesh.vertices))
+    return float(np.bincount(labels, weights=mesh.area_faces).max())
 
 
 def _quantile_radius_of_curvature(k: np.ndarray, quantile: float) -> float:

@@ -34,7 +34,8 @@ def add_arguments(parser) -> None:
                         help="fitting radius in the mesh unit (µm): several edge lengths, below the "
                              "smallest radius of curvature of interest (default from the surface: where pilot "
                              "fits' curvature changes least with the radius, between 4 and 32 mean edges, wider "
-                             "on a noisy wall; nemo.morphology.default_radius)")
+                             "on a noisy wall; on an open surface at most the median distance to its rim, "
+                             "so half the vertices keep a fit; nemo.morphology.default_radius)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--samples", type=positive(int), metavar="N",
                        help="number of randomly chosen vertices to fit (default: all vertices of small "
