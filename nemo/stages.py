@@ -13,9 +13,10 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 ``mesh.step``               1 voxel; 2 for stacks above :data:`STEP2_VOXELS` voxels (memory)
 ``mesh.sigma``              noise-aware (nemo.surface.auto_sigma): at least half the sampling
                             distance ``step (dx + dy) / 4``, enough for a blurred SNR of 20
-``curvature.radius``        ``min(15 edge, 0.6 R_c)``, at least ``4 edge``, at most half the largest
-                            rim distance on an open surface (``R_c``: radius of curvature of the
-                            most curved quarter, from pilot fits; nemo.morphology.default_radius)
+``curvature.radius``        where pilot fits' curvature changes least with the radius, 4 to 32
+                            ``edge``, at most ``0.6 R_obj`` of the largest piece (closed) or the
+                            median rim distance (open); nemo.morphology.default_radius
+``curvature.smooth``        H, K averaged over ``0.35 radius`` (σ, debiased) along the surface
 ``directors.patch_radius``  ``0.1 R_obj`` (the paper: 20 µm on R = 200 µm), at least ``8 edge``
 ``directors.n_patches``     30 per patch area, at most the number of vertices
 ``directors.pixel``         ``edge / 4``, at least ``patch_radius / 97`` (micro-images ≤ 195 px)
@@ -323,7 +324,7 @@ def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.Dat
         return _combined([curvature(part.mesh, params) for part in split], split)
     p = curvature_defaults(mesh, params)
     df = fit_curvature(mesh, float(p["radius"]), n_samples=p["samples"], fraction=p["fraction"],
-                       k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"])
+                       k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"], smooth=float(p["smooth"]))
     p.update(fit_used=df.attrs.get("fit"), n_fitted=df.attrs.get("n_samples"))
     return df, p
 

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from nemo.cli.common import add_common, output_path, positive, seed
+from nemo.cli.common import add_common, non_negative, output_path, positive, seed
 
 HELP = "mean and Gaussian curvature (H, K) per vertex from local surface fits"
 DESCRIPTION = """\
 Mean curvature H and Gaussian curvature K at every vertex: a surface z(ξ, η) is fitted by
 least squares to the neighbours within --radius of a random subset of vertices, in the frame
 of the vertex normal; the results are interpolated to all vertices by inverse-distance weights
-over the --k-interp nearest fitted vertices. Outward normals: a sphere of radius R has
+over the --k-interp nearest fitted vertices, then averaged over the surface (a diffusion along
+the mesh of width --smooth × radius, which averages out the fits' noise). Outward normals: a sphere of radius R has
 H = +1/R and K = +1/R² (units 1/µm, 1/µm²).
 
 Fits (--fit): 'quadric' is the paper's z = aξ² + bη² + cξη; 'quadratic' adds linear and
@@ -47,6 +48,9 @@ def add_arguments(parser) -> None:
                         help="nearest fitted vertices used for the interpolation (default 8)")
     parser.add_argument("--fit", choices=("auto", "quadric", "quadratic", "quartic"),
                         help="fitted surface (default auto)")
+    parser.add_argument("--smooth", type=non_negative, metavar="F",
+                        help="width of the averaging of H and K over the surface after the fits, as a "
+                             "fraction of the radius (default 0.35; 0 = the fitted values, as in the paper)")
     parser.add_argument("--seed", type=seed, metavar="S", help="random seed of the sample (default 0)")
     add_common(parser, output_help="output table (.parquet)")
 
