@@ -3,7 +3,8 @@
 Targets (issue 3): curvature with 20 000 fitted samples + interpolation to every vertex
 ≤ 5 s; thickness (one ray per vertex, Embree) for 500k vertices ≤ 3 s. Also times measure,
 and (issue 12) the default fitting radius (``default_radius``: pilot fits) against the fit at
-that radius; ``--vertices 200000`` is the paper's scale.
+that radius, with and without the averaging over the surface (``smooth``); ``--vertices
+200000`` is the paper's scale.
 Wall and CPU seconds are printed with the load average: on a shared machine the CPU time is
 the figure that does not depend on the other jobs.
 
@@ -117,6 +118,8 @@ def bench_default_radius(mesh, R: float, args) -> None:
     df, _ = timed(f"curvature auto at that radius, {args.samples} samples + IDW",
                   lambda: curvature(mesh, radius, n_samples=args.samples, rng=0), args.repeat)
     print(f"{'':58s} fit {df.attrs['fit']}, median H = {np.nanmedian(df['H']):.5f} 1/µm (1/R = {1 / R:.5f})")
+    timed("the same without the averaging over the surface (smooth=0)",  # the averaging's share (session 12)
+          lambda: curvature(mesh, radius, n_samples=args.samples, rng=0, smooth=0), args.repeat)
 
 
 if __name__ == "__main__":
