@@ -409,6 +409,7 @@ def read_stack(
     t: int = 0,
     c: int = 0,
     spacing: tuple[float, float, float] | None = None,
+    sparse: bool = False,
 ) -> tuple[np.ndarray, ImageInfo]:
     """Read the (Z, Y, X) stack of time point ``t`` and channel ``c``, and nothing else.
 
@@ -420,6 +421,9 @@ def read_stack(
         Time point and channel (0-based).
     spacing : (dz, dy, dx), optional
         Overrides the file's calibration (same unit as the rest of the analysis, µm).
+    sparse : bool
+        The image may leave chunks of an OME-Zarr unwritten (a mask, mostly background): no
+        warning for them. An image warns, and a stack none of whose chunks is stored is refused.
 
     Returns
     -------
@@ -441,7 +445,7 @@ def read_stack(
         axes = info._normalised_axes
         _check_index(info, path, t, c)
         data = ome_zarr.read(path, {a: int(i) for a, i in (("T", t), ("C", c)) if a in axes},
-                             described=info._described)
+                             described=info._described, sparse=sparse)
     else:
         with _open_tiff(path) as tif:
             info = _info_from_tiff(tif, str(path))
@@ -527,7 +531,7 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     info = read_info(path)
     mt = t if info.shape["T"] > 1 else 0
     mc = c if info.shape["C"] > 1 else 0
-    data, _ = read_stack(path, mt, mc, spacing=(1.0, 1.0, 1.0))  # the mask's calibration is irrelevant
+    data, _ = read_stack(path, mt, mc, spacing=(1.0, 1.0, 1.0), sparse=True)  # its calibration is irrelevant
     if data.shape != tuple(shape):
         raise NemoError(
             f"the mask {path} has shape (Z, Y, X) = {data.shape} but the image stack has {tuple(shape)}; "

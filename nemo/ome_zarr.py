@@ -13,11 +13,12 @@ which would add a network stack (aiohttp, requests) to read two keys.
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 
 #: Files that mark a folder as a Zarr group or array (format 2 and 3).
 _ZARR_MARKERS = (".zattrs", ".zgroup", ".zarray", "zarr.json")
@@ -170,7 +171,8 @@ def levels(path: str | os.PathLike) -> list[dict]:
     return out
 
 
-def read(path: str | os.PathLike, key: dict[str, int], described: dict | None = None) -> np.ndarray:
+def read(path: str | os.PathLike, key: dict[str, int], described: dict | None = None,
+         sparse: bool = False) -> np.ndarray:
     """The pixels of one (t, c) selection, in the stored axis order without T and C.
 
     Parameters
@@ -181,15 +183,44 @@ def read(path: str | os.PathLike, key: dict[str, int], described: dict | None = 
         Index per axis letter to select (``{"T": 2, "C": 0}``); other axes are read whole.
     described : dict, optional
         :func:`describe`'s answer for ``path`` when the caller has it (the metadata is not read again).
+    sparse : bool
+        Chunks may be absent (a mask: writers skip those equal to the fill value): no check.
+        Otherwise absent chunks of the selection warn, and a selection none of whose chunks is
+        stored is refused (they would read as the fill value, silently).
     """
     d = described or describe(path)
     array = _open_group(d["group"])[d["level"]]
     index = tuple(key.get(a, slice(None)) for a in d["axes"])
+    if not sparse:
+        _check_chunks_stored(array, index, Path(d["group"]) / d["level"], key)
     try:
         return np.asarray(array[index])
     except (OSError, ValueError, KeyError, RuntimeError) as exc:
         raise NemoError(f"reading the pixels of {path} failed ({exc}): the Zarr chunks may be "
                         "missing or damaged; copy the image again") from None
+
+
+def _check_chunks_stored(array, index: tuple, folder: Path, key: dict[str, int]) -> None:
+    """Warn when chunks of the selection are absent from a local store (they read as the fill
+    value, silently); refuse when all of them are. Zarr writers may skip a chunk equal to the
+    fill value, so a few absent chunks can be legitimate; a whole stack cannot be analysed."""
+    if not folder.is_dir():  # not a local folder (a remote store): zarr reports what it cannot read
+        return
+    grid = array.shards or array.chunks  # the stored unit: a shard holds several chunks
+    ranges = [range(i // g, i // g + 1) if isinstance(i, int) else range(-(-n // g))
+              for i, g, n in zip(index, grid, array.shape)]
+    coords = np.stack(np.meshgrid(*[np.asarray(r) for r in ranges], indexing="ij"), -1).reshape(-1, len(grid))
+    absent = sum(not (folder / array.metadata.encode_chunk_key(tuple(int(c) for c in xyz))).is_file()
+                 for xyz in coords)  # one stat per chunk of one stack: tens to thousands, not per pixel
+    where = ", ".join(f"{a.lower()} = {v}" for a, v in key.items()) or "the image"
+    if absent == len(coords):
+        raise NemoError(f"none of the {len(coords)} Zarr chunks of {where} is stored in {folder}: the stack "
+                        f"would read as the fill value {array.fill_value} everywhere; the copy is incomplete "
+                        "(copy the image again) or that time point / channel was never written")
+    if absent:
+        warnings.warn(f"{absent} of {len(coords)} Zarr chunks of {where} are not stored in {folder}: they read "
+                      f"as the fill value {array.fill_value}. Writers skip chunks equal to it; if that is not "
+                      "why, the copy is incomplete: copy the image again", NemoWarning, stacklevel=3)
 
 
 def write(path: str | os.PathLike, data: np.ndarray, spacing: tuple[float, float, float],

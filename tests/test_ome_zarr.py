@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -73,6 +75,35 @@ def test_only_the_requested_stack_is_read(movie, tmp_path):
     np.testing.assert_array_equal(read_stack(zpath, 0, 1)[0], movie[0, 1])
     with pytest.raises(NemoError, match="m.zarr"):
         read_stack(zpath, 1, 0)
+
+
+@pytest.mark.parametrize("zarr_format", [2, 3])
+def test_absent_chunks_are_warned_and_an_absent_stack_refused(movie, tmp_path, zarr_format):
+    """Zarr reads an absent chunk as the fill value, silently: an interrupted copy would be
+    analysed as a dark stack. Some chunks absent: a warning naming how many; all of a (t, c)
+    stack absent: an error; the other stacks read as before."""
+    zpath = ome_zarr.write(tmp_path / "m.zarr", movie, (1.0, 1.0, 1.0), chunks=(1, 1, 3, 20, 14),
+                           zarr_format=zarr_format)
+    stored = sorted(p for p in (zpath / "0").rglob("*") if p.is_file() and not p.name.startswith((".", "zarr")))
+    assert len(stored) == 3 * 2 * 2  # t, c, two z-chunks
+
+    def chunk(t, c, z):
+        name = {2: f"{t}.{c}.{z}.0.0", 3: f"c/{t}/{c}/{z}/0/0"}[zarr_format]
+        return zpath / "0" / name
+
+    chunk(1, 0, 1).unlink()
+    with pytest.warns(NemoWarning, match="1 of 2 Zarr chunks of t = 1, c = 0 are not stored"):
+        stack, _ = read_stack(zpath, 1, 0)
+    np.testing.assert_array_equal(stack[:3], movie[1, 0, :3])
+    assert (stack[3:] == 0).all()
+    chunk(2, 1, 0).unlink()
+    chunk(2, 1, 1).unlink()
+    with pytest.raises(NemoError, match="none of the 2 Zarr chunks of t = 2, c = 1 is stored"):
+        read_stack(zpath, 2, 1)
+    np.testing.assert_array_equal(read_stack(zpath, 2, 0)[0], movie[2, 0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a mask may leave its background chunks unwritten
+        assert not read_stack(zpath, 2, 1, sparse=True)[0].any()
 
 
 def test_folders_that_are_not_ome_zarr_are_refused(tmp_path):
