@@ -112,13 +112,18 @@ PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 200
 LADDER_MIN_PROBES = 50
 #: Width (σ) of the averaging of H and K over the surface after the fits, as a fraction of the
 #: fitting radius (a debiased diffusion, :func:`smooth_on_surface`). On the validation's noisy
-#: shapes it brings the SNR-10 ellipsoid from 2.4 to 1.2 % (H) at the default radius, and it
+#: shapes it brings the SNR-10 ellipsoid from 2.4 to 1.3 % (H) at the default radius, and it
 #: does not raise the noise-free errors (docs/validation.md, "Averaging the fits").
 DEFAULT_SMOOTH = 0.35
 #: ... values beyond this many robust standard deviations of their residual from a first
 #: average are clipped before the second (a few wild fits on a rough wall: SNR-5 balls' median
 #: K error 30 → 10 %).
 OUTLIER_CLIP = 3.0
+#: ... and at most this many radii (a width beyond the radius averages the shape away).
+MAX_SMOOTH = 2.0
+#: The walk's heat kernel is one Chebyshev series up to this mean number of steps, a product
+#: of shorter ones beyond (the series agrees with the steps within 1e-5 up to ~700).
+SERIES_MAX_STEPS = 350.0
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -196,7 +201,8 @@ def smooth_on_surface(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, d
     values : ndarray, shape (N,) or (N, C)
         Per-vertex values.
     sigma : float
-        Width of the kernel in the mesh's unit; 0 returns the values unchanged.
+        Width of the kernel in the mesh's unit (set from the mesh's mean step: where edge
+        lengths vary, it scales with the local edge); 0 returns the values unchanged.
     debias : bool
         Return 2 G_σ f − G_√2σ f instead of G_σ f (Richardson extrapolation: the σ² term of the
         Gaussian average, (σ²/2) Δf, cancels, so a peak of f is not flattened; a longer series).
@@ -210,7 +216,14 @@ def smooth_on_surface(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, d
         Number of products with the walk's transition matrix (0: nothing to average).
     """
     values = np.asarray(values, dtype=np.float64)
-    if not sigma > 0:
+    n = len(mesh.vertices)
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise NemoError(f"the averaging width must be a length ≥ 0, got {sigma}")
+    if values.shape[:1] != (n,) or values.ndim > 2:
+        raise NemoError(f"values must have one row per vertex, shape ({n},) or ({n}, C); got {values.shape}")
+    if normals is not None and np.shape(normals) != (n, 3):
+        raise NemoError(f"normals must have shape ({n}, 3), got {np.shape(normals)}")
+    if sigma == 0:
         return values.copy(), 0
     walk = _surface_walk(mesh, vertex_normals(mesh) if normals is None else normals)
     return _diffuse(walk, values, sigma, debias)
@@ -218,36 +231,71 @@ def smooth_on_surface(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, d
 
 def _diffuse(walk: tuple[csr_matrix, float], values: np.ndarray, sigma: float,
              debias: bool) -> tuple[np.ndarray, int]:
-    """:func:`smooth_on_surface` with the walk (:func:`_surface_walk`) given; returns the number
-    of products with the transition matrix.
+    """:func:`smooth_on_surface` with the walk (:func:`_surface_walk`) given.
 
-    The kernel is the walk's heat kernel exp(−τ (I − P)) (a Poisson number of steps, mean τ =
-    σ² / (s²/2)), summed as its Chebyshev series in P, Σ (2 − δ_k0) e^−τ I_k(τ) T_k(P): ~6 √τ
-    products instead of τ steps (0.5 s against 1.6 s at σ = 20 µm on a 190 k-vertex wall, equal
-    to the steps within 1e-4).
+    The kernel G_σ is the walk's heat kernel exp(−τ (I − P)) (a Poisson number of steps of mean
+    τ = σ² / (s²/2)), summed as Chebyshev series in P (:func:`_heat_series`): ~6 √τ products
+    instead of τ steps. Beyond :data:`SERIES_MAX_STEPS` it is a product of shorter kernels (the
+    series of a non-reversible walk grows like ρ^k, ρ ≈ 1.08, and would lose its precision).
+    Values and weights are divided per kernel, then 2 G_σ − G_√2σ is formed.
+
+    Parameters
+    ----------
+    walk : (csr_matrix (N, N), float)
+        Transition matrix and mean squared step.
+    values : ndarray, shape (N,) or (N, C)
+    sigma : float
+    debias : bool
+
+    Returns
+    -------
+    smoothed : ndarray, the shape of ``values``
+    products : int
+        Products with the transition matrix.
     """
     transition, spread = walk
     if spread == 0.0:
         return values.copy(), 0
     tau = sigma**2 / (0.5 * spread)
-    taus, weights = ((tau, 2.0 * tau), (2.0, -1.0)) if debias else ((tau,), (1.0,))
-    order = np.arange(int(2.0 * tau + 12.0 * math.sqrt(2.0 * tau) + 20.0))
-    coefficients = sum(w * special.ive(order, t) for w, t in zip(weights, taus))
-    coefficients[1:] *= 2.0
-    n_terms = int(np.flatnonzero(np.abs(coefficients) > 1e-7 * np.abs(coefficients).max()).max()) + 1
-    coefficients = coefficients.astype(np.float32)
     flat = values.reshape(len(values), -1)
     c = flat.shape[1]
     usable = np.isfinite(flat)
     state = np.concatenate([np.where(usable, flat, 0.0), usable], axis=1).astype(np.float32)  # values, weights
+    n = math.ceil(tau / SERIES_MAX_STEPS)
+    if n == 1:  # one series, an accumulator per width
+        kernels, products = _heat_series(transition, state, (tau, 2.0 * tau) if debias else (tau,))
+    else:
+        kernels, products = [], 0
+        for _ in range(2 if debias else 1):  # G_√2σ = G_σ G_σ
+            for _ in range(n):
+                (state,), k = _heat_series(transition, state, (tau / n,))
+                products += k
+            kernels.append(state)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratios = [k[:, :c].astype(np.float64) / k[:, c:] for k in kernels]
+    smoothed = 2.0 * ratios[0] - ratios[1] if debias else ratios[0]
+    return np.where(usable, smoothed, np.nan).reshape(values.shape), products
+
+
+def _heat_series(transition: csr_matrix, state: np.ndarray, taus: tuple[float, ...]) -> tuple[list, int]:
+    """exp(−τ (I − P)) ``state`` for each τ of ``taus``, from one Chebyshev sequence T_k(P) state.
+
+    The coefficients are (2 − δ_k0) e^−τ I_k(τ) (scipy.special.ive), cut below 1e-7 of their
+    largest; returns the (N, K) results, one per τ, and the number of products.
+    """
+    order = np.arange(int(12.0 * math.sqrt(max(taus)) + 20.0))  # e^−τ I_k(τ) < 1e-30 beyond
+    coefficients = np.stack([special.ive(order, t) for t in taus])
+    coefficients[:, 1:] *= 2.0
+    keep = np.abs(coefficients) > 1e-7 * np.abs(coefficients).max(axis=1, keepdims=True)
+    n_terms = max(2, int(np.flatnonzero(keep.any(axis=0)).max()) + 1)
+    coefficients = coefficients[:, :n_terms].astype(np.float32)
     previous, current = state, transition @ state
-    total = coefficients[0] * previous + coefficients[1] * current
+    totals = [a[0] * previous + a[1] * current for a in coefficients]
     for k in range(2, n_terms):  # T_k+1 = 2 P T_k − T_k−1
         previous, current = current, 2.0 * (transition @ current) - previous
-        total += coefficients[k] * current
-    with np.errstate(invalid="ignore", divide="ignore"):
-        smoothed = total[:, :c].astype(np.float64) / total[:, c:]
-    return np.where(usable, smoothed, np.nan).reshape(values.shape), max(n_terms - 1, 1)
+        for total, a in zip(totals, coefficients):
+            total += a[k] * current
+    return totals, n_terms - 1
 
 
 def _surface_walk(mesh: trimesh.Trimesh, normals: np.ndarray) -> tuple[csr_matrix, float]:
@@ -702,8 +750,9 @@ def curvature(
     check_mesh(mesh)
     radius, k_interp = _check_curvature_args(radius, n_samples, fraction, fit, k_interp)
     smooth = float(smooth)
-    if not (math.isfinite(smooth) and smooth >= 0):
-        raise NemoError(f"curvature smoothing must be a fraction of the radius ≥ 0 (0 = none), got {smooth}")
+    if not (math.isfinite(smooth) and 0 <= smooth <= MAX_SMOOTH):
+        raise NemoError(f"curvature smoothing must be a fraction of the radius in [0, {MAX_SMOOTH:g}] "
+                        f"(0 = none, default {DEFAULT_SMOOTH}), got {smooth}")
     rng = _as_rng(rng)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     n_vert = len(vertices)
@@ -903,7 +952,7 @@ def _curvature_table(H: np.ndarray, K: np.ndarray, idx: np.ndarray, out: dict, d
     dir1 = d1[idx[:, 0]]
     dir1 = project_tangent(dir1, normals)
     dir2 = np.cross(normals, dir1)
-    # sampled vertices keep their own fitted principal values and directions
+    # sampled vertices keep their own fitted directions (and principal values, unless averaged)
     if keep_fitted:
         k1[samples], k2[samples] = out["k1"], out["k2"]
     dir1[samples], dir2[samples] = d1, d2
