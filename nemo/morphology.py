@@ -729,6 +729,8 @@ def curvature(
         Width (σ) of the averaging of H and K over the surface after the fits, as a fraction of
         ``radius`` (default :data:`DEFAULT_SMOOTH`); 0 keeps the fitted and interpolated values
         (the paper). Principal curvatures then follow from the averaged H and K.
+        ``df.attrs`` records the fits' scatter about the average (``fit_scatter_H``, 1/unit,
+        ``fit_scatter_K``, 1/unit²: their noise; None without averaging).
 
     Returns
     -------
@@ -772,32 +774,49 @@ def curvature(
 
     with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
         H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
+    scatter = np.full(2, np.nan)
     if smooth > 0:
         with step(f"curvature: averaging H and K over the surface (σ = {smooth * radius:.3g} {unit})"):
             HK = np.where(near_rim[:, None], np.nan, np.stack([H, K], axis=1))  # the rim's band takes no part
-            H, K = _robust_average(mesh, HK, smooth * radius, normals).T
+            HK, scatter = _robust_average(mesh, HK, smooth * radius, normals)
+        H, K = HK[:, 0], HK[:, 1]
     df = _curvature_table(H, K, idx, out, d1, d2, samples, normals, keep_fitted=not smooth)
     df.loc[near_rim, list(_RIM_NAN)] = np.nan
     df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp),
-                    rim_vertices=int(near_rim.sum()), smooth=float(smooth))
+                    rim_vertices=int(near_rim.sum()), smooth=float(smooth),
+                    fit_scatter_H=_finite_or_none(scatter[0]), fit_scatter_K=_finite_or_none(scatter[1]))
     return df
 
 
-def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, normals: np.ndarray) -> np.ndarray:
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float,
+                    normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The debiased average of :func:`smooth_on_surface` (N, C), robust to outlying fits.
 
     A first pass gives the residual of each value; values beyond :data:`OUTLIER_CLIP` robust
     standard deviations (1.4826 × the median |residual|, per column) are clipped there, and a
     second pass averages the clipped values. A few wild fits on a rough wall (K of −100 / R²)
     would otherwise spread over the kernel's width.
+
+    Returns
+    -------
+    averaged : ndarray, shape (N, C)
+    scatter : ndarray, shape (C,)
+        The robust standard deviation of the values about the first pass: the fits' noise
+        (on the validation's ellipsoid, H: 0.7 % of |H| noise-free, 2.9 % at SNR 10, 4.0 % at
+        SNR 5, where the fits alone err by 0.4, 2.4 and 3.6 %).
     """
     walk = _surface_walk(mesh, normals)
     first = _diffuse(walk, values, sigma, debias=True)[0]
     residual = np.abs(values - first)
     if not np.isfinite(residual).any():
-        return first
-    scale = OUTLIER_CLIP * 1.4826 * np.nanmedian(residual, axis=0)
-    return _diffuse(walk, np.clip(values, first - scale, first + scale), sigma, debias=True)[0]
+        return first, np.full(values.shape[1], np.nan)
+    scatter = 1.4826 * np.nanmedian(residual, axis=0)
+    bound = OUTLIER_CLIP * scatter
+    return _diffuse(walk, np.clip(values, first - bound, first + bound), sigma, debias=True)[0], scatter
 
 
 #: Columns of the curvature table set to NaN where the fit's neighbourhood reaches an open rim.

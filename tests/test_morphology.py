@@ -751,12 +751,15 @@ def test_averaging_the_fits_over_the_surface_on_a_noisy_ellipsoid(ellipsoids):
         assert df.attrs["smooth"] == DEFAULT_SMOOTH
         averaged = median_rel_errors(df, H_true, K_true)
         assert averaged[0] < factor * raw[0] and averaged[1] < factor * raw[1], (r, raw, averaged)
+    noisy_scatter = df.attrs["fit_scatter_H"] / np.median(H_true)  # the fits' noise, relative
     for spacing, mesh in ellipsoids.items():
         H_true, K_true = ellipsoid_HK(closest_on_ellipsoid(np.asarray(mesh.vertices), ELL), ELL)
         radius, _ = default_radius(mesh)
         raw = median_rel_errors(curvature(mesh, radius, rng=0, smooth=0), H_true, K_true)
-        averaged = median_rel_errors(curvature(mesh, radius, rng=0), H_true, K_true)
+        df = curvature(mesh, radius, rng=0)
+        averaged = median_rel_errors(df, H_true, K_true)
         assert averaged[0] <= raw[0] and averaged[1] <= raw[1], (spacing, raw, averaged)
+        assert df.attrs["fit_scatter_H"] / np.median(H_true) < noisy_scatter / 2
 
 
 @pytest.mark.parametrize("sigma", [2.0, 3.0])
@@ -851,6 +854,8 @@ def test_wild_fits_are_clipped_before_the_average(monkeypatch):
         return np.nanmedian(np.abs(K * R * R - 1))
 
     clipped = k_error()
+    scatter = curvature(cap, radius, rng=0).attrs["fit_scatter_H"]  # the fits' noise: a few % of 1/R
+    assert 0.01 / R < scatter < 0.2 / R
     monkeypatch.setattr(nm, "OUTLIER_CLIP", np.inf)
     assert clipped < 0.13 and k_error() > 2 * clipped
 
