@@ -12,8 +12,8 @@ Mean curvature H and Gaussian curvature K at every vertex: a surface z(ξ, η) i
 least squares to the neighbours within --radius of a random subset of vertices, in the frame
 of the vertex normal; the results are interpolated to all vertices by inverse-distance weights
 over the --k-interp nearest fitted vertices, then averaged over the surface (a diffusion along
-the mesh of width --smooth × radius, which averages out the fits' noise). Outward normals: a sphere of radius R has
-H = +1/R and K = +1/R² (units 1/µm, 1/µm²).
+the mesh of width --smooth × radius, which averages out the fits' noise). Outward normals: a
+sphere of radius R has H = +1/R and K = +1/R² (units 1/µm, 1/µm²).
 
 Fits (--fit): 'quadric' is the paper's z = aξ² + bη² + cξη; 'quadratic' adds linear and
 constant terms (insensitive to normal errors); 'quartic' fits all terms up to 4th order
