@@ -63,7 +63,7 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning
-from nemo.geometry import axis_frames, project_tangent, rim, unit_vectors
+from nemo.geometry import axis_frames, edge_graph, project_tangent, rim, unit_vectors
 from nemo.mesh import (
     check_mesh,
     face_normals_areas,
@@ -272,7 +272,7 @@ def _diffuse(walk: tuple[csr_matrix, float], values: np.ndarray, sigma: float,
                 products += k
             kernels.append(state)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratios = [k[:, :c].astype(np.float64) / k[:, c:] for k in kernels]
+        ratios = [kernel[:, :c].astype(np.float64) / kernel[:, c:] for kernel in kernels]
     smoothed = 2.0 * ratios[0] - ratios[1] if debias else ratios[0]
     return np.where(usable, smoothed, np.nan).reshape(values.shape), products
 
@@ -309,8 +309,8 @@ def _surface_walk(mesh: trimesh.Trimesh, normals: np.ndarray) -> tuple[csr_matri
     factorisation at 190 k vertices).
     """
     n = len(mesh.vertices)
-    edges = np.asarray(mesh.edges_unique)
-    i, j = np.concatenate([edges[:, 0], edges[:, 1]]), np.concatenate([edges[:, 1], edges[:, 0]])
+    graph = edge_graph(mesh).tocoo()  # both directions of every edge
+    i, j = graph.row.astype(np.int64), graph.col.astype(np.int64)
     base = 1.0 / (np.bincount(i, minlength=n) + 1.0)
     move = np.asarray(mesh.vertices)[j] - np.asarray(mesh.vertices)[i]
     t1, t2 = axis_frames(np.nan_to_num(normals))

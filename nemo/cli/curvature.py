@@ -50,7 +50,7 @@ def add_arguments(parser) -> None:
                         help="fitted surface (default auto)")
     parser.add_argument("--smooth", type=non_negative, metavar="F",
                         help="width of the averaging of H and K over the surface after the fits, as a "
-                             "fraction of the radius (default 0.35; 0 = the fitted values, as in the paper)")
+                             "fraction of the radius, 0 to 2 (default 0.35; 0 = the fitted values, as in the paper)")
     parser.add_argument("--seed", type=seed, metavar="S", help="random seed of the sample (default 0)")
     add_common(parser, output_help="output table (.parquet)")
 
