@@ -294,7 +294,7 @@ def resolve_surfaces(sections: dict) -> dict:
     used |= {th["from"], th["to"]} if th is not None else set()
     if not split and used & {"inner", "outer"}:
         raise NemoError(f"config key 'mesh.split': is 'none' but the surfaces {sorted(used - {'whole'})} are "
-                        "used (layers, thickness or measure): set mesh.split: centre (or axis), or use the "
+                        "used (layers, thickness or measure): set mesh.split: auto (or centre, axis), or use the "
                         "whole surface only (layers on surface: whole, thickness: null)")
     if sections["mesh"]["split"] == "axis" and not sections["mesh"]["axis"]:
         raise NemoError("config key 'mesh.axis': mesh.split: axis needs mesh.axis: [x, y, z]")

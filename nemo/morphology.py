@@ -1292,7 +1292,7 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
 def _image_quality(mesh: trimesh.Trimesh) -> dict:
     """What NEMO's mesh step found in the image (None for meshes from elsewhere)."""
     params = mesh.metadata.get("nemo_params") or {}
-    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops")}
+    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "walls")}
 
 
 def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> dict:
@@ -1319,8 +1319,9 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         ``curvature_df``: ``integral_K_fit``, ``gauss_bonnet_ratio_fit`` (None on an open
         surface whose fits are NaN along the rim: the sum misses that band), ``mean_H_fit``,
         ``mean_K_fit`` (over the vertices with a fit); ``n_objects``, ``snr``, ``noise`` and
-        ``saturated`` of the image the mesh was made from and ``rim_loops`` (where the image
-        border cuts the object), from NEMO's mesh step (None otherwise); ``notes`` (list of
+        ``saturated`` of the image the mesh was made from, ``rim_loops`` (where the image
+        border cuts the object) and ``walls`` (1 or 2; a list per object with several), from
+        NEMO's mesh step (None otherwise); ``notes`` (list of
         str). Coincident vertices are merged (and the faces they collapse ignored) for the
         topology and the angles.
     """

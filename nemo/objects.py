@@ -184,7 +184,8 @@ def object_meshes(whole: trimesh.Trimesh, found: Sequence[dict]) -> list[trimesh
     return [_object_with_nested(whole, o["component"]) for o in found]
 
 
-def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis) -> dict[str, trimesh.Trimesh]:
+def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis,
+                  walls: Sequence[int] | None = None) -> dict[str, trimesh.Trimesh]:
     """``whole``, ``inner`` and ``outer`` meshes of several objects, each split about its own centre.
 
     Parameters
@@ -193,12 +194,16 @@ def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis) -> dict[str,
         The objects (:func:`object_meshes`), largest first: object ``k`` is ``pieces[k]``.
     by, axis
         The split (``mesh.split``, ``mesh.axis``; :func:`nemo.surface.split_mesh`).
+    walls : sequence of int, optional
+        Each object's walls as found by ``split: auto`` (:func:`nemo.surface.count_walls`): an
+        object with one is not split, its ``inner`` and ``outer`` are its whole surface.
 
     Returns
     -------
     dict
         Labelled meshes. Each object's walls are the largest piece of each half; an object with
-        one wall (a droplet) has no inner wall and is left out of ``inner`` (a warning says so).
+        one wall (a droplet) has no inner wall and is left out of ``inner`` (a warning says so),
+        unless ``walls`` says it has one.
 
     Raises
     ------
@@ -213,6 +218,11 @@ def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis) -> dict[str,
 
     inner, outer, labels = [], [], []
     for k, piece in enumerate(pieces):  # a loop over objects
+        if walls is not None and walls[k] == 1:
+            inner.append(piece)
+            outer.append(piece)
+            labels.append(k)
+            continue
         try:
             i, o = split_mesh(piece, by=by, axis=axis, keep="largest")
         except NemoError as exc:
@@ -225,6 +235,7 @@ def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis) -> dict[str,
     if not labels:
         raise NemoError("no object of the image has an inner and an outer wall: set `split` none "
                         "(config mesh.split: none) to analyse each object's surface")
-    logger.info("split %d objects into inner and outer walls, each about its own centre", len(labels))
+    logger.info("split %d objects into inner and outer walls, each about its own centre",
+                len(labels) if walls is None else sum(w == 2 for w in walls))
     return {"whole": concatenate(pieces, range(len(pieces))), "inner": concatenate(inner, labels),
             "outer": concatenate(outer, labels)}

@@ -75,7 +75,9 @@ def mesh(
     ``keep: largest`` analyses the largest (with the walls nested in it) and warns about the
     others; ``keep: all`` keeps every object, labels each vertex with its object (largest = 0;
     :mod:`nemo.objects`) and splits each about its own centre, so later steps analyse them
-    one by one.
+    one by one. ``split: auto`` (the default) splits an object only when it has two walls
+    (:func:`nemo.surface.count_walls`); an object of one wall (a droplet) gets ``inner`` and
+    ``outer`` equal to its whole surface, and no thickness (:func:`thickness`).
 
     Parameters
     ----------
@@ -96,7 +98,8 @@ def mesh(
         The section with ``step`` and ``sigma`` as numbers, the iso-level used, the image's
         ``noise``, ``snr``, ``saturated`` and ``background`` (:func:`nemo.surface.image_noise`;
         None with a mask), ``refine_to`` as applied,
-        ``n_objects`` (:func:`nemo.surface.find_objects`), ``cap_faces`` (faces where the object
+        ``n_objects`` (:func:`nemo.surface.find_objects`), ``walls`` (1 or 2; a list per
+        object with ``keep: all`` and ``split: auto``), ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
 
@@ -140,6 +143,7 @@ def mesh(
         p["n_objects"] = len(found)
     else:  # several objects: the largest, and a warning
         whole = one_object(whole, p["split"] != "none", p["keep"])
+        _check_object_size(whole, spacing, unit)
         meshes = _walls(whole, p, centre)
         p["n_objects"] = int(whole.metadata["n_objects"])
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
@@ -151,6 +155,15 @@ def mesh(
     return meshes, p
 
 
+def _check_object_size(whole: trimesh.Trimesh, spacing: tuple[float, float, float], unit: str) -> None:
+    """Refuse an object smaller than a voxel (a few specks selected by a wrong threshold or label)."""
+    radius = float(np.sqrt(whole.area / (4 * np.pi)))
+    if radius < max(spacing):
+        raise NemoError(f"the object found is smaller than a voxel (area {whole.area:.3g} {unit}², radius of equal area "
+                        f"{radius:.3g} {unit}, voxels up to {max(spacing):.3g} {unit}): no surface to analyse; check the "
+                        "threshold, the mask (and its labels) or the channel")
+
+
 def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[str, trimesh.Trimesh]:
     """Every object of ``whole`` (``keep: all``), labelled (:mod:`nemo.objects`), split if configured."""
     pieces = objects.object_meshes(whole, found)
@@ -158,18 +171,35 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
     logger.info("keeping all %d objects: %s", len(found), "; ".join(
         f"object {k}: area {o['area']:.4g} {unit}², centre ({o['centre'][0]:.4g}, {o['centre'][1]:.4g}, "
         f"{o['centre'][2]:.4g})" for k, o in enumerate(found)))
+    p["walls"] = 1 if p["split"] == "none" else 2
     if p["split"] == "none":
         return {"whole": objects.concatenate(pieces, range(len(pieces)))}
+    if p["split"] == "auto":  # each object: split if it has two walls (a loop over objects)
+        decided = [_auto_walls(piece, p["keep"], f"object {k}") for k, piece in enumerate(pieces)]
+        p["walls"] = [walls for walls, _ in decided]
+        return objects.split_objects([piece for _, piece in decided], "centre", None, walls=p["walls"])
     return objects.split_objects(pieces, p["split"], p["axis"])
 
 
 def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[str, trimesh.Trimesh]:
-    """``whole`` and, with a split, its ``inner`` and ``outer`` walls (the mesh section ``p``)."""
+    """``whole`` and, with a split, its ``inner`` and ``outer`` walls (the mesh section ``p``).
+
+    ``split: auto`` splits an object with two walls (:func:`nemo.surface.count_walls`) by its
+    centre; an object with one wall gets ``inner`` and ``outer`` equal to ``whole`` (no thickness).
+    Sets ``p["walls"]``.
+    """
     from nemo.surface import face_components, split_mesh, submesh
 
     meshes = {"whole": whole}
+    p["walls"] = 1 if p["split"] == "none" else 2
+    if p["split"] == "auto":
+        p["walls"], whole = _auto_walls(whole, p["keep"], "the object", centre)
+        if p["walls"] == 1:
+            return {"whole": whole, "inner": whole.copy(), "outer": whole.copy()}
+        meshes["whole"] = whole
     if p["split"] != "none":
-        inner, outer = split_mesh(whole, by=p["split"], axis=p["axis"], centre=centre, keep=p["keep"])
+        by = "centre" if p["split"] == "auto" else p["split"]
+        inner, outer = split_mesh(whole, by=by, axis=p["axis"], centre=centre, keep=p["keep"])
         if p["keep"] == "largest":  # the whole = the components the kept halves came from
             labels = face_components(whole.faces, len(whole.vertices))
             used = np.unique(labels[np.concatenate([inner.metadata["parent_faces"],
@@ -178,6 +208,24 @@ def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[s
                 meshes["whole"] = submesh(whole, np.isin(labels, used))
         meshes.update(inner=inner, outer=outer)
     return meshes
+
+
+def _auto_walls(whole: trimesh.Trimesh, keep: str, what: str,
+                centre: np.ndarray | None = None) -> tuple[int, trimesh.Trimesh]:
+    """(walls, surface) of one object under ``split: auto`` (:func:`nemo.surface.count_walls`);
+    with one wall, the largest component when ``keep`` is largest, as without a split."""
+    from nemo.surface import OBJECT_MIN_AREA, _with_metadata, count_walls, keep_components
+
+    walls, inner = count_walls(whole, centre)
+    if walls == 2:
+        logger.info("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its centre",
+                    what, 100 * inner)
+        return 2, whole
+    logger.info("split auto: %s has one wall (%s): its inner and outer surfaces are the whole surface, and there is "
+                "no thickness; set split: centre to split it anyway", what,
+                f"faces turned towards its centre: {100 * inner:.1f} % of the area of those turned away, below "
+                f"{100 * OBJECT_MIN_AREA:.0f} %" if inner else "every face turned away from its centre")
+    return 1, _with_metadata(keep_components(whole, "largest"), whole) if keep == "largest" else whole
 
 
 #: Mesh units (besides those of :mod:`nemo.io`) a user mesh may be in: voxel indices.
@@ -332,12 +380,45 @@ def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.Dat
 
 def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
               params: dict | None = None) -> tuple[pd.DataFrame, dict]:
-    """Distance from ``mesh_from`` to ``mesh_to`` along the normals (method note §3)."""
+    """Distance from ``mesh_from`` to ``mesh_to`` along the normals (method note §3).
+
+    An object whose two surfaces are the same one (one wall, ``mesh.split: auto``) has no
+    thickness: NaN at its vertices, with a warning, and ``one_wall`` (its labels) in the section.
+    """
     from nemo.morphology import thickness as ray_thickness
 
     p = nconfig.section("thickness", params)
-    d = ray_thickness(mesh_from, mesh_to, direction=p["direction"], max_distance=p["max_distance"])
+    one_wall, labels = _one_wall(mesh_from, mesh_to)
+    p["one_wall"] = labels
+    if labels:
+        what = "the object has" if labels == [None] else f"object(s) {labels} have"
+        warnings.warn(f"{what} one wall (inner and outer surfaces are the same, mesh.split: auto): no thickness "
+                      "there (NaN)", NemoWarning, stacklevel=2)
+    if one_wall.all():
+        d = np.full(len(mesh_from.vertices), np.nan)
+    else:
+        d = ray_thickness(mesh_from, mesh_to, direction=p["direction"], max_distance=p["max_distance"])
+        d[one_wall] = np.nan
     return _labelled(pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d}), mesh_from), p
+
+
+def _one_wall(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh) -> tuple[np.ndarray, list]:
+    """(per vertex of ``mesh_from``: its object is the same surface in ``mesh_to``, those objects'
+    labels; [None] for an unlabelled mesh)."""
+    def same(a: trimesh.Trimesh, b: trimesh.Trimesh) -> bool:
+        return a.faces.shape == b.faces.shape and a.vertices.shape == b.vertices.shape and bool(
+            np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices))
+
+    n = len(mesh_from.vertices)
+    parts_from, parts_to = objects.parts(mesh_from), objects.parts(mesh_to)
+    if parts_from is None or parts_to is None:
+        return np.full(n, same(mesh_from, mesh_to)), [None] if same(mesh_from, mesh_to) else []
+    to = {part.label: part.mesh for part in parts_to}
+    one = [part for part in parts_from if part.label in to and same(part.mesh, to[part.label])]  # per object
+    mask = np.zeros(n, dtype=bool)
+    for part in one:
+        mask[part.vertices] = True
+    return mask, [part.label for part in one]
 
 
 # ----------------------------------------------------------------------------- nematics

@@ -26,11 +26,12 @@ import numpy as np
 import pandas as pd
 
 from nemo.errors import NemoError
+from nemo.objects import value_for
 from nemo.tables import read_provenance, read_table
 
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
-    "t", "c", "layer", "object", "surface", "n_objects", "centre_x", "centre_y", "centre_z", "snr", "saturated", "area",
+    "t", "c", "layer", "object", "surface", "n_objects", "walls", "centre_x", "centre_y", "centre_z", "snr", "saturated", "area",
     "volume", "euler_characteristic", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median", "coherency_noise",
@@ -199,7 +200,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:
         flags.append(f"no curvature at {100 * missing:.0f} % of vertices (the fit radius reaches the rim)")
     valid = row.get("thickness_valid", math.nan)
-    if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID:
+    if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID and row.get("walls") != 1:  # one wall: no thickness
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices")
     return flags + (_layer_flags(row, closed, chi) if "n_directors" in row else [])
 
@@ -256,7 +257,8 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             row["object"] = label
             rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
-    out = out.astype({"t": "int64", "c": "int64", "object": "int64", "n_directors": "Int64", "n_defects": "Int64",
+    out = out.astype({"t": "int64", "c": "int64", "object": "int64", "walls": "Int64", "n_directors": "Int64",
+                      "n_defects": "Int64",
                       "qc_pass": "bool", "qc_flags": "str"})
     return out.sort_values(["t", "c", "layer", "object"], kind="stable").reset_index(drop=True)
 
@@ -277,7 +279,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
            "surface": str(r["surface"]), "area": _num(mo.get("area")),
            "volume": _num(mo.get("volume")),
            "euler_characteristic": _num(mo.get("euler_characteristic")),
-           "n_objects": m.get("n_objects"), "snr": _num(m.get("snr")),
+           "n_objects": m.get("n_objects"), "walls": value_for(m.get("walls"), label), "snr": _num(m.get("snr")),
            "saturated": _num(m.get("saturated")),
            "centre_x": _num(centre[0]), "centre_y": _num(centre[1]), "centre_z": _num(centre[2]),
            "H_mean": _num(mo.get("mean_H")), "K_mean": _num(mo.get("mean_K"))}

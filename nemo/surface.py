@@ -81,6 +81,7 @@ from nemo.mesh import (
 __all__ = [
     "AUTO_SIGMA_SNR",
     "OBJECT_MIN_AREA",
+    "count_walls",
     "auto_sigma",
     "blur_noise_gain",
     "default_sigma",
@@ -1491,6 +1492,60 @@ def split_mesh(
     NemoError
         Unknown ``by``, missing or zero axis, or a half with no face (the mesh has one wall).
     """
+    side, ref = _wall_sides(mesh, by, axis, centre, component_majority)
+    outer_sel = side > 0
+    inner_sel = side < 0
+    n_out, n_in = int(outer_sel.sum()), int(inner_sel.sum())
+    if n_out == 0 or n_in == 0:
+        side = "inner" if n_in == 0 else "outer"
+        raise NemoError(
+            f"splitting by {ref} leaves the {side} half empty: the mesh has a single wall "
+            "(e.g. a filled object or a droplet) or the reference is outside it; for one wall set "
+            "`split` auto or none (config mesh.split), else another split reference (`axis`)"
+        )
+    inner = keep_components(submesh(mesh, inner_sel, flip=True), keep)
+    outer = keep_components(submesh(mesh, outer_sel), keep)
+    logger.info("split by %s: inner %d faces, outer %d faces", ref, len(inner.faces), len(outer.faces))
+    return inner, outer
+
+
+def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
+                min_fraction: float = OBJECT_MIN_AREA) -> tuple[int, float]:
+    """Walls of one object for ``mesh.split: auto``: 2 when it splits into an inner and an outer wall.
+
+    The faces are sorted as :func:`split_mesh` sorts them by the centre. The object has two walls
+    when the inner half's area is at least ``min_fraction`` of the outer half's (the bar of an
+    object, :func:`find_objects`); otherwise one: a droplet or a filled cell (every face turns
+    away from the centre, or a connected piece does so over 90 % of its area) or an object with
+    only a speck or a small cavity inside.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        One object's surface with the surfaces nested in it (:func:`one_object`).
+    centre : array_like, shape (3,), optional
+        Reference point (default: the area-weighted centroid).
+    min_fraction : float
+        Smallest inner area relative to the outer.
+
+    Returns
+    -------
+    walls : int
+        1 or 2.
+    inner_fraction : float
+        The inner half's area over the outer half's (0 when it is empty).
+    """
+    if len(mesh.faces) == 0:
+        return 1, 0.0
+    side, _ = _wall_sides(mesh, "centre", None, centre, 0.9)
+    areas = face_normals_areas(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))[1]
+    outer = float(areas[side > 0].sum())
+    inner = float(areas[side < 0].sum()) / outer if outer > 0 else 0.0
+    return (2 if outer > 0 and inner >= min_fraction else 1), inner
+
+
+def _wall_sides(mesh: trimesh.Trimesh, by: str, axis, centre, component_majority: float) -> tuple[np.ndarray, str]:
+    """(side of every face: +1 outer, −1 inner, 0 none; the reference named) of :func:`split_mesh`."""
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces)
     if len(faces) == 0:
@@ -1524,21 +1579,7 @@ def split_mesh(
     whole_out = outer_frac >= component_majority
     whole_in = (1.0 - outer_frac) >= component_majority
     side = np.where(has_normal & whole_out[labels], 1.0, side)
-    side = np.where(has_normal & whole_in[labels], -1.0, side)
-    outer_sel = side > 0
-    inner_sel = side < 0
-    n_out, n_in = int(outer_sel.sum()), int(inner_sel.sum())
-    if n_out == 0 or n_in == 0:
-        side = "inner" if n_in == 0 else "outer"
-        raise NemoError(
-            f"splitting by {ref} leaves the {side} half empty: the mesh has a single wall "
-            "(e.g. a filled object or a droplet) or the reference is outside it; for one wall set "
-            "`split` none (config mesh.split: none), else another split reference (`axis`)"
-        )
-    inner = keep_components(submesh(mesh, inner_sel, flip=True), keep)
-    outer = keep_components(submesh(mesh, outer_sel), keep)
-    logger.info("split by %s: inner %d faces, outer %d faces", ref, len(inner.faces), len(outer.faces))
-    return inner, outer
+    return np.where(has_normal & whole_in[labels], -1.0, side), ref
 
 
 # --------------------------------------------------------------------------- sphere fit

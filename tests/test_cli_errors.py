@@ -123,6 +123,18 @@ def test_bad_output_suffix_and_options(hyperstack, tmp_path, run_cli):
     _one_clear_line(*run_cli("mesh", hyperstack, "-o", tmp_path / "m.ply", "--split", "centre"), "single wall")
 
 
+def test_mesh_of_a_single_wall_at_the_default_split(hyperstack, tmp_path, run_cli):
+    """split auto (the default): the ball is one wall, its inner and outer files are the whole."""
+    from nemo.mesh import load_mesh
+
+    code, out, err = run_cli("mesh", hyperstack, "-o", tmp_path / "m.ply")
+    assert code == 0 and "one wall" in err, err
+    whole = load_mesh(tmp_path / "m.ply")
+    for name in ("inner", "outer"):
+        np.testing.assert_array_equal(load_mesh(tmp_path / f"m.{name}.ply").vertices, whole.vertices)
+    assert whole.metadata["nemo_params"]["walls"] == 1
+
+
 @pytest.mark.parametrize("bad_value", [["--threshold", "triangle"], ["--step", "0"], ["--smooth", "-1"],
                                        ["--keep", "biggest"]])
 def test_argparse_rejects_bad_values(hyperstack, tmp_path, run_cli, bad_value):

@@ -25,7 +25,7 @@ def test_defaults_fill_every_analysis_section():
     cfg = config.validate(None)
     assert cfg["layers"] == {"fibres": {"range": [0, 5], "surface": None, "channels": "all", "reduce": "mean",
                                         "samples": 11, "interp": "linear", "inward": False, "shift": 0}}
-    assert cfg["mesh"]["split"] == "centre" and cfg["mesh"]["step"] is None  # step: from the stack size
+    assert cfg["mesh"]["split"] == "auto" and cfg["mesh"]["step"] is None  # step: from the stack size
     for key in ("patch_radius", "pixel", "n_patches"):
         assert cfg["directors"][key] is None  # derived from the mesh
     assert cfg["order"]["radius"] is None and cfg["curvature"]["radius"] is None
@@ -82,7 +82,7 @@ def test_per_dataset_overrides_merge_key_by_key():
                               "directors": {"patch_radius": 4}}}})
     assert "mesh" not in cfg["datasets"]["drop"] or cfg["datasets"]["drop"]["mesh"] == {"split": "none"}
     v, d = config.analysis(cfg, "vesicle"), config.analysis(cfg, "drop")
-    assert v["mesh"]["split"] == "centre" and v["curvature"] is not None and v["layers"]
+    assert v["mesh"]["split"] == "auto" and v["curvature"] is not None and v["layers"]
     assert d["mesh"]["split"] == "none" and d["mesh"]["threshold"] == "yen"  # merged, not replaced
     assert d["curvature"] is None and d["layers"] == {} and d["thickness"] is None
     assert d["directors"]["patch_radius"] == 4 and d["directors"]["seed"] == 3

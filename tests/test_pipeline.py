@@ -358,6 +358,25 @@ def test_run_frame_with_a_label_mask_analyses_the_chosen_object(ball_and_labels)
     np.testing.assert_allclose(read_mesh_centre(d / "out" / "mesh.ply"), (16, 16, 16), atol=0.2)
 
 
+def test_run_frame_of_a_droplet_at_the_defaults(ball_and_labels):
+    """A filled ball (one wall) with the default split (auto): the run goes through; the inner and
+    outer surfaces are the ball's, its curvature is 1/R, its thickness NaN (not flagged)."""
+    from nemo.mesh import load_mesh
+
+    d = ball_and_labels
+    cfg = {"datasets": {"d": {"path": str(d / "img.tif"), "mask": str(d / "labels.tif"), "mask_labels": [2]}},
+           "layers": {}}
+    summary = run_frame(None, d / "out", cfg, dataset="d")
+    assert summary["mesh"]["split"] == "auto" and summary["mesh"]["walls"] == 1
+    inner, outer = (load_mesh(d / "out" / f"mesh.{name}.ply") for name in ("inner", "outer"))
+    np.testing.assert_array_equal(inner.vertices, outer.vertices)
+    m = json.loads((d / "out" / "measure_inner.json").read_text())
+    assert m["walls"] == 1 and m["euler_characteristic"] == 2
+    assert read_table(d / "out" / "thickness.parquet")["thickness"].isna().all()
+    H = read_table(d / "out" / "curvature_outer.parquet")["H"].to_numpy()
+    assert np.nanmedian(H) * (3 * m["volume"] / (4 * math.pi)) ** (1 / 3) == pytest.approx(1.0, abs=0.03)
+
+
 def test_run_frame_with_user_surfaces_per_time_point(ball_and_labels):
     import trimesh
 

@@ -189,6 +189,57 @@ def test_mesh_keep_all_leaves_a_droplet_out_of_the_walls():
                     {"split": "centre", "keep": "all"})
 
 
+def test_mesh_split_auto_splits_a_shell_and_keeps_a_droplet_whole():
+    """split: auto (the default) splits a hollow shell (a surface inside it) exactly as split:
+    centre does, gives a droplet inner = outer = whole (no error), keeps a droplet with a speck
+    inside one wall, and refuses a closed single-walled droplet under split: centre as before."""
+    shell = _balls((46, 46, 46), [(22, 22, 22, 10, 16)])
+    auto, pa = stages.mesh(shell, (1.0, 1.0, 1.0))
+    centre, pc = stages.mesh(shell, (1.0, 1.0, 1.0), {"split": "centre"})
+    assert pa["split"] == "auto" and pa["walls"] == 2 and pc["walls"] == 2
+    for name in ("whole", "inner", "outer"):
+        np.testing.assert_array_equal(auto[name].vertices, centre[name].vertices)
+    assert stages.object_radius(auto["inner"]) == pytest.approx(10, abs=0.5)
+    # a droplet, and one with a small cavity inside (8 % of its area): one wall, no thickness
+    for r_in in (-1, 2.5):
+        meshes, p = stages.mesh(_balls((30, 30, 30), [(15, 15, 15, r_in, 9)]), (1.0, 1.0, 1.0))
+        assert p["walls"] == 1 and meshes["whole"].euler_number == 2  # the cavity dropped
+        for name in ("inner", "outer"):
+            np.testing.assert_array_equal(meshes[name].vertices, meshes["whole"].vertices)
+        assert stages.object_radius(meshes["outer"]) == pytest.approx(9, abs=0.5)
+        with pytest.warns(NemoWarning, match="one wall"):
+            df, tp = stages.thickness(meshes["inner"], meshes["outer"])
+        assert df["thickness"].isna().all() and tp["one_wall"] == [None]
+    with pytest.raises(NemoError, match="single wall"):
+        stages.mesh(_balls((30, 30, 30), [(15, 15, 15, -1, 9)]), (1.0, 1.0, 1.0), {"split": "centre"})
+
+
+def test_mesh_split_auto_with_several_objects_keeps_each_droplet_whole():
+    """keep: all with split: auto: the shell is split, the droplet's inner and outer walls are its
+    whole surface (split: centre leaves it out), and the thickness is NaN on the droplet only."""
+    from nemo import objects
+
+    vol = _balls((40, 40, 76), [(20, 20, 20, 10, 14), (56, 20, 20, -1, 12)])
+    meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"keep": "all"})
+    assert params["walls"] == [2, 1]
+    assert set(objects.vertex_labels(meshes["inner"])) == {0, 1}
+    parts = {part.label: part.mesh for part in objects.parts(meshes["inner"])}
+    assert stages.object_radius(parts[0]) == pytest.approx(10, abs=0.6)
+    assert stages.object_radius(parts[1]) == pytest.approx(12, abs=0.6)
+    with pytest.warns(NemoWarning, match=r"object\(s\) \[1\] have one wall"):
+        df, tp = stages.thickness(meshes["inner"], meshes["outer"])
+    assert tp["one_wall"] == [1]
+    assert df.loc[df["object"] == 1, "thickness"].isna().all()
+    assert df.loc[df["object"] == 0, "thickness"].median() == pytest.approx(4.0, abs=0.3)
+
+
+def test_mesh_refuses_an_object_smaller_than_a_voxel():
+    vol = np.zeros((20, 20, 20), np.float32)
+    vol[10, 10, 10] = 200.0  # one bright voxel: a speck, not an object
+    with pytest.raises(NemoError, match="smaller than a voxel"):
+        stages.mesh(vol, (1.0, 1.0, 1.0), {"sigma": 0.3, "threshold": 50})
+
+
 def _textured_shells(shape, spheres, period=4.0):
     """``_balls`` shells with a stripe texture (rings about z), so that directors have something to see."""
     z, y, x = np.indices(shape)

@@ -81,6 +81,23 @@ def test_frame_summary_means_ignore_nan(frame_files):
     assert str(out["n_directors"].dtype) == "Int64" and str(out["n_defects"].dtype) == "Int64"
 
 
+def test_frame_summary_walls_come_from_the_mesh_step(frame_files):
+    """The mesh step's walls (1 or 2; one per object with several) reach the row; a frame of one
+    wall with its NaN thickness is not flagged for it."""
+    measure = json.loads(frame_files["measure"].read_text())
+    assert frame_summary([frame_files]).iloc[0]["walls"] is pd.NA  # a mesh from elsewhere
+    write_table(pd.DataFrame({"vertex": [0, 1, 2, 3], "thickness": NAN}), frame_files["thickness"])
+    frame_files["measure"].write_text(json.dumps({**measure, "walls": 1}))
+    row = frame_summary([frame_files]).iloc[0]
+    assert row["walls"] == 1 and row["thickness_valid"] == 0.0 and "thickness" not in row["qc_flags"]
+    frame_files["measure"].write_text(json.dumps({**measure, "walls": 2}))
+    assert "thickness found at 0 %" in frame_summary([frame_files]).iloc[0]["qc_flags"]
+    objects = [{**measure, "object": k} for k in (0, 1)]
+    frame_files["measure"].write_text(json.dumps({**measure, "walls": [2, 1], "objects": objects}))
+    out = frame_summary([frame_files])
+    assert list(out["walls"]) == [2, 1] and str(out["walls"].dtype) == "Int64"
+
+
 def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
     """Records without curvature, thickness or layer tables give NaN / <NA> there; missing
     measure values (null) are NaN; rows are sorted by t, c, layer whatever the input order."""
@@ -120,6 +137,8 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"charge_sum": 0.0}, {"n_components": 1, "n_boundary_loops": 9, "rim_loops": 2},
      ["surface has 7 holes besides its rim on the image border (a porous or torn wall?)"]),
     ({"thickness_valid": 0.5}, CLOSED, ["thickness found at 50 % of vertices"]),
+    ({"thickness_valid": 0.0, "walls": 1}, CLOSED, []),  # one wall (split: auto): no thickness to find
+    ({"thickness_valid": 0.0, "walls": 2}, CLOSED, ["thickness found at 0 % of vertices"]),
     ({"n_directors": 0, "S_mean": NAN}, CLOSED, ["no directors"]),
     ({"peel_nan_fraction": 0.05, "order_nan_fraction": 0.0, "coherency_median": 0.2}, CLOSED, []),
     ({"peel_nan_fraction": 0.081}, CLOSED,

@@ -13,6 +13,7 @@ from nemo.errors import NemoError
 from nemo.io import write_hyperstack
 from nemo.mesh import load_mesh, signed_volume, vertex_normals
 from nemo.surface import (
+    count_walls,
     default_sigma,
     fit_sphere,
     keep_components,
@@ -280,6 +281,35 @@ def test_split_single_wall_is_an_error():
         split_mesh(mesh, by="axis", axis=(0, 0, 0))
     with pytest.raises(NemoError, match="centre"):
         split_mesh(mesh, by="middle")
+
+
+def test_count_walls_tells_a_shell_from_a_droplet():
+    """split: auto's rule: two walls when the faces turned towards the centre (the inner half of
+    split_mesh) have ≥ 10 % of the outer half's area; a filled ball, a dumbbell (a neck turned
+    inward) or a ball with a small cavity have one; a hollow shell, the shell cut in half (two
+    open walls) and a torus have two (a torus splits as split: centre does)."""
+    import trimesh
+
+    def two_balls(offset):
+        return np.maximum(ball_volume((30, 30, 50), (1, 1, 1), (15, 15, 15), 9.0),
+                          ball_volume((30, 30, 50), (1, 1, 1), (15 + offset, 15, 15), 9.0))
+
+    ball = reconstruct(ball_volume((30, 30, 30), (1, 1, 1), (15, 15, 15), 9.0), (1, 1, 1))
+    assert count_walls(ball) == (1, 0.0)
+    dumbbell = reconstruct(two_balls(15.0), (1, 1, 1))
+    assert count_walls(dumbbell)[0] == 1
+    shell = reconstruct(shell_volume((50, 50, 50), (1, 1, 1), np.array([25.0] * 3), 14.0, 19.0), (1, 1, 1),
+                        keep="all")
+    walls, inner = count_walls(shell)
+    assert walls == 2 and inner == pytest.approx((14 / 19) ** 2, rel=0.05)
+    cavity = reconstruct(shell_volume((30, 30, 30), (1, 1, 1), np.array([15.0] * 3), 2.5, 9.0), (1, 1, 1),
+                         keep="all")
+    walls, inner = count_walls(cavity)
+    assert len(cavity.split(only_watertight=False)) == 2 and walls == 1 and 0 < inner < 0.1
+    torus = trimesh.creation.torus(20.0, 6.0, major_sections=96, minor_sections=32)
+    assert count_walls(torus)[0] == 2
+    half = shell.submesh([np.flatnonzero(shell.triangles_center[:, 2] < 25.0)], append=True)
+    assert count_walls(half)[0] == 2
 
 
 # ----------------------------------------------------------------------------- sphere fit

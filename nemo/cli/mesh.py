@@ -24,13 +24,18 @@ smoothing, largest connected component. An object cut by the edge of the image g
 surface whose rim lies on the border (--border open, the default); --border closed keeps the
 flat cap that closes it along the border planes.
 
-A hollow object (e.g. a vesicle's fibre shell) has two walls. --split centre writes them as
-MESH.inner.ply and MESH.outer.ply next to MESH.ply (the whole); both halves have normals
-pointing away from the centre, so the inner wall is the cavity's surface with outward normals
-and peeling outward from it samples the shell. --fit-sphere fits a sphere to every written mesh
-and stores it in MESH.sphere.json.
+A hollow object (e.g. a vesicle's fibre shell) has two walls: its inner wall is a surface
+inside the outer one. MESH.inner.ply and MESH.outer.ply are written next to MESH.ply (the
+whole); both have normals pointing away from the centre, so the inner wall is the cavity's
+surface with outward normals and peeling outward from it samples the shell. --split auto (the
+default) splits an object with two walls by its centre; an object with one wall (a droplet, a
+filled cell, an embryo's outline) is not split: its inner and outer files are the whole surface
+and it has no thickness (the log says which it found). --split centre / axis always split,
+--split none writes MESH.ply only. --fit-sphere fits a sphere to every written mesh and stores
+it in MESH.sphere.json.
 
 examples:
+  nemo mesh droplet.tif -o droplet.ply
   nemo mesh vesicle.tif -o mesh.ply --split centre --fit-sphere
   nemo mesh embryo.tif --t 3 --c 1 -o embryo.ply --sigma 2 --threshold otsu --step 1
   nemo mesh stack.tif --mask mask.tif -o mesh.ply --keep all
@@ -105,9 +110,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--keep", choices=("largest", "all"), default=None,
                         help="several objects in the image: analyse the largest (default) or all, each labelled "
                              "(vertex field 'object', 0 = the largest) and split about its own centre")
-    parser.add_argument("--split", choices=("centre", "center", "axis", "none"), default=None,
-                        help="also write MESH.inner.ply and MESH.outer.ply, split by the sign of "
-                             "n·(x - centre) or n·axis (default centre; none = one surface)")
+    parser.add_argument("--split", choices=("auto", "centre", "center", "axis", "none"), default=None,
+                        help="also write MESH.inner.ply and MESH.outer.ply, split by the sign of n·(x - centre) "
+                             "or n·axis; auto (default): by the centre when the object has two walls, else both "
+                             "are the whole surface; none = MESH.ply only")
     parser.add_argument("--axis", type=number, nargs=3, metavar=("X", "Y", "Z"),
                         help="reference axis for --split axis")
     parser.add_argument("--centre", type=number, nargs=3, metavar=("X", "Y", "Z"),
