@@ -419,19 +419,36 @@ def _droplets(path: Path, radii, spacing=(1.0, 0.42, 0.42)) -> None:
 
 
 def test_morphology_only_single_wall_uncalibrated_timelapse(tmp_path):
-    """A droplet time-lapse with one wall, no layers, thickness: null, spacing from the config:
-    every frame meshed, measured and summarised (area, volume, H of the analytic sphere)."""
+    """A droplet time-lapse with one wall, no layers, spacing from the config, the default split
+    (auto) and thickness: every frame meshed, measured and summarised (area, volume, H of the
+    analytic sphere); one wall, so inner = outer and no thickness (not flagged); nemo run on a
+    frame gives the workflow's numbers."""
     from nemo.io import read_info
+    from nemo.tables import read_table
 
     radii = [8.0, 9.0, 10.0]
     _droplets(tmp_path / "drops.tif", radii)
     assert not read_info(tmp_path / "drops.tif").calibrated
     cfg = {"datasets": {"drops": {"path": "drops.tif", "spacing": [1.0, 0.42, 0.42]}},
-           "mesh": {"split": "none"}, "layers": {}, "thickness": None, "alignment": [],
-           "report": {"summary": False}}
+           "layers": {}, "alignment": [], "report": {"summary": False}}
     smk(tmp_path, "--cores", "2", "--configfile", write_config(tmp_path / "c.yaml", cfg))
-    f = _summary(tmp_path, "frames", "drops")
-    assert f["t"].tolist() == [0, 1, 2] and set(f["surface"]) == {"whole"}
+    every = _summary(tmp_path, "frames", "drops")
+    assert set(every["surface"]) == {"inner", "outer"} and (every["walls"] == 1).all()
+    assert every["qc_pass"].all(), every["qc_flags"]
+    f = every[every["surface"] == "outer"].reset_index(drop=True)
+    inner = every[every["surface"] == "inner"].reset_index(drop=True)
+    assert (inner["thickness_valid"] == 0).all()  # the thickness's rows: from inner, NaN everywhere
+    np.testing.assert_array_equal(f["H_fit_mean"], inner["H_fit_mean"])
+    proc = subprocess.run([sys.executable, "-m", "nemo", "run", "--config", "c.yaml", "--dataset", "drops",
+                           "--t", "1", "-o", "run"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    frame = tmp_path / "results" / "drops" / "t1" / "c0"
+    for name in ("measure_outer.json", "measure_inner.json"):
+        assert json.loads((frame / name).read_text()) == json.loads((tmp_path / "run" / name).read_text())
+    pd.testing.assert_frame_equal(read_table(frame / "curvature_outer.parquet"),
+                                  read_table(tmp_path / "run" / "curvature_outer.parquet"))
+    assert read_table(tmp_path / "run" / "thickness.parquet")["thickness"].isna().all()
+    assert f["t"].tolist() == [0, 1, 2]
     R = np.array(radii)
     np.testing.assert_allclose(f["area"], 4 * np.pi * R**2, rtol=0.03)
     np.testing.assert_allclose(f["volume"], 4 / 3 * np.pi * R**3, rtol=0.03)
