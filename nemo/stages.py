@@ -178,7 +178,10 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
         decided = [_auto_walls(piece, p["keep"], f"object {k}") for k, piece in enumerate(pieces)]
         p["walls"] = [walls for walls, _ in decided]
         return objects.split_objects([piece for _, piece in decided], "centre", None, walls=p["walls"])
-    return objects.split_objects(pieces, p["split"], p["axis"])
+    meshes = objects.split_objects(pieces, p["split"], p["axis"])
+    split = set(objects.vertex_labels(meshes["inner"]).tolist())  # an object of one wall is left out
+    p["walls"] = [2 if k in split else 1 for k in range(len(pieces))]
+    return meshes
 
 
 def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[str, trimesh.Trimesh]:

@@ -181,7 +181,7 @@ def test_mesh_keep_all_leaves_a_droplet_out_of_the_walls():
     vol = _balls((40, 40, 76), [(20, 20, 20, 10, 14), (56, 20, 20, -1, 12)])
     with pytest.warns(NemoWarning, match="object 1 is not split into walls"):
         meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
-    assert params["n_objects"] == 2
+    assert params["n_objects"] == 2 and params["walls"] == [2, 1]
     assert set(objects.vertex_labels(meshes["inner"])) == {0} and set(objects.vertex_labels(meshes["whole"])) == {0, 1}
     assert stages.object_radius(meshes["inner"]) == pytest.approx(10, abs=0.6)
     with pytest.raises(NemoError, match="no object of the image has an inner and an outer wall"):
