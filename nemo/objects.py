@@ -233,8 +233,8 @@ def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis,
         outer.append(o)
         labels.append(k)
     if not labels:
-        raise NemoError("no object of the image has an inner and an outer wall: set `split` none "
-                        "(config mesh.split: none) to analyse each object's surface")
+        raise NemoError("no object of the image has an inner and an outer wall: set `split` auto or none "
+                        "(config mesh.split) to analyse each object's surface")
     logger.info("split %d objects into inner and outer walls, each about its own centre",
                 len(labels) if walls is None else sum(w == 2 for w in walls))
     return {"whole": concatenate(pieces, range(len(pieces))), "inner": concatenate(inner, labels),

@@ -99,7 +99,7 @@ def mesh(
         ``noise``, ``snr``, ``saturated`` and ``background`` (:func:`nemo.surface.image_noise`;
         None with a mask), ``refine_to`` as applied,
         ``n_objects`` (:func:`nemo.surface.find_objects`), ``walls`` (1 or 2; a list per
-        object with ``keep: all`` and ``split: auto``), ``cap_faces`` (faces where the object
+        object with ``keep: all`` and several objects), ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
 
@@ -137,13 +137,13 @@ def mesh(
         warnings.warn(f"signal-to-noise ratio {p['snr']:.2g} of the segmented channel: the surface is uncertain (a "
                       f"frame below {QC_MIN_SNR:g} is flagged in the summary); check the channel and the time point",
                       NemoWarning, stacklevel=2)
+    _check_object_size(whole, spacing, unit)
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
         found = find_objects(whole)
         meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)
         p["n_objects"] = len(found)
     else:  # several objects: the largest, and a warning
         whole = one_object(whole, p["split"] != "none", p["keep"])
-        _check_object_size(whole, spacing, unit)
         meshes = _walls(whole, p, centre)
         p["n_objects"] = int(whole.metadata["n_objects"])
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
@@ -156,10 +156,15 @@ def mesh(
 
 
 def _check_object_size(whole: trimesh.Trimesh, spacing: tuple[float, float, float], unit: str) -> None:
-    """Refuse an object smaller than a voxel (a few specks selected by a wrong threshold or label)."""
-    radius = float(np.sqrt(whole.area / (4 * np.pi)))
+    """Refuse a surface whose largest piece is smaller than a voxel (specks selected by a wrong
+    threshold or label)."""
+    from nemo.surface import face_components
+
+    labels = face_components(np.asarray(whole.faces), len(whole.vertices))
+    area = float(np.bincount(labels, weights=whole.area_faces).max())
+    radius = float(np.sqrt(area / (4 * np.pi)))
     if radius < max(spacing):
-        raise NemoError(f"the object found is smaller than a voxel (area {whole.area:.3g} {unit}², radius of equal area "
+        raise NemoError(f"the object found is smaller than a voxel (area {area:.3g} {unit}², radius of equal area "
                         f"{radius:.3g} {unit}, voxels up to {max(spacing):.3g} {unit}): no surface to analyse; check the "
                         "threshold, the mask (and its labels) or the channel")
 
@@ -175,7 +180,7 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
     if p["split"] == "none":
         return {"whole": objects.concatenate(pieces, range(len(pieces)))}
     if p["split"] == "auto":  # each object: split if it has two walls (a loop over objects)
-        decided = [_auto_walls(piece, p["keep"], f"object {k}") for k, piece in enumerate(pieces)]
+        decided = [_auto_walls(piece, f"object {k}") for k, piece in enumerate(pieces)]
         p["walls"] = [walls for walls, _ in decided]
         return objects.split_objects([piece for _, piece in decided], "centre", None, walls=p["walls"])
     meshes = objects.split_objects(pieces, p["split"], p["axis"])
@@ -196,7 +201,7 @@ def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[s
     meshes = {"whole": whole}
     p["walls"] = 1 if p["split"] == "none" else 2
     if p["split"] == "auto":
-        p["walls"], whole = _auto_walls(whole, p["keep"], "the object", centre)
+        p["walls"], whole = _auto_walls(whole, "the object", centre)
         if p["walls"] == 1:
             return {"whole": whole, "inner": whole.copy(), "outer": whole.copy()}
         meshes["whole"] = whole
@@ -213,22 +218,26 @@ def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[s
     return meshes
 
 
-def _auto_walls(whole: trimesh.Trimesh, keep: str, what: str,
-                centre: np.ndarray | None = None) -> tuple[int, trimesh.Trimesh]:
+def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = None) -> tuple[int, trimesh.Trimesh]:
     """(walls, surface) of one object under ``split: auto`` (:func:`nemo.surface.count_walls`);
-    with one wall, the largest component when ``keep`` is largest, as without a split."""
+    with one wall, its largest piece (a speck or a small cavity inside it dropped)."""
     from nemo.surface import OBJECT_MIN_AREA, _with_metadata, count_walls, keep_components
 
-    walls, inner = count_walls(whole, centre)
+    walls, inner, mixed = count_walls(whole, centre)
     if walls == 2:
         logger.info("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its centre",
                     what, 100 * inner)
         return 2, whole
+    why = (f"its largest surface facing the centre has {100 * inner:.1f} % of the outer's area, below "
+           f"{100 * OBJECT_MIN_AREA:.0f} %" if inner else "no separate surface faces its centre")
+    if mixed >= OBJECT_MIN_AREA:
+        warnings.warn(f"split auto: {what} counts as one wall ({why}), but {100 * mixed:.0f} % of its surface lies in "
+                      "pieces that turn partly towards its centre: a torus or a curved cell has one wall, but a sheet "
+                      "whose two sides meet at a rim (an epithelium cut by the image border) has two; set split: "
+                      "centre for that", NemoWarning, stacklevel=3)
     logger.info("split auto: %s has one wall (%s): its inner and outer surfaces are the whole surface, and there is "
-                "no thickness; set split: centre to split it anyway", what,
-                f"faces turned towards its centre: {100 * inner:.1f} % of the area of those turned away, below "
-                f"{100 * OBJECT_MIN_AREA:.0f} %" if inner else "every face turned away from its centre")
-    return 1, _with_metadata(keep_components(whole, "largest"), whole) if keep == "largest" else whole
+                "no thickness", what, why)
+    return 1, _with_metadata(keep_components(whole, "largest"), whole)
 
 
 #: Mesh units (besides those of :mod:`nemo.io`) a user mesh may be in: voxel indices.
@@ -444,6 +453,7 @@ def peel(
     from nemo.peel import peel as sample
 
     p = nconfig.section("layer", params)
+    _warn_one_wall_layer(mesh, p)
     normals = vertex_normals(mesh)
     if p["inward"]:
         normals = -normals
@@ -455,6 +465,17 @@ def peel(
     intensity = result[0] if return_profile else result
     df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity}), mesh)
     return (df, p, result[1], result[2]) if return_profile else (df, p)
+
+
+def _warn_one_wall_layer(mesh: trimesh.Trimesh, p: dict) -> None:
+    """Warn when a layer on the inner or outer wall of an object of one wall reaches out of it."""
+    walls = (mesh.metadata.get("nemo_params") or {}).get("walls")
+    one = 1 in walls if isinstance(walls, list) else walls == 1
+    if one and p.get("surface") in ("inner", "outer") and not p["inward"] and float(p["range"][1]) > 0:
+        warnings.warn(f"the object has one wall (mesh.split: auto), so the layer's {p['surface']} surface is its whole "
+                      f"outline and the range {list(p['range'])} reaches outside the object; peel inward "
+                      "(inward: true) for a layer under its surface, or set mesh.split: centre for a shell",
+                      NemoWarning, stacklevel=3)
 
 
 def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dict:

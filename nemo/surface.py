@@ -1510,14 +1510,18 @@ def split_mesh(
 
 
 def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
-                min_fraction: float = OBJECT_MIN_AREA) -> tuple[int, float]:
-    """Walls of one object for ``mesh.split: auto``: 2 when it splits into an inner and an outer wall.
+                min_fraction: float = OBJECT_MIN_AREA) -> tuple[int, float, float]:
+    """Walls of one object for ``mesh.split: auto``: 2 when a separate surface faces its centre.
 
-    The faces are sorted as :func:`split_mesh` sorts them by the centre. The object has two walls
-    when the inner half's area is at least ``min_fraction`` of the outer half's (the bar of an
-    object, :func:`find_objects`); otherwise one: a droplet or a filled cell (every face turns
-    away from the centre, or a connected piece does so over 90 % of its area) or an object with
-    only a speck or a small cavity inside.
+    Each connected piece of the surface is sorted by the sign of n · (x − centre) over its area,
+    as :func:`split_mesh` sorts the pieces that lie at least 90 % on one side. The object has two
+    walls when its largest piece turned towards the centre (a hollow shell's inner wall, closed
+    or cut open by the image border) has at least ``min_fraction`` of the area of its largest
+    piece turned away (the bar of an object, :func:`find_objects`); otherwise one. A droplet, a
+    filled cell or a ball with a small cavity have one; so has a single surface that turns
+    towards its centre over part of its area (a torus, a banana-shaped cell, a sheet cut by the
+    image border, a cup whose two sides meet at its lip): ``split: centre`` sorts those face by
+    face. ``mixed_fraction`` says how much of the surface such pieces hold.
 
     Parameters
     ----------
@@ -1533,15 +1537,22 @@ def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
     walls : int
         1 or 2.
     inner_fraction : float
-        The inner half's area over the outer half's (0 when it is empty).
+        Area of the largest piece turned towards the centre over that of the largest turned
+        away (0 when there is none).
+    mixed_fraction : float
+        Area of the pieces turned neither way over 90 % of their area, over the whole area.
     """
     if len(mesh.faces) == 0:
-        return 1, 0.0
-    side, _ = _wall_sides(mesh, "centre", None, centre, 0.9)
+        return 1, 0.0, 0.0
+    side, _ = _wall_sides(mesh, "centre", None, centre, 1.0)  # the faces' own signs
     areas = face_normals_areas(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))[1]
-    outer = float(areas[side > 0].sum())
-    inner = float(areas[side < 0].sum()) / outer if outer > 0 else 0.0
-    return (2 if outer > 0 and inner >= min_fraction else 1), inner
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
+    total = np.bincount(labels, weights=areas)
+    outward = np.bincount(labels, weights=areas * (side > 0)) / np.maximum(total, 1e-300)
+    outer, inner = total[outward >= 0.9], total[outward <= 0.1]
+    mixed = float(total[(outward > 0.1) & (outward < 0.9)].sum() / max(total.sum(), 1e-300))
+    fraction = float(inner.max() / outer.max()) if len(inner) and len(outer) else 0.0
+    return (2 if fraction >= min_fraction else 1), fraction, mixed
 
 
 def _wall_sides(mesh: trimesh.Trimesh, by: str, axis, centre, component_majority: float) -> tuple[np.ndarray, str]:

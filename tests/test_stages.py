@@ -214,6 +214,24 @@ def test_mesh_split_auto_splits_a_shell_and_keeps_a_droplet_whole():
         stages.mesh(_balls((30, 30, 30), [(15, 15, 15, -1, 9)]), (1.0, 1.0, 1.0), {"split": "centre"})
 
 
+def test_a_layer_reaching_out_of_a_one_wall_object_is_warned_about(recwarn):
+    """The default layer (0 to 5 µm outward from inner) on a droplet samples the background: a
+    warning names it; peeling inward does not warn, nor does the same layer on a shell."""
+    vol = _balls((30, 30, 30), [(15, 15, 15, -1, 9)])
+    meshes, p = stages.mesh(vol, (1.0, 1.0, 1.0))
+    meshes["inner"].metadata["nemo_params"] = p  # as nemo mesh and nemo run record it
+    layer = {"range": [0, 5], "surface": "inner"}
+    with pytest.warns(NemoWarning, match="reaches outside the object"):
+        stages.peel(vol, (1.0, 1.0, 1.0), meshes["inner"], layer)
+    recwarn.clear()
+    stages.peel(vol, (1.0, 1.0, 1.0), meshes["inner"], {**layer, "inward": True})
+    shell = _balls((46, 46, 46), [(22, 22, 22, 10, 16)])
+    walls, ps = stages.mesh(shell, (1.0, 1.0, 1.0))
+    walls["inner"].metadata["nemo_params"] = ps
+    stages.peel(shell, (1.0, 1.0, 1.0), walls["inner"], layer)
+    assert not [w for w in recwarn if "outside the object" in str(w.message)]
+
+
 def test_mesh_split_auto_with_several_objects_keeps_each_droplet_whole():
     """keep: all with split: auto: the shell is split, the droplet's inner and outer walls are its
     whole surface (split: centre leaves it out), and the thickness is NaN on the droplet only."""

@@ -284,10 +284,10 @@ def test_split_single_wall_is_an_error():
 
 
 def test_count_walls_tells_a_shell_from_a_droplet():
-    """split: auto's rule: two walls when the faces turned towards the centre (the inner half of
-    split_mesh) have ≥ 10 % of the outer half's area; a filled ball, a dumbbell (a neck turned
-    inward) or a ball with a small cavity have one; a hollow shell, the shell cut in half (two
-    open walls) and a torus have two (a torus splits as split: centre does)."""
+    """split: auto's rule: two walls when a separate surface faces the centre with ≥ 10 % of the
+    outer surface's area (a hollow shell, or the shell cut in half: two open walls); one for a
+    filled ball, a dumbbell, a ball with a small cavity, a torus and a sheet cut by the border
+    (their pieces turn partly towards the centre: ``mixed`` says how much)."""
     import trimesh
 
     def two_balls(offset):
@@ -295,21 +295,33 @@ def test_count_walls_tells_a_shell_from_a_droplet():
                           ball_volume((30, 30, 50), (1, 1, 1), (15 + offset, 15, 15), 9.0))
 
     ball = reconstruct(ball_volume((30, 30, 30), (1, 1, 1), (15, 15, 15), 9.0), (1, 1, 1))
-    assert count_walls(ball) == (1, 0.0)
-    dumbbell = reconstruct(two_balls(15.0), (1, 1, 1))
-    assert count_walls(dumbbell)[0] == 1
+    assert count_walls(ball) == (1, 0.0, 0.0)
+    assert count_walls(reconstruct(two_balls(15.0), (1, 1, 1)))[0] == 1  # the neck turns inward
     shell = reconstruct(shell_volume((50, 50, 50), (1, 1, 1), np.array([25.0] * 3), 14.0, 19.0), (1, 1, 1),
                         keep="all")
-    walls, inner = count_walls(shell)
-    assert walls == 2 and inner == pytest.approx((14 / 19) ** 2, rel=0.05)
-    cavity = reconstruct(shell_volume((30, 30, 30), (1, 1, 1), np.array([15.0] * 3), 2.5, 9.0), (1, 1, 1),
-                         keep="all")
-    walls, inner = count_walls(cavity)
-    assert len(cavity.split(only_watertight=False)) == 2 and walls == 1 and 0 < inner < 0.1
-    torus = trimesh.creation.torus(20.0, 6.0, major_sections=96, minor_sections=32)
-    assert count_walls(torus)[0] == 2
+    walls, inner, mixed = count_walls(shell)
+    assert walls == 2 and inner == pytest.approx((14 / 19) ** 2, rel=0.05) and mixed == 0
     half = shell.submesh([np.flatnonzero(shell.triangles_center[:, 2] < 25.0)], append=True)
     assert count_walls(half)[0] == 2
+    cavity = reconstruct(shell_volume((30, 30, 30), (1, 1, 1), np.array([15.0] * 3), 2.5, 9.0), (1, 1, 1),
+                         keep="all")
+    walls, inner, _ = count_walls(cavity)
+    assert len(cavity.split(only_watertight=False)) == 2 and walls == 1 and 0 < inner < 0.1
+    torus = trimesh.creation.torus(20.0, 6.0, major_sections=96, minor_sections=32)
+    walls, inner, mixed = count_walls(torus)
+    assert walls == 1 and inner == 0 and mixed == pytest.approx(1.0)
+    # a wavy sheet (one side of a large object seen through a small field of view)
+    x, y = np.meshgrid(np.linspace(0, 40, 41), np.linspace(0, 40, 41))
+    sheet = trimesh.Trimesh(np.c_[x.ravel(), y.ravel(), 3 * np.sin(x.ravel() / 4)], _grid_faces(41, 41),
+                            process=False)
+    assert count_walls(sheet)[0] == 1
+
+
+def _grid_faces(ny: int, nx: int) -> np.ndarray:
+    """Two triangles per cell of an ny × nx vertex grid (row-major)."""
+    i, j = np.meshgrid(np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
+    v = (i * nx + j).ravel()
+    return np.r_[np.c_[v, v + 1, v + nx], np.c_[v + 1, v + nx + 1, v + nx]]
 
 
 # ----------------------------------------------------------------------------- sphere fit

@@ -438,7 +438,6 @@ def test_morphology_only_single_wall_uncalibrated_timelapse(tmp_path):
     f = every[every["surface"] == "outer"].reset_index(drop=True)
     inner = every[every["surface"] == "inner"].reset_index(drop=True)
     assert (inner["thickness_valid"] == 0).all()  # the thickness's rows: from inner, NaN everywhere
-    np.testing.assert_array_equal(f["H_fit_mean"], inner["H_fit_mean"])
     proc = subprocess.run([sys.executable, "-m", "nemo", "run", "--config", "c.yaml", "--dataset", "drops",
                            "--t", "1", "-o", "run"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -24,15 +24,16 @@ smoothing, largest connected component. An object cut by the edge of the image g
 surface whose rim lies on the border (--border open, the default); --border closed keeps the
 flat cap that closes it along the border planes.
 
-A hollow object (e.g. a vesicle's fibre shell) has two walls: its inner wall is a surface
-inside the outer one. MESH.inner.ply and MESH.outer.ply are written next to MESH.ply (the
+A hollow object (e.g. a vesicle's fibre shell) has two walls: its inner wall is a separate
+surface facing the centre. MESH.inner.ply and MESH.outer.ply are written next to MESH.ply (the
 whole); both have normals pointing away from the centre, so the inner wall is the cavity's
 surface with outward normals and peeling outward from it samples the shell. --split auto (the
 default) splits an object with two walls by its centre; an object with one wall (a droplet, a
-filled cell, an embryo's outline) is not split: its inner and outer files are the whole surface
-and it has no thickness (the log says which it found). --split centre / axis always split,
---split none writes MESH.ply only. --fit-sphere fits a sphere to every written mesh and stores
-it in MESH.sphere.json.
+filled cell, a torus) is not split: its inner and outer files are the whole surface and it has
+no thickness (the log says which it found). --split centre / axis always split, face by face
+(also a sheet whose two sides are one connected surface, which auto counts as one wall and
+warns about); --split none writes MESH.ply only. --fit-sphere fits a sphere to every written
+mesh and stores it in MESH.sphere.json.
 
 examples:
   nemo mesh droplet.tif -o droplet.ply
@@ -117,7 +118,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--axis", type=number, nargs=3, metavar=("X", "Y", "Z"),
                         help="reference axis for --split axis")
     parser.add_argument("--centre", type=number, nargs=3, metavar=("X", "Y", "Z"),
-                        help="reference point (µm) for --split centre (default: the surface centroid)")
+                        help="reference point (µm) for --split centre or auto (default: the surface centroid)")
     parser.add_argument("--fit-sphere", action="store_true", default=None,
                         help="fit a sphere to each mesh; print it and write MESH.sphere.json")
 
