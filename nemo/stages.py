@@ -204,7 +204,6 @@ def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[s
         p["walls"], whole = _auto_walls(whole, "the object", centre)
         if p["walls"] == 1:
             return {"whole": whole, "inner": whole.copy(), "outer": whole.copy()}
-        meshes["whole"] = whole
     if p["split"] != "none":
         by = "centre" if p["split"] == "auto" else p["split"]
         inner, outer = split_mesh(whole, by=by, axis=p["axis"], centre=centre, keep=p["keep"])
