@@ -258,9 +258,29 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
     out = out.astype({"t": "int64", "c": "int64", "object": "int64", "walls": "Int64", "n_directors": "Int64",
-                      "n_defects": "Int64",
-                      "qc_pass": "bool", "qc_flags": "str"})
+                      "n_defects": "Int64", "qc_pass": "bool", "qc_flags": "str"})
+    _flag_changed_walls(out)
     return out.sort_values(["t", "c", "layer", "object"], kind="stable").reset_index(drop=True)
+
+
+def _flag_changed_walls(out: pd.DataFrame) -> None:
+    """Flag (in place) the rows whose object has other walls than in most frames of its series.
+
+    With ``mesh.split: auto`` the walls are counted frame by frame: a shell whose cavity closes
+    (or a droplet that opens one) changes what its inner surface is between time points.
+    """
+    known = out[out["walls"].notna()]
+    if known.empty:
+        return
+    keys = ["c", "layer", "surface", "object"]
+    usual = known.groupby(keys, dropna=False)["walls"].agg(lambda w: w.mode().max())  # ties: 2 walls
+    expected = known.join(usual.rename("usual"), on=keys)["usual"]
+    odd = expected.index[(known["walls"] != expected).to_numpy()]
+    for i in odd:  # a loop over the few flagged rows
+        flag = (f"{out.at[i, 'walls']} wall(s) where most time points have {expected.at[i]} (mesh.split: auto counts "
+                "them per frame; set split: centre or none to fix them)")
+        out.at[i, "qc_flags"] = f"{out.at[i, 'qc_flags']}; {flag}" if out.at[i, "qc_flags"] else flag
+        out.at[i, "qc_pass"] = False
 
 
 def _skipped_searches(r: Mapping) -> dict[int, str]:

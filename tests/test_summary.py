@@ -98,6 +98,23 @@ def test_frame_summary_walls_come_from_the_mesh_step(frame_files):
     assert list(out["walls"]) == [2, 1] and str(out["walls"].dtype) == "Int64"
 
 
+def test_frame_summary_flags_walls_that_change_over_time(frame_files, tmp_path):
+    """split: auto counts walls per frame: the time point whose object lost its inner wall is
+    flagged against the series' usual count; a series of constant walls is not."""
+    measure = json.loads(frame_files["measure"].read_text())
+    records = []
+    for t, walls in enumerate((2, 2, 1, 2)):
+        path = tmp_path / f"measure{t}.json"
+        path.write_text(json.dumps({**measure, "walls": walls}))
+        records.append({**frame_files, "t": t, "measure": path, "thickness": None})
+    out = frame_summary(records)
+    assert out["walls"].tolist() == [2, 2, 1, 2]
+    flagged = out["qc_flags"].str.contains("where most time points have 2").tolist()
+    assert flagged == [False, False, True, False] and not out["qc_pass"][2]
+    same = frame_summary([{**r, "measure": records[0]["measure"]} for r in records])
+    assert not same["qc_flags"].str.contains("most time points").any()
+
+
 def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
     """Records without curvature, thickness or layer tables give NaN / <NA> there; missing
     measure values (null) are NaN; rows are sorted by t, c, layer whatever the input order."""
