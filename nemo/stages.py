@@ -423,7 +423,8 @@ def _one_wall(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh) -> tuple[np.
     n = len(mesh_from.vertices)
     parts_from, parts_to = objects.parts(mesh_from), objects.parts(mesh_to)
     if parts_from is None or parts_to is None:
-        return np.full(n, same(mesh_from, mesh_to)), [None] if same(mesh_from, mesh_to) else []
+        one = same(mesh_from, mesh_to)
+        return np.full(n, one), [None] if one else []
     to = {part.label: part.mesh for part in parts_to}
     one = [part for part in parts_from if part.label in to and same(part.mesh, to[part.label])]  # per object
     mask = np.zeros(n, dtype=bool)

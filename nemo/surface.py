@@ -1492,7 +1492,12 @@ def split_mesh(
     NemoError
         Unknown ``by``, missing or zero axis, or a half with no face (the mesh has one wall).
     """
-    side, ref = _wall_sides(mesh, by, axis, centre, component_majority)
+    side, labels, _, outer_frac, ref = _face_sides(mesh, by, axis, centre)
+    if not 0.5 < component_majority <= 1.0:
+        raise NemoError(f"component_majority must be in (0.5, 1], got {component_majority}")
+    has_normal = side != 0
+    side = np.where(has_normal & (outer_frac >= component_majority)[labels], 1.0, side)
+    side = np.where(has_normal & (1.0 - outer_frac >= component_majority)[labels], -1.0, side)
     outer_sel = side > 0
     inner_sel = side < 0
     n_out, n_in = int(outer_sel.sum()), int(inner_sel.sum())
@@ -1544,19 +1549,18 @@ def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
     """
     if len(mesh.faces) == 0:
         return 1, 0.0, 0.0
-    side, _ = _wall_sides(mesh, "centre", None, centre, 1.0)  # the faces' own signs
-    areas = face_normals_areas(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))[1]
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
-    total = np.bincount(labels, weights=areas)
-    outward = np.bincount(labels, weights=areas * (side > 0)) / np.maximum(total, 1e-300)
+    _, _, total, outward, _ = _face_sides(mesh, "centre", None, centre)
     outer, inner = total[outward >= 0.9], total[outward <= 0.1]
     mixed = float(total[(outward > 0.1) & (outward < 0.9)].sum() / max(total.sum(), 1e-300))
     fraction = float(inner.max() / outer.max()) if len(inner) and len(outer) else 0.0
     return (2 if fraction >= min_fraction else 1), fraction, mixed
 
 
-def _wall_sides(mesh: trimesh.Trimesh, by: str, axis, centre, component_majority: float) -> tuple[np.ndarray, str]:
-    """(side of every face: +1 outer, −1 inner, 0 none; the reference named) of :func:`split_mesh`."""
+def _face_sides(mesh: trimesh.Trimesh, by: str, axis, centre) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                        np.ndarray, str]:
+    """Sides of :func:`split_mesh`: (sign of n · (x − centre) or n · axis per face (0: no normal),
+    connected-piece label per face, area per piece, outward area fraction per piece, the
+    reference named)."""
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces)
     if len(faces) == 0:
@@ -1580,17 +1584,10 @@ def _wall_sides(mesh: trimesh.Trimesh, by: str, axis, centre, component_majority
         ref = f"axis ({axis[0]:.4g}, {axis[1]:.4g}, {axis[2]:.4g})"
     else:
         raise NemoError(f"split by must be 'centre' or 'axis', got {by!r}")
-    if not 0.5 < component_majority <= 1.0:
-        raise NemoError(f"component_majority must be in (0.5, 1], got {component_majority}")
     side = np.sign(sign)  # zero-area faces have no normal (sign 0): they stay out of both halves
     labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(faces))
-    has_normal = side != 0
     total = np.bincount(labels, weights=areas)
-    outer_frac = np.bincount(labels, weights=areas * (side > 0)) / np.maximum(total, 1e-300)
-    whole_out = outer_frac >= component_majority
-    whole_in = (1.0 - outer_frac) >= component_majority
-    side = np.where(has_normal & whole_out[labels], 1.0, side)
-    return np.where(has_normal & whole_in[labels], -1.0, side), ref
+    return side, labels, total, np.bincount(labels, weights=areas * (side > 0)) / np.maximum(total, 1e-300), ref
 
 
 # --------------------------------------------------------------------------- sphere fit
