@@ -50,6 +50,7 @@ and ``docs/validation.md``.
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from typing import Literal
 
@@ -527,6 +528,7 @@ def default_radius(
     """
     check_mesh(mesh)
     _check_default_radius_args(fit, min_edges, fraction, quantile, n_probe)
+    fraction = float(fraction)  # a numpy scalar computes like the Python float
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     normals = vertex_normals(mesh)
     h = mean_edge_length(mesh)
@@ -584,7 +586,8 @@ def _check_default_radius_args(fit: str, min_edges: float, fraction: float, quan
     if not (math.isfinite(min_edges) and 0 < min_edges <= MAX_RADIUS_EDGES):
         raise NemoError(f"min_edges (the smallest radius, in edge lengths) must be in (0, {MAX_RADIUS_EDGES:g}], "
                         f"got {min_edges}")
-    if not (isinstance(fraction, (int, float)) and math.isfinite(fraction) and 0 < fraction <= 2):
+    if not (isinstance(fraction, numbers.Real) and not isinstance(fraction, bool) and math.isfinite(fraction)
+            and 0 < fraction <= 2):
         raise NemoError(f"fraction of the surface's size must be in (0, 2], got {fraction}")
     if not (0 < quantile < 1):
         raise NemoError(f"quantile must be in (0, 1), got {quantile}")

@@ -1048,6 +1048,10 @@ def test_default_radius_bad_input(sphere15):
         default_radius(sphere15, fraction=0.0)
     with pytest.raises(NemoError, match="fraction"):
         default_radius(sphere15, fraction=None)
+    with pytest.raises(NemoError, match="fraction"):
+        default_radius(sphere15, fraction=True)
+    # a numpy scalar (e.g. read from an array) is a number like any other
+    assert default_radius(sphere15, fraction=np.float32(0.5), rng=0)[0] == default_radius(sphere15, fraction=0.5, rng=0)[0]
     with pytest.raises(NemoError, match="quantile"):
         default_radius(sphere15, quantile=1.0)
     with pytest.raises(NemoError, match="min_edges"):
