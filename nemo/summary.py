@@ -267,15 +267,22 @@ def _flag_changed_walls(out: pd.DataFrame) -> None:
     """Flag (in place) the rows whose object has other walls than in most frames of its series.
 
     With ``mesh.split: auto`` the walls are counted frame by frame: a shell whose cavity closes
-    (or a droplet that opens one) changes what its inner surface is between time points.
+    (or a droplet that opens one) changes what its inner surface is between time points. With
+    several objects the labels are area ranks, so a shell and a droplet of similar size may swap
+    labels between frames: a frame whose objects have the series' usual walls among them (the
+    same counts, in another order) is not flagged.
     """
     known = out[out["walls"].notna()]
     if known.empty:
         return
-    keys = ["c", "layer", "surface", "object"]
-    usual = known.groupby(keys, dropna=False)["walls"].agg(lambda w: w.mode().max())  # ties: 2 walls
-    expected = known.join(usual.rename("usual"), on=keys)["usual"]
-    odd = expected.index[(known["walls"] != expected).to_numpy()]
+    series, frame = ["c", "layer", "surface"], ["t", "c", "layer", "surface"]
+    usual = known.groupby([*series, "object"], dropna=False)["walls"].agg(lambda w: w.mode().max())  # ties: 2
+    expected = known.join(usual.rename("usual"), on=[*series, "object"])["usual"]
+    counts = known.groupby(frame, dropna=False)["walls"].agg(lambda w: tuple(sorted(w))).rename("counts")
+    usual_counts = counts.groupby(series, dropna=False).agg(lambda c: c.mode().iloc[-1]).rename("usual_counts")
+    mix = known.join(counts, on=frame).join(usual_counts, on=series)
+    swapped = (mix["counts"] == mix["usual_counts"]).to_numpy()
+    odd = expected.index[(known["walls"] != expected).to_numpy() & ~swapped]
     for i in odd:  # a loop over the few flagged rows
         flag = (f"{out.at[i, 'walls']} wall(s) where most time points have {expected.at[i]} (mesh.split: auto counts "
                 "them per frame; set split: centre or none to fix them)")

@@ -113,6 +113,16 @@ def test_frame_summary_flags_walls_that_change_over_time(frame_files, tmp_path):
     assert flagged == [False, False, True, False] and not out["qc_pass"][2]
     same = frame_summary([{**r, "measure": records[0]["measure"]} for r in records])
     assert not same["qc_flags"].str.contains("most time points").any()
+    # two objects (keep: all): a shell and a droplet whose area ranks swap at t = 1 are not
+    # flagged; the droplet opening a cavity at t = 4 is
+    objects = [{**measure, "object": k} for k in (0, 1)]
+    records.append({**records[-1], "t": 4, "measure": tmp_path / "measure4.json"})
+    for t, walls in enumerate(([2, 1], [1, 2], [2, 1], [2, 1], [2, 2])):
+        records[t]["measure"].write_text(json.dumps({**measure, "walls": walls, "objects": objects}))
+    out = frame_summary(records)
+    flagged = out["qc_flags"].str.contains("where most time points have").tolist()
+    assert out["walls"].tolist() == [2, 1, 1, 2, 2, 1, 2, 1, 2, 2]
+    assert flagged == [False] * 9 + [True]
 
 
 def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
