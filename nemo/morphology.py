@@ -6,8 +6,10 @@ Method note §3, paper methods "Morphological analysis".
   least-squares quadric fitted to the neighbours within a physical radius of a random subset of
   vertices, inverse-distance interpolated to every vertex (paper eq. ``mesh-interpolation``),
   then averaged over the surface by a debiased diffusion of width ``smooth`` × radius (0 = the
-  paper's values; :func:`smooth_on_surface`). On an open surface (cut by the image border)
-  vertices within the radius of the rim are NaN: a fit there sees the surface on one side only.
+  paper's values; :func:`smooth_on_surface`). On an open surface (cut by the image border) a
+  vertex within the radius of the rim is fitted at the largest smaller radius whose ball stays
+  off the rim (a fit reaching the rim would see the surface on one side only), down to
+  :data:`RIM_MIN_EDGES` edges; closer vertices are NaN. ``fit_radius`` records each radius.
 * :func:`default_radius` -- the fitting radius from the surface itself: where the curvature of
   pilot fits changes least with the radius (past the wall's roughness, short of the shape's
   change), between 4 and 32 mean edges, at most 0.6 × the size √(A/4π) of a closed surface's
@@ -125,6 +127,13 @@ MAX_SMOOTH = 2.0
 #: The walk's heat kernel is one Chebyshev series up to this mean number of steps, a product
 #: of shorter ones beyond (the series agrees with the steps within 1e-5 up to ~700).
 SERIES_MAX_STEPS = 350.0
+#: Near an open rim, a vertex whose ball of the fitting radius holds a rim vertex is fitted at
+#: the largest radius of the ladder radius × 2^(−k/4) whose ball stays off the rim, down to
+#: this many mean edge lengths (closer vertices stay NaN): a full, smaller neighbourhood
+#: instead of a one-sided one (:func:`_rim_band_fits`).
+RIM_MIN_EDGES = DEFAULT_MIN_EDGES
+#: ... fitted at this many vertices per fitting disc of their radius (interpolated between).
+RIM_SAMPLES_PER_DISC = 128.0
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
 
@@ -741,11 +750,15 @@ def curvature(
         One row per vertex: ``vertex``, ``H`` (1/unit), ``K`` (1/unit²), ``k1 ≥ k2``, the
         principal directions ``d1x, d1y, d1z`` (of k1) and ``d2x, d2y, d2z`` (unit tangent
         vectors taken from the nearest sample, projected onto the vertex's tangent plane),
-        and ``sampled`` (True where the fit was done at that vertex). NaN where the fit had
-        fewer than :data:`MIN_NEIGHBOURS` neighbours (with a :class:`NemoWarning`), and on an
-        open surface (cut by the image border) at every vertex within ``radius`` of the rim:
-        its fit would see the surface on one side only (a biased value); no sample is drawn
-        there. ``df.attrs["rim_vertices"]`` counts them.
+        ``sampled`` (True where the fit was done at that vertex) and ``fit_radius`` (the radius
+        of the fit that vertex's values come from). NaN where the fit had fewer than
+        :data:`MIN_NEIGHBOURS` neighbours (with a :class:`NemoWarning`). On an open surface (cut
+        by the image border) a fit of ``radius`` within ``radius`` of the rim would see the
+        surface on one side only (a biased value): no sample is drawn there, and each such
+        vertex is fitted at the largest radius ``radius`` × 2^(−k/4) whose ball stays off the
+        rim (its ``fit_radius``; a noisier value), down to :data:`RIM_MIN_EDGES` mean edge
+        lengths; closer vertices are NaN. ``df.attrs["rim_band"]`` counts the vertices within
+        ``radius`` of the rim, ``df.attrs["rim_vertices"]`` those left NaN.
 
     Raises
     ------
@@ -763,7 +776,8 @@ def curvature(
     n_vert = len(vertices)
     n = _sample_count(mesh, n_vert, radius, n_samples, fraction)
     normals = vertex_normals(mesh)
-    near_rim = _near_rim(mesh, vertices, radius)
+    d_rim = rim(mesh.faces, n_vert, vertices)["distance"]
+    near_rim = d_rim <= radius
     samples = _draw_samples(np.where(near_rim[:, None] & ~near_rim.all(), np.nan, normals), n, rng)
     n = len(samples)
 
@@ -777,16 +791,19 @@ def curvature(
 
     with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
         H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
+    band = _rim_band_fits(vertices, normals, tree, d_rim, near_rim, radius, fit, per_sample,
+                          RIM_MIN_EDGES * mean_edge_length(mesh), unit, k_interp, rng, float(mesh.area) / n_vert)
+    H, K = np.where(near_rim, band["H"], H), np.where(near_rim, band["K"], K)
     scatter = np.full(2, np.nan)
     if smooth > 0:
         with step(f"curvature: averaging H and K over the surface (σ = {smooth * radius:.3g} {unit})"):
-            HK = np.where(near_rim[:, None], np.nan, np.stack([H, K], axis=1))  # the rim's band takes no part
-            HK, scatter = _robust_average(mesh, HK, smooth * radius, normals)
+            HK, scatter = _robust_average(mesh, np.stack([H, K], axis=1), smooth * radius, normals, near_rim)
         H, K = HK[:, 0], HK[:, 1]
     df = _curvature_table(H, K, idx, out, d1, d2, samples, normals, keep_fitted=not smooth)
-    df.loc[near_rim, list(_RIM_NAN)] = np.nan
+    _apply_rim_band(df, band, near_rim, radius, keep_fitted=not smooth)
     df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp),
-                    rim_vertices=int(near_rim.sum()), smooth=float(smooth),
+                    rim_vertices=int(df["H"][near_rim].isna().sum()), rim_band=int(near_rim.sum()),
+                    smooth=float(smooth),
                     fit_scatter_H=_finite_or_none(scatter[0]), fit_scatter_K=_finite_or_none(scatter[1]))
     return df
 
@@ -795,8 +812,8 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float,
-                    normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, normals: np.ndarray,
+                    noisier: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The debiased average of :func:`smooth_on_surface` (N, C), robust to outlying fits.
 
     A first pass gives the residual of each value; values beyond :data:`OUTLIER_CLIP` robust
@@ -808,7 +825,8 @@ def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float,
     -------
     averaged : ndarray, shape (N, C)
     scatter : ndarray, shape (C,)
-        The robust standard deviation of the values about the first pass: the fits' noise
+        The robust standard deviation of the values about the first pass (without the rows
+        ``noisier``, e.g. the rim band's smaller fits, when others are left): the fits' noise
         (on the validation's ellipsoid, H: 0.7 % of |H| noise-free, 2.9 % at SNR 10, 4.0 % at
         SNR 5, where the fits alone err by 0.4, 2.4 and 3.6 %).
     """
@@ -817,7 +835,8 @@ def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float,
     residual = np.abs(values - first)
     if not np.isfinite(residual).any():
         return first, np.full(values.shape[1], np.nan)
-    scatter = 1.4826 * np.nanmedian(residual, axis=0)
+    typical = residual if noisier is None or noisier.all() else residual[~noisier]
+    scatter = 1.4826 * np.nanmedian(typical, axis=0)
     bound = OUTLIER_CLIP * scatter
     return _diffuse(walk, np.clip(values, first - bound, first + bound), sigma, debias=True)[0], scatter
 
@@ -826,22 +845,85 @@ def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float,
 _RIM_NAN = ("H", "K", "k1", "k2", "d1x", "d1y", "d1z", "d2x", "d2y", "d2z")
 
 
-def _near_rim(mesh: trimesh.Trimesh, vertices: np.ndarray, radius: float) -> np.ndarray:
-    """Vertices whose fitting ball (``radius``) holds a vertex of the open rim, shape (N,) bool.
+def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_rim: np.ndarray,
+                   near_rim: np.ndarray, radius: float, fit: str, per_sample: float, min_radius: float,
+                   unit: str, k_interp: int, rng: np.random.Generator, vertex_area: float) -> dict:
+    """Fits for the vertices whose ball of ``radius`` holds a vertex of the open rim.
 
-    The fit there would see the surface on one side only (a biased, one-sided fit): such
-    vertices get NaN. All False on a closed surface; a warning when no vertex is left.
+    Each is assigned the largest radius of the ladder ``radius`` × 2^(−k/4) (ending at
+    ``min_radius``) below its distance to the rim (``d_rim``, Euclidean): that ball holds no rim
+    vertex, so a fit sees the surface on every side (smaller and noisier than the interior's,
+    not one-sided and biased). As in the interior, about eight vertices per fitting disc of each
+    rung are fitted (a rung whose balls hold fewer than :data:`AUTO_QUARTIC_NEIGHBOURS`
+    neighbours fits the quadratic instead of the quartic) and interpolated to the band's other
+    vertices (:func:`_idw` from the band's samples only). Vertices closer to the rim than
+    ``min_radius`` keep NaN. One batch of fits per rung.
+
+    Returns
+    -------
+    dict
+        ``H``, ``K``, ``fit_radius`` (N,), ``d1``, ``d2`` (N, 3) (the nearest band sample's
+        directions): NaN off the band and where no rung fits; ``samples`` (the fitted band
+        vertices) with their fitted ``k1``, ``k2``.
     """
-    info = rim(mesh.faces, len(vertices), vertices)
-    near = info["distance"] <= radius
-    if near.any():
-        logger.info("curvature: %d of %d vertices lie within the radius %g of the open rim (%d loop(s)): NaN",
-                    int(near.sum()), len(vertices), radius, info["n_loops"])
-    if near.all():
+    n = len(vertices)
+    band = {k: np.full(n, np.nan) for k in ("H", "K", "fit_radius")}
+    band["d1"], band["d2"] = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    band["samples"], band["k1"], band["k2"] = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    rungs = radius * 2.0 ** (-np.arange(1, 64) / 4.0)
+    rungs = np.r_[rungs[rungs > min_radius], min_radius]  # the last rung: the smallest radius itself
+    rung = np.searchsorted(-rungs, -d_rim, side="right")  # the first (largest) rung below d_rim
+    todo = near_rim & (rung < len(rungs)) & np.isfinite(normals[:, 0])
+    fits = []
+    for k in np.unique(rung[todo]):  # a loop over the ladder's rungs (at most ~20)
+        members = np.flatnonzero(todo & (rung == k))
+        r = float(rungs[k])
+        count = per_sample * (r / radius) ** 2
+        n_fit = min(len(members), max(8, math.ceil(RIM_SAMPLES_PER_DISC * len(members) * vertex_area / (math.pi * r * r))))
+        where = np.sort(rng.choice(members, n_fit, replace=False))
+        kind = "quadratic" if fit == "quartic" and count - 1 < AUTO_QUARTIC_NEIGHBOURS else fit
+        out, d1, d2 = _fit_samples(vertices, normals, tree, where, r, kind, max(1, int(_PAIRS_PER_CHUNK // count)))
+        fits.append({"where": where, "r": np.full(len(where), r), "d1": d1, "d2": d2, **out})
+    if fits:
+        f = {key: np.concatenate([x[key] for x in fits]) for key in fits[0]}
+        order = np.argsort(f["where"])
+        f = {key: value[order] for key, value in f.items()}
+        position = np.searchsorted(np.flatnonzero(todo), f["where"])  # the samples among the band's vertices
+        H, K, idx = _idw(vertices[todo], normals[todo], position, np.stack([f["H"], f["K"]], axis=1), k_interp)
+        nearest = idx[:, 0]
+        band["H"][todo], band["K"][todo], band["fit_radius"][todo] = H, K, f["r"][nearest]
+        band["d1"][todo] = project_tangent(f["d1"][nearest], normals[todo])
+        band["d2"][todo] = np.cross(normals[todo], band["d1"][todo])
+        band["d1"][f["where"]], band["d2"][f["where"]] = f["d1"], f["d2"]
+        band["samples"], band["k1"], band["k2"] = f["where"], f["k1"], f["k2"]
+    if near_rim.any():
+        logger.info("curvature: %d of %d vertices lie within the radius %g of the open rim: %d fitted at radii "
+                    "%.3g-%g %s (%d fits), %d NaN", int(near_rim.sum()), n, radius, int(todo.sum()),
+                    min_radius, radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
+    if near_rim.all() and not np.isfinite(band["H"]).any():
         warnings.warn(
-            f"curvature: every vertex lies within the fitting radius {radius:g} of the surface's open rim: "
-            "every H and K is NaN; use a smaller radius", NemoWarning, stacklevel=3)
-    return near
+            f"curvature: every vertex lies within the fitting radius {radius:g} of the surface's open rim, and "
+            f"within {min_radius:.3g} ({RIM_MIN_EDGES:g} edges): every H and K is NaN; use a smaller radius",
+            NemoWarning, stacklevel=3)
+    return band
+
+
+def _apply_rim_band(df: pd.DataFrame, band: dict, near_rim: np.ndarray, radius: float, keep_fitted: bool) -> None:
+    """Put the rim band's fits (:func:`_rim_band_fits`) into the curvature table (in place).
+
+    Its vertices take the directions of their nearest band sample (the samples their own, and
+    their fitted principal values unless averaged); ``fit_radius`` is ``radius`` off the band;
+    a band vertex without a fit is NaN.
+    """
+    fitted = near_rim & np.isfinite(band["H"])
+    for axis, c in enumerate("xyz"):
+        df.loc[fitted, f"d1{c}"] = band["d1"][fitted, axis]
+        df.loc[fitted, f"d2{c}"] = band["d2"][fitted, axis]
+    if keep_fitted and len(band["samples"]):
+        df.loc[band["samples"], "k1"], df.loc[band["samples"], "k2"] = band["k1"], band["k2"]
+    df.loc[band["samples"], "sampled"] = True
+    df.loc[near_rim & ~fitted, list(_RIM_NAN)] = np.nan
+    df["fit_radius"] = np.where(near_rim, band["fit_radius"], radius)
 
 
 def _check_curvature_args(radius: float, n_samples: int | None, fraction: float | None, fit: str,

@@ -849,8 +849,9 @@ def test_wild_fits_are_clipped_before_the_average(monkeypatch):
     cap = make_mesh(cap.vertices, cap.faces, orient_outward=False)
     radius, _ = nm.default_radius(cap)
 
-    def k_error():
-        K = curvature(cap, radius, rng=0)["K"].to_numpy()
+    def k_error():  # off the rim band (its smaller fits are noisier)
+        df = curvature(cap, radius, rng=0)
+        K = df["K"][df["fit_radius"] == radius].to_numpy()
         return np.nanmedian(np.abs(K * R * R - 1))
 
     clipped = k_error()
@@ -1004,10 +1005,43 @@ def test_default_radius_open_cap_independent_of_the_cut(sphere15):
     assert abs(np.nanmedian(df["H"]) * R - 1) < 0.05
 
 
+def test_open_surface_rim_band_is_fitted_at_smaller_radii(ellipsoids):
+    """An ellipsoid (30 × 22 × 16 µm) cut open by a plane (a tissue cut by the field): a fit of
+    10 µm within 10 µm of the rim would be one-sided, so those vertices are fitted at the largest
+    radius 10 × 2^(−k/4) whose ball stays off the rim, down to 4 edges (NaN closer). The band's
+    H and K follow the exact values (noise-free: a smaller fit is as exact), and the interior
+    is unchanged by the band."""
+    from nemo.geometry import rim
+    from nemo.mesh import make_mesh, mean_edge_length
+
+    mesh = ellipsoids[ISO]
+    keep = np.flatnonzero(mesh.triangles_center[:, 2] > 4.0)
+    cap = make_mesh(*(lambda m: (m.vertices, m.faces))(mesh.submesh([keep], append=True)), orient_outward=False)
+    radius, edge = 10.0, mean_edge_length(cap)
+    df = curvature(cap, radius, rng=0, smooth=0)
+    v = np.asarray(cap.vertices)
+    d_rim = rim(cap.faces, len(v), v)["distance"]
+    H0, K0 = ellipsoid_HK(closest_on_ellipsoid(v, ELL), ELL)
+    band = (d_rim < radius) & (d_rim > 4 * edge)
+    assert band.sum() > 100 and df["H"][band].notna().all()
+    assert (df["fit_radius"][band] < radius).all() and (df["fit_radius"][band] >= 4 * edge - 1e-9).all()
+    fitted = band & df["sampled"].to_numpy()
+    assert fitted.sum() > 30 and (df["fit_radius"][fitted] < d_rim[fitted]).all()  # the balls stay off the rim
+    assert np.median(np.abs(df["H"][band] / H0[band] - 1)) < 0.02
+    assert np.median(np.abs(df["K"][band] / K0[band] - 1)) < 0.04
+    assert df["H"][d_rim < 4 * edge].isna().all()
+    assert df.attrs["rim_vertices"] == int(df["H"].isna().sum()) < df.attrs["rim_band"]
+    assert (df["fit_radius"][d_rim > radius] == radius).all()
+    averaged = curvature(cap, radius, rng=0)
+    assert np.median(np.abs(averaged["H"][band] / H0[band] - 1)) < 0.02
+
+
 def test_default_radius_keeps_half_of_a_rough_open_patch():
     """A flat 100 × 100 µm patch with 0.2 µm roughness (a tissue cut by the field): the
     curvature keeps falling with the radius up to the rim cap (25 µm, which leaves 75 % of the
-    vertices without a fit), so the radius stops at the median distance to the rim; H ≈ 0."""
+    vertices without a fit at that radius), so the radius stops at the median distance to the
+    rim; H ≈ 0. The rim band is fitted at smaller radii: 81 % of the vertices have H (50-60 %
+    before), and the band's H is ≈ 0 too."""
     from nemo.morphology import default_radius
 
     x, y = np.meshgrid(np.arange(101.0), np.arange(101.0))
@@ -1018,8 +1052,12 @@ def test_default_radius_keeps_half_of_a_rough_open_patch():
     radius, info = default_radius(patch)
     assert info["limited_by"] == "coverage" and 10.0 < radius < info["rim_cap"] == pytest.approx(25.0, rel=0.02)
     df = curvature(patch, radius, rng=0)
-    assert 0.5 < df["H"].notna().mean() < 0.6
+    at_radius = df["fit_radius"] == radius
+    assert 0.5 < at_radius.mean() < 0.6 and df["H"].notna().mean() > 0.75
+    assert df["fit_radius"][~at_radius].dropna().between(4.0, radius).all()
     assert abs(np.nanmedian(df["H"])) < 1e-3 and np.nanpercentile(np.abs(df["H"]), 90) < 0.01
+    band = df["H"][~at_radius].dropna()
+    assert abs(np.median(band)) < 2e-3 and np.percentile(np.abs(band), 90) < 0.02
 
 
 def test_default_radius_of_several_objects_in_one_mesh():

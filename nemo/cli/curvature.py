@@ -21,8 +21,11 @@ constant terms (insensitive to normal errors); 'quartic' fits all terms up to 4t
 vertex has at least 60 neighbours within the radius, else quadratic.
 
 Output columns: vertex, H, K, k1, k2 (principal curvatures, k1 >= k2), d1x..d1z, d2x..d2z
-(principal directions), sampled (fit done at that vertex). NaN where the radius held fewer
-than 6 neighbours (a warning says how many).
+(principal directions), sampled (fit done at that vertex), fit_radius (the radius of the fit
+the vertex's values come from). NaN where the radius held fewer than 6 neighbours (a warning
+says how many). On an open surface (cut by the image border), a vertex whose ball of the
+radius reaches the rim is fitted at the largest radius x 2^(-k/4) whose ball stays off it
+(down to 4 mean edges; NaN closer): a full, smaller neighbourhood, not a one-sided one.
 
 example:
   nemo curvature inner.ply -o inner.curvature.parquet --radius 10
