@@ -861,7 +861,7 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
                     f"at the {method} threshold" if level == thr else "half-way to the object's median")
         return thr, level, background
     top = peaks[ok][np.argmax(counts[peaks[ok]])]
-    plateau = _flat_plateau(sub, thr, background, (lo, hi), counts, top)
+    plateau = _flat_plateau(sub, background, (lo, hi), counts, top)
     return thr, 0.5 * (background + plateau), background
 
 
@@ -871,17 +871,17 @@ def _smoothed_histogram(values: np.ndarray, lo: float, hi: float) -> tuple[np.nd
     return ndi.gaussian_filter1d(counts.astype(np.float64), 1.0), 0.5 * (edges[1:] + edges[:-1])
 
 
-def _flat_plateau(sub: np.ndarray, thr: float, background: float, value_range: tuple[float, float],
-                  counts: np.ndarray, top: int) -> float:
+def _flat_plateau(sub: np.ndarray, background: float, value_range: tuple[float, float], counts: np.ndarray,
+                  top: int) -> float:
     """The object's plateau: the histogram peak of its flat voxels where it lies on the upper
     flank of the whole histogram's peak (bin ``top``), else that peak.
 
     Noise smears the plateau's spike of well-resolved voxels into the continuum of partial-volume
     edge voxels below it, and the whole histogram's peak slides down (an 8-bit shell at SNR 10:
-    187 for 200, its walls 0.3 µm outward). Voxels above ``thr`` where the blurred image is flat
-    (gradient below :data:`FLAT_GRADIENT` × the median gradient at the edge, the voxels within
-    10 % of the contrast of the half level) are off the edge: their histogram keeps the plateau
-    without the continuum (196 for 200). It is used only between ``peak`` and the upper
+    187 for 200, its walls 0.3 µm outward). Voxels above the half level where the blurred image
+    is flat (gradient below :data:`FLAT_GRADIENT` × the median gradient at the edge, the voxels
+    within 10 % of the contrast of the half level) are off the edge: their histogram keeps the
+    plateau without the continuum (196 for 200). It is used only between ``peak`` and the upper
     half-height of the whole histogram's peak: a textured wall whose flat voxels are its dim gaps
     or its bright tops (a tissue's nuclei) keeps ``peak``.
 
@@ -903,7 +903,7 @@ def _flat_plateau(sub: np.ndarray, thr: float, background: float, value_range: t
     band = np.abs(sub - half) < 0.1 * (peak - background)
     if not band.any():
         return peak
-    flat = sub[(grad < FLAT_GRADIENT * np.median(grad[band])) & (sub > thr)]
+    flat = sub[(grad < FLAT_GRADIENT * np.median(grad[band])) & (sub > half)]
     if not flat.size:
         return peak
     flat_top = int(np.argmax(_smoothed_histogram(flat, *value_range)[0]))

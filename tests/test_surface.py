@@ -837,7 +837,7 @@ def test_flat_plateau_is_used_only_on_the_upper_flank_of_the_peak():
     top = int(np.argmax(np.where(centres > 50, counts, 0)))
     assert centres[top] == pytest.approx(80.0, abs=2.0)
     for plateau, used in ((86.0, True), (60.0, False), (120.0, False)):
-        got = _flat_plateau(10.0 + (plateau - 10.0) * step, 40.0, 10.0, (0.0, 128.0), counts, top)
+        got = _flat_plateau(10.0 + (plateau - 10.0) * step, 10.0, (0.0, 128.0), counts, top)
         assert got == pytest.approx(plateau if used else centres[top], abs=1.0), (plateau, got)
 
 
