@@ -9,7 +9,8 @@ Method note §3, paper methods "Morphological analysis".
   paper's values; :func:`smooth_on_surface`). On an open surface (cut by the image border) a
   vertex within the radius of the rim is fitted at the largest smaller radius whose ball stays
   off the rim (a fit reaching the rim would see the surface on one side only), down to
-  :data:`RIM_MIN_EDGES` edges; closer vertices are NaN. ``fit_radius`` records each radius.
+  :data:`RIM_MIN_EDGES` edges and half the radius; closer vertices are NaN. ``fit_radius``
+  records each radius.
 * :func:`default_radius` -- the fitting radius from the surface itself: where the curvature of
   pilot fits changes least with the radius (past the wall's roughness, short of the shape's
   change), between 4 and 32 mean edges, at most 0.6 × the size √(A/4π) of a closed surface's
@@ -131,8 +132,12 @@ SERIES_MAX_STEPS = 350.0
 #: the largest radius of the ladder radius × 2^(−k/4) whose ball stays off the rim, down to
 #: this many mean edge lengths (closer vertices stay NaN): a full, smaller neighbourhood
 #: instead of a one-sided one (:func:`_rim_band_fits`).
-RIM_MIN_EDGES = DEFAULT_MIN_EDGES
-#: ... fitted at this many vertices per fitting disc of their radius (interpolated between).
+RIM_MIN_EDGES = 6.0
+#: ... and down to this fraction of the radius (on a noisy wall, where the radius grew with the
+#: noise, much smaller fits are noise: K biased negative, fake saddles along the rim) ...
+RIM_MIN_FRACTION = 0.5
+#: ... fitted at this many vertices per fitting disc of their radius (interpolated between; the
+#: band is narrower than the interior's interpolation reaches: 8 per disc erred by 5 %).
 RIM_SAMPLES_PER_DISC = 128.0
 #: Pairs (sample, neighbour) processed at once; bounds the memory of the fit (~120 MB for the quartic fit).
 _PAIRS_PER_CHUNK = 200_000
@@ -757,8 +762,10 @@ def curvature(
         surface on one side only (a biased value): no sample is drawn there, and each such
         vertex is fitted at the largest radius ``radius`` × 2^(−k/4) whose ball stays off the
         rim (its ``fit_radius``; a noisier value), down to :data:`RIM_MIN_EDGES` mean edge
-        lengths; closer vertices are NaN. ``df.attrs["rim_band"]`` counts the vertices within
-        ``radius`` of the rim, ``df.attrs["rim_vertices"]`` those left NaN.
+        lengths and :data:`RIM_MIN_FRACTION` × ``radius``; closer vertices are NaN. Band
+        values far outside the interior's range are clipped (a fit near a mesh defect).
+        ``df.attrs["rim_band"]`` counts the vertices within ``radius`` of the rim,
+        ``df.attrs["rim_vertices"]`` those left NaN.
 
     Raises
     ------
@@ -791,9 +798,10 @@ def curvature(
 
     with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
         H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
-    band = _rim_band_fits(vertices, normals, tree, d_rim, near_rim, radius, fit, per_sample,
-                          RIM_MIN_EDGES * mean_edge_length(mesh), unit, k_interp, rng, float(mesh.area) / n_vert)
-    H, K = np.where(near_rim, band["H"], H), np.where(near_rim, band["K"], K)
+    smallest = max(RIM_MIN_EDGES * mean_edge_length(mesh), RIM_MIN_FRACTION * radius)
+    band = _rim_band_fits(vertices, normals, tree, d_rim, near_rim, radius, fit, per_sample, smallest, unit,
+                          k_interp, rng, float(mesh.area) / n_vert)
+    H, K = _clip_to_interior(np.stack([H, K], axis=1), np.stack([band["H"], band["K"]], axis=1), near_rim)
     scatter = np.full(2, np.nan)
     if smooth > 0:
         with step(f"curvature: averaging H and K over the surface (σ = {smooth * radius:.3g} {unit})"):
@@ -853,7 +861,7 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
     Each is assigned the largest radius of the ladder ``radius`` × 2^(−k/4) (ending at
     ``min_radius``) below its distance to the rim (``d_rim``, Euclidean): that ball holds no rim
     vertex, so a fit sees the surface on every side (smaller and noisier than the interior's,
-    not one-sided and biased). As in the interior, about eight vertices per fitting disc of each
+    not one-sided and biased). :data:`RIM_SAMPLES_PER_DISC` vertices per fitting disc of each
     rung are fitted (a rung whose balls hold fewer than :data:`AUTO_QUARTIC_NEIGHBOURS`
     neighbours fits the quadratic instead of the quartic) and interpolated to the band's other
     vertices (:func:`_idw` from the band's samples only). Vertices closer to the rim than
@@ -903,9 +911,24 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
     if near_rim.all() and not np.isfinite(band["H"]).any():
         warnings.warn(
             f"curvature: every vertex lies within the fitting radius {radius:g} of the surface's open rim, and "
-            f"within {min_radius:.3g} ({RIM_MIN_EDGES:g} edges): every H and K is NaN; use a smaller radius",
+            f"within {min_radius:.3g} (the smallest fit near it): every H and K is NaN; use a smaller radius",
             NemoWarning, stacklevel=3)
     return band
+
+
+def _clip_to_interior(interior: np.ndarray, band: np.ndarray, near_rim: np.ndarray) -> tuple[np.ndarray, ...]:
+    """H and K (N,): the interior's values off the rim band, the band's on it, clipped to the
+    interior's 1st-99th percentile range widened by that range on each side.
+
+    A small fit near a mesh defect at the rim can read H of −600 / R; the robust average's first
+    pass is not robust to it and would carry it up to two radii into the interior.
+    """
+    values = np.where(near_rim[:, None], band, interior)
+    inside = interior[~near_rim]
+    if near_rim.any() and np.isfinite(inside).any():
+        lo, hi = np.nanpercentile(inside, [1, 99], axis=0)
+        values[near_rim] = np.clip(values[near_rim], lo - (hi - lo), hi + (hi - lo))
+    return values[:, 0], values[:, 1]
 
 
 def _apply_rim_band(df: pd.DataFrame, band: dict, near_rim: np.ndarray, radius: float, keep_fitted: bool) -> None:

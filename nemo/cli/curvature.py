@@ -25,7 +25,8 @@ Output columns: vertex, H, K, k1, k2 (principal curvatures, k1 >= k2), d1x..d1z,
 the vertex's values come from). NaN where the radius held fewer than 6 neighbours (a warning
 says how many). On an open surface (cut by the image border), a vertex whose ball of the
 radius reaches the rim is fitted at the largest radius x 2^(-k/4) whose ball stays off it
-(down to 4 mean edges; NaN closer): a full, smaller neighbourhood, not a one-sided one.
+(down to 6 mean edges and half the radius; NaN closer): a full, smaller neighbourhood, not
+a one-sided one.
 
 example:
   nemo curvature inner.ply -o inner.curvature.parquet --radius 10
