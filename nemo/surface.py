@@ -889,10 +889,19 @@ def _flat_plateau(sub: np.ndarray, background: float, value_range: tuple[float, 
     ----------
     sub : ndarray, shape (Z, Y, X)
         The (strided) blurred volume.
+    background : float
+        Its background intensity (:func:`_auto_level`).
     value_range : (float, float)
         Its smallest and largest value.
     counts : ndarray, shape (256,)
         Its smoothed histogram over ``value_range`` (:func:`_smoothed_histogram`).
+    top : int
+        The bin of the whole histogram's plateau peak.
+
+    Returns
+    -------
+    float
+        The plateau intensity.
     """
     edges = np.linspace(*value_range, len(counts) + 1)  # np.histogram's bins
     peak = 0.5 * float(edges[top] + edges[top + 1])
