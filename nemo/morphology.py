@@ -894,8 +894,6 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
         fits.append({"where": where, "r": np.full(len(where), r), "d1": d1, "d2": d2, **out})
     if fits:
         f = {key: np.concatenate([x[key] for x in fits]) for key in fits[0]}
-        order = np.argsort(f["where"])
-        f = {key: value[order] for key, value in f.items()}
         position = np.searchsorted(np.flatnonzero(todo), f["where"])  # the samples among the band's vertices
         H, K, idx = _idw(vertices[todo], normals[todo], position, np.stack([f["H"], f["K"]], axis=1), k_interp)
         nearest = idx[:, 0]

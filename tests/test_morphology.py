@@ -1005,20 +1005,19 @@ def test_default_radius_open_cap_independent_of_the_cut(sphere15):
     assert abs(np.nanmedian(df["H"]) * R - 1) < 0.05
 
 
-def test_open_surface_rim_band_is_fitted_at_smaller_radii(ellipsoids):
+def test_open_surface_rim_band_is_fitted_at_smaller_radii(ellipsoids, monkeypatch):
     """An ellipsoid (30 × 22 × 16 µm) cut open by a plane (a tissue cut by the field): a fit of
     10 µm within 10 µm of the rim would be one-sided, so those vertices are fitted at the largest
     radius 10 × 2^(−k/4) whose ball stays off the rim, down to 6 edges and half the radius (NaN
-    closer). The band's
-    H and K follow the exact values (noise-free: a smaller fit is as exact), and the interior
-    is unchanged by the band (without the averaging). A wild fit in the band (a mesh defect at
-    the rim) is clipped to the interior's range before the average."""
+    closer). The band's H and K follow the exact values (noise-free: a smaller fit is as exact),
+    and the interior is what it is without the band (no averaging). A wild fit in the band (a
+    mesh defect at the rim) is clipped to the interior's range before the average."""
+    import nemo.morphology as nm
     from nemo.geometry import rim
     from nemo.mesh import make_mesh, mean_edge_length
 
-    mesh = ellipsoids[ISO]
-    keep = np.flatnonzero(mesh.triangles_center[:, 2] > 4.0)
-    cap = make_mesh(*(lambda m: (m.vertices, m.faces))(mesh.submesh([keep], append=True)), orient_outward=False)
+    half = ellipsoids[ISO].submesh([np.flatnonzero(ellipsoids[ISO].triangles_center[:, 2] > 4.0)], append=True)
+    cap = make_mesh(half.vertices, half.faces, orient_outward=False)
     radius, edge = 10.0, mean_edge_length(cap)
     smallest = max(6 * edge, radius / 2)
     df = curvature(cap, radius, rng=0, smooth=0)
@@ -1035,33 +1034,28 @@ def test_open_surface_rim_band_is_fitted_at_smaller_radii(ellipsoids):
     assert df["H"][d_rim < smallest].isna().all()
     assert df.attrs["rim_vertices"] == int(df["H"].isna().sum()) < df.attrs["rim_band"]
     assert (df["fit_radius"][d_rim > radius] == radius).all()
-    old = curvature(cap, radius, rng=0, smooth=0).where(lambda d: d["fit_radius"] == radius)
-    assert np.array_equal(df["H"][d_rim > radius], old["H"][d_rim > radius], equal_nan=True)
     averaged = curvature(cap, radius, rng=0)
     assert np.median(np.abs(averaged["H"][band] / H0[band] - 1)) < 0.02
-    import nemo.morphology as nm  # a wild band fit (H −600 / R) is clipped to the interior's range
 
-    wild = _rim_band_with_a_wild_fit(nm, cap, radius)
-    inside = (d_rim > radius) & np.isfinite(H0)
-    assert np.median(np.abs(wild["H"][inside] / H0[inside] - 1)) < 0.02
-    assert np.abs(wild["H"][band]).max() < 10 * np.abs(H0).max()
+    with monkeypatch.context() as m:  # no band fits (the floor above the radius): the old NaN band
+        m.setattr(nm, "RIM_MIN_FRACTION", 2.0)
+        without = curvature(cap, radius, rng=0, smooth=0)
+    assert without["H"][d_rim <= radius].isna().all()
+    assert np.array_equal(df["H"][d_rim > radius], without["H"][d_rim > radius])
 
-
-def _rim_band_with_a_wild_fit(nm, cap, radius):
-    """The curvature of ``cap`` whose first band fit reads H = K = −1000 (a defect)."""
     real = nm._fit_samples
 
-    def one_wild(vertices, normals, tree, where, r, kind, chunk):
+    def one_wild(vertices, normals, tree, where, r, kind, chunk):  # the first band fit reads −1000
         out, d1, d2 = real(vertices, normals, tree, where, r, kind, chunk)
         if r < radius:
             out["H"][0] = out["K"][0] = -1000.0
         return out, d1, d2
 
-    nm._fit_samples = one_wild
-    try:
-        return curvature(cap, radius, rng=0)
-    finally:
-        nm._fit_samples = real
+    monkeypatch.setattr(nm, "_fit_samples", one_wild)
+    wild = curvature(cap, radius, rng=0)
+    inside = (d_rim > radius) & np.isfinite(H0)
+    assert np.median(np.abs(wild["H"][inside] / H0[inside] - 1)) < 0.02
+    assert np.abs(wild["H"][band]).max() < 10 * np.abs(H0).max()
 
 
 def test_default_radius_keeps_half_of_a_rough_open_patch():
