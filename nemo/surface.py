@@ -834,8 +834,8 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
     # class below the threshold) and the object plateau (the most populated histogram peak
     # above it). Peaks rather than class medians/modes: robust to the many edge voxels of thin
     # objects, to bright sub-structures (fibres) and to a threshold that cuts through the object.
-    lo, hi = float(sample.min()), float(sample.max())
-    counts, centres = _smoothed_histogram(sample, lo, hi)
+    edges = _histogram_edges(sample)
+    counts, centres = _smoothed_histogram(sample, edges)
     below = centres <= thr
     if below.all() or not below.any():
         return thr, thr, None
@@ -861,18 +861,33 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
                     f"at the {method} threshold" if level == thr else "half-way to the object's median")
         return thr, level, background
     top = peaks[ok][np.argmax(counts[peaks[ok]])]
-    plateau = _flat_plateau(sub, background, (lo, hi), counts, top)
+    plateau = _flat_plateau(sub, background, edges, counts, top)
     return thr, 0.5 * (background + plateau), background
 
 
-def _smoothed_histogram(values: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
-    """Counts in 256 bins over [lo, hi], smoothed by one bin, and the bins' centres."""
-    counts, edges = np.histogram(values, bins=256, range=(lo, hi))
+def _histogram_edges(values: np.ndarray, bins: int = 256) -> np.ndarray:
+    """Edges of ``bins`` equal bins over the values' range; for integer values (an unblurred
+    8-bit image, ``sigma`` 0) whole numbers of levels per bin, centred on the levels.
+
+    Equal bins over a range of fewer than ``bins`` integer levels alternate between holding one
+    level and none, and that comb's teeth read as histogram peaks: an unblurred 8-bit shell
+    (background 10, plateau 50) got a plateau just above the background and a level of 10.5.
+    """
+    lo, hi = float(values.min()), float(values.max())
+    if not np.array_equal(values, np.round(values)):
+        return np.linspace(lo, hi, bins + 1)
+    width = max(1.0, np.ceil((hi - lo + 1.0) / bins))
+    return lo - 0.5 + width * np.arange(int(np.ceil((hi - lo + 1.0) / width)) + 1)
+
+
+def _smoothed_histogram(values: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Counts in the bins of ``edges`` (:func:`_histogram_edges`), smoothed by one bin, and the
+    bins' centres."""
+    counts, _ = np.histogram(values, bins=edges)
     return ndi.gaussian_filter1d(counts.astype(np.float64), 1.0), 0.5 * (edges[1:] + edges[:-1])
 
 
-def _flat_plateau(sub: np.ndarray, background: float, value_range: tuple[float, float], counts: np.ndarray,
-                  top: int) -> float:
+def _flat_plateau(sub: np.ndarray, background: float, edges: np.ndarray, counts: np.ndarray, top: int) -> float:
     """The object's plateau: the histogram peak of its flat voxels where it lies on the upper
     flank of the whole histogram's peak (bin ``top``), else that peak.
 
@@ -891,10 +906,10 @@ def _flat_plateau(sub: np.ndarray, background: float, value_range: tuple[float, 
         The (strided) blurred volume.
     background : float
         Its background intensity (:func:`_auto_level`).
-    value_range : (float, float)
-        Its smallest and largest value.
-    counts : ndarray, shape (256,)
-        Its smoothed histogram over ``value_range`` (:func:`_smoothed_histogram`).
+    edges : ndarray, shape (B + 1,)
+        The histogram's bin edges (:func:`_histogram_edges`).
+    counts : ndarray, shape (B,)
+        Its smoothed histogram (:func:`_smoothed_histogram`).
     top : int
         The bin of the whole histogram's plateau peak.
 
@@ -903,7 +918,6 @@ def _flat_plateau(sub: np.ndarray, background: float, value_range: tuple[float, 
     float
         The plateau intensity.
     """
-    edges = np.linspace(*value_range, len(counts) + 1)  # np.histogram's bins
     peak = 0.5 * float(edges[top] + edges[top + 1])
     if min(sub.shape) < 2:  # no gradient across a single plane
         return peak
@@ -915,7 +929,7 @@ def _flat_plateau(sub: np.ndarray, background: float, value_range: tuple[float, 
     flat = sub[(grad < FLAT_GRADIENT * np.median(grad[band])) & (sub > half)]
     if not flat.size:
         return peak
-    flat_top = int(np.argmax(_smoothed_histogram(flat, *value_range)[0]))
+    flat_top = int(np.argmax(_smoothed_histogram(flat, edges)[0]))
     low = np.flatnonzero(counts[top:] < 0.5 * counts[top])  # bins past the peak's upper half-height
     upper = top + (int(low[0]) if low.size else len(counts))
     return 0.5 * float(edges[flat_top] + edges[flat_top + 1]) if top <= flat_top < upper else peak

@@ -833,12 +833,37 @@ def test_flat_plateau_is_used_only_on_the_upper_flank_of_the_peak():
     step[:, :, 20:] = 1.0  # a blurred step: flat background and flat object, an edge between
     step = ndi.gaussian_filter1d(step, 1.5, axis=2) + rng.normal(0.0, 0.005, step.shape)
     whole = np.r_[rng.normal(10.0, 3.0, 40_000), rng.normal(80.0, 10.0, 40_000)]  # peak 80, half-height ~92
-    counts, centres = _smoothed_histogram(whole, 0.0, 128.0)
+    edges = np.linspace(0.0, 128.0, 257)
+    counts, centres = _smoothed_histogram(whole, edges)
     top = int(np.argmax(np.where(centres > 50, counts, 0)))
     assert centres[top] == pytest.approx(80.0, abs=2.0)
     for plateau, used in ((86.0, True), (60.0, False), (120.0, False)):
-        got = _flat_plateau(10.0 + (plateau - 10.0) * step, 10.0, (0.0, 128.0), counts, top)
+        got = _flat_plateau(10.0 + (plateau - 10.0) * step, 10.0, edges, counts, top)
         assert got == pytest.approx(plateau if used else centres[top], abs=1.0), (plateau, got)
+
+
+@pytest.mark.parametrize("background, plateau, noise", [(10, 50, 3.0), (5, 30, 2.0), (100, 140, 4.0)])
+def test_auto_level_of_an_unblurred_integer_image_has_no_comb_peaks(background, plateau, noise):
+    """Unblurred 8-bit intensities over a range of fewer than 256 levels: equal bins over the
+    range alternate between one level and none, and that comb's teeth read as plateau peaks
+    (the level was 10.5 for the true 30, 5.5 for 17.5, 100.5 for 120). Bins of whole levels
+    keep the half level between the background and the plateau."""
+    from scipy import ndimage as ndi
+
+    from nemo.surface import _auto_level, _histogram_edges
+
+    z, y, x = np.ogrid[:48, :48, :48]
+    r = np.sqrt((z - 24.0) ** 2 + (y - 24.0) ** 2 + (x - 24.0) ** 2)
+    wall = ndi.gaussian_filter(((r > 12) & (r < 18)).astype(float), 1.0)
+    noisy = background + (plateau - background) * wall + np.random.default_rng(0).normal(0.0, noise, wall.shape)
+    image = np.clip(np.round(noisy), 0, 255).astype(np.float32)
+    _, level, found_background = _auto_level(image, "yen", "half")
+    assert found_background == pytest.approx(background, abs=1.0)
+    assert level == pytest.approx(0.5 * (background + plateau), abs=0.05 * (plateau - background)), level
+    edges = _histogram_edges(np.array([3.0, 7.0, 40.0]))
+    assert edges[0] == 2.5 and np.allclose(np.diff(edges), 1.0) and edges[-1] >= 40.5
+    assert len(_histogram_edges(np.arange(0.0, 1000.0))) - 1 <= 256
+    assert np.allclose(_histogram_edges(np.array([0.0, 0.5, 2.0])), np.linspace(0.0, 2.0, 257))
 
 
 def test_a_step_wider_than_the_stack_is_named():
