@@ -145,7 +145,9 @@ def run(args) -> int:
     n_def = sum(1 for r in truth["defects"] if r["t"] == 0 and r["layer"] == 0)
     nz = truth["noise"]
     if nz["snr"] is not None:
-        print(f"SNR {nz['snr']:.2f} (fibres on the shell), {nz['snr_wall']:.2f} (shell on the inside); "
+        # shot noise alone leaves the empty inside noise-free: the shell's SNR there is infinite (None)
+        wall = "inf" if nz["snr_wall"] is None else f"{nz['snr_wall']:.2f}"
+        print(f"SNR {nz['snr']:.2f} (fibres on the shell), {wall} (shell on the inside); "
               f"noise std {nz['noise_std_shell']:.2f} at the shell level")
     if "field_of_view" in truth:
         vis = sum(1 for r in truth["defects"] if r["t"] == 0 and r["layer"] == 0 and r["in_view"])
