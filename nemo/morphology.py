@@ -765,7 +765,8 @@ def curvature(
         lengths and :data:`RIM_MIN_FRACTION` × ``radius``; closer vertices are NaN. Band
         values far outside the interior's range are clipped (a fit near a mesh defect).
         ``df.attrs["rim_band"]`` counts the vertices within ``radius`` of the rim,
-        ``df.attrs["rim_vertices"]`` those left NaN.
+        ``df.attrs["rim_vertices"]`` those left NaN, ``df.attrs["rim_fits"]`` the band's fits per
+        fitted surface (a quartic's smaller rungs fit the quadratic).
 
     Raises
     ------
@@ -811,6 +812,7 @@ def curvature(
     _apply_rim_band(df, band, near_rim, radius, keep_fitted=not smooth)
     df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp),
                     rim_vertices=int(df["H"][near_rim].isna().sum()), rim_band=int(near_rim.sum()),
+                    rim_fits=dict(band["kinds"]),
                     smooth=float(smooth),
                     fit_scatter_H=_finite_or_none(scatter[0]), fit_scatter_K=_finite_or_none(scatter[1]))
     return df
@@ -865,19 +867,23 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
     rung are fitted (a rung whose balls hold fewer than :data:`AUTO_QUARTIC_NEIGHBOURS`
     neighbours fits the quadratic instead of the quartic) and interpolated to the band's other
     vertices (:func:`_idw` from the band's samples only). Vertices closer to the rim than
-    ``min_radius`` keep NaN. One batch of fits per rung.
+    ``min_radius`` keep NaN, and so do degenerate fits (warned). One batch of fits per rung.
+    The rungs' sample count is independent of the interior's ``n_samples`` / ``fraction``:
+    the band's fits are smaller and each needs its own density.
 
     Returns
     -------
     dict
         ``H``, ``K``, ``fit_radius`` (N,), ``d1``, ``d2`` (N, 3) (the nearest band sample's
         directions): NaN off the band and where no rung fits; ``samples`` (the fitted band
-        vertices) with their fitted ``k1``, ``k2``.
+        vertices) with their fitted ``k1``, ``k2``; ``kinds``: the number of fits per fitted
+        surface (``{"quartic": n, "quadratic": m}``).
     """
     n = len(vertices)
     band = {k: np.full(n, np.nan) for k in ("H", "K", "fit_radius")}
     band["d1"], band["d2"] = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
     band["samples"], band["k1"], band["k2"] = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    band["kinds"] = {}
     rungs = radius * 2.0 ** (-np.arange(1, 64) / 4.0)
     rungs = np.r_[rungs[rungs > min_radius], min_radius]  # the last rung: the smallest radius itself
     rung = np.searchsorted(-rungs, -d_rim, side="right")  # the first (largest) rung below d_rim
@@ -892,6 +898,7 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
         kind = "quadratic" if fit == "quartic" and count - 1 < AUTO_QUARTIC_NEIGHBOURS else fit
         out, d1, d2 = _fit_samples(vertices, normals, tree, where, r, kind, max(1, int(_PAIRS_PER_CHUNK // count)))
         fits.append({"where": where, "r": np.full(len(where), r), "d1": d1, "d2": d2, **out})
+        band["kinds"][kind] = band["kinds"].get(kind, 0) + len(where)
     if fits:
         f = {key: np.concatenate([x[key] for x in fits]) for key in fits[0]}
         position = np.searchsorted(np.flatnonzero(todo), f["where"])  # the samples among the band's vertices
@@ -906,6 +913,11 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
         logger.info("curvature: %d of %d vertices lie within the radius %g of the open rim: %d fitted at radii "
                     "%.3g-%g %s (%d fits), %d NaN", int(near_rim.sum()), n, radius, int(todo.sum()),
                     min_radius, radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
+    failed = int(np.count_nonzero(~np.isfinite(band["k1"])))
+    if failed:
+        warnings.warn(f"curvature: {failed} of {len(band['samples'])} fits near the open rim were degenerate "
+                      "(too few or nearly collinear neighbours in their smaller balls); those vertices' H and K "
+                      "are NaN", NemoWarning, stacklevel=3)
     if near_rim.all() and not np.isfinite(band["H"]).any():
         warnings.warn(
             f"curvature: every vertex lies within the fitting radius {radius:g} of the surface's open rim, and "

@@ -1033,6 +1033,8 @@ def test_open_surface_rim_band_is_fitted_at_smaller_radii(ellipsoids, monkeypatc
     assert np.median(np.abs(df["K"][band] / K0[band] - 1)) < 0.04
     assert df["H"][d_rim < smallest].isna().all()
     assert df.attrs["rim_vertices"] == int(df["H"].isna().sum()) < df.attrs["rim_band"]
+    assert sum(df.attrs["rim_fits"].values()) == int(df["sampled"][d_rim <= radius].sum()) > 30
+    assert set(df.attrs["rim_fits"]) <= {df.attrs["fit"], "quadratic"}
     assert (df["fit_radius"][d_rim > radius] == radius).all()
     averaged = curvature(cap, radius, rng=0)
     assert np.median(np.abs(averaged["H"][band] / H0[band] - 1)) < 0.02
@@ -1056,6 +1058,17 @@ def test_open_surface_rim_band_is_fitted_at_smaller_radii(ellipsoids, monkeypatc
     inside = (d_rim > radius) & np.isfinite(H0)
     assert np.median(np.abs(wild["H"][inside] / H0[inside] - 1)) < 0.02
     assert np.abs(wild["H"][band]).max() < 10 * np.abs(H0).max()
+
+    def one_degenerate(vertices, normals, tree, where, r, kind, chunk):  # the first band fit fails
+        out, d1, d2 = real(vertices, normals, tree, where, r, kind, chunk)
+        if r < radius:
+            for key in ("H", "K", "k1", "k2"):
+                out[key][0] = np.nan
+        return out, d1, d2
+
+    monkeypatch.setattr(nm, "_fit_samples", one_degenerate)
+    with pytest.warns(NemoWarning, match=r"fits near the open rim were degenerate"):
+        curvature(cap, radius, rng=0, smooth=0)
 
 
 def test_default_radius_keeps_half_of_a_rough_open_patch():
