@@ -81,10 +81,12 @@ def link_defects(
     from laptrack import LapTrack  # imported here: optional cost at import of nemo
 
     _check(defects, max_distance, gap_frames)
-    out = defects.copy()
+    # rows are selected by position: labels may repeat (per-frame tables concatenated without
+    # ignore_index), and .loc on a repeated label selects every row that has it
+    out = defects.reset_index(drop=True)
     out["track_id"] = np.full(len(out), -1, dtype=np.int64)
     if out.empty:
-        return out
+        return out.set_axis(defects.index)
     t_all = np.unique(np.asarray(frames if frames is not None else out["t"], dtype=np.int64))
     unknown = np.setdiff1d(out["t"].to_numpy(dtype=np.int64), t_all)
     if unknown.size:
@@ -97,7 +99,6 @@ def link_defects(
     key["charge_rounded"] = np.round(key["charge_rounded"].to_numpy(dtype=float) * 2) / 2
     next_id = 0
     for index in key.groupby(group_cols, sort=True, dropna=False).indices.values():
-        index = out.index[index]
         sub = out.loc[index, ["x", "y", "z"]].astype(float).reset_index(drop=True)
         sub["frame"] = rank.loc[out.loc[index, "t"].to_numpy(dtype=np.int64)].to_numpy()
         sub["row_"] = np.arange(len(sub))
@@ -122,7 +123,7 @@ def link_defects(
         new = {tid: next_id + i for i, tid in enumerate(first["tid"])}
         out.loc[index, "track_id"] = np.array([new[v] for v in local], dtype=np.int64)
         next_id += len(new)
-    return out
+    return out.set_axis(defects.index)
 
 
 def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:

@@ -75,6 +75,21 @@ def test_one_track_per_rotating_defect_with_right_charge_and_speed():
     assert np.allclose(got.loc[exp.index], exp, rtol=0.15)
 
 
+def test_per_frame_tables_concatenated_with_repeated_labels():
+    """Per-frame tables joined by pd.concat without ignore_index repeat the labels 0, 1, 2, 3 in
+    every frame; selecting rows by label then picked every frame's rows at once and every defect
+    became its own track. The rows are linked by position and keep their labels."""
+    df = _series(omega=0.05, noise=0.3, rng=1).sort_values(["t", "truth"])
+    frames = [f.reset_index(drop=True) for _, f in df.groupby("t")]
+    joined = pd.concat(frames)  # labels 0..3 in every frame
+    assert joined.index.has_duplicates
+    linked = link_defects(joined, max_distance=15.0, gap_frames=1)
+    _check_identity(linked)
+    assert linked["track_id"].nunique() == 4
+    assert linked.index.equals(joined.index)
+    assert linked.drop(columns="track_id").equals(joined)
+
+
 def test_same_charge_links_only():
     # a −½ sitting where a +½ will be one frame later: a charge-blind linker would swap them
     omega = 0.05
