@@ -1334,14 +1334,42 @@ def _warn_misses(d: np.ndarray, direction: str) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+def _merge_without_pinches(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Coincident vertices merged (:func:`nemo.mesh.merge_coincident_vertices`), except where the
+    merge would pinch an open rim: (N', 3) vertices and the faces left.
+
+    A merge that closes a crack pairs up its boundary edges. One that joins two rim vertices at
+    the same place (where a split's cut plane runs through a vertex, :func:`nemo.surface.split_mesh`
+    gives each of its face fans its own copy) leaves a vertex with four boundary edges, and its
+    Euler characteristic is no longer the surface's (a disk read χ = −1). Those groups stay apart.
+    """
+    verts, f, index = merge_coincident_vertices(vertices, faces)
+    group_size = np.bincount(index, minlength=len(verts))
+    if not (group_size > 1).any():
+        return verts, f
+    edges = np.sort(np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    keys, count = np.unique(edges[:, 0] * len(verts) + edges[:, 1], return_counts=True)
+    rim_ends = np.stack([keys[count == 1] // len(verts), keys[count == 1] % len(verts)], axis=1).ravel()
+    pinched = (np.bincount(rim_ends, minlength=len(verts)) > 2) & (group_size > 1)
+    if not pinched.any():
+        return verts, f
+    apart = np.flatnonzero(pinched[index])  # the old vertices of pinched groups: each its own vertex
+    index = index.copy()
+    index[apart] = len(verts) + np.arange(len(apart))
+    f = index[faces]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return np.concatenate([verts, vertices[apart]]), f[keep]
+
+
 def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
     """Edge-based topology and angles of a triangle mesh, vectorised (no trimesh caches).
 
     Coincident vertices are merged first (marching cubes duplicates a vertex wherever the
     level equals a voxel value) and the faces that collapse are dropped, so that the angles,
-    the Euler characteristic and the edge pairing are those of the surface.
+    the Euler characteristic and the edge pairing are those of the surface
+    (:func:`_merge_without_pinches`).
     """
-    verts, f, _ = merge_coincident_vertices(vertices, faces)
+    verts, f = _merge_without_pinches(vertices, faces)
     n_collapsed = len(faces) - len(f)
     nv, nf = len(verts), len(f)
     used = np.zeros(nv, dtype=bool)

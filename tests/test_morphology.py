@@ -384,6 +384,41 @@ def test_measure_two_components_and_vertex_areas():
     assert (vertex_areas(mesh) >= 0).all()
 
 
+def _rolled_strip(n_around=24, n_up=6, crack=False):
+    """A strip rolled around the z axis (r 10 µm) whose two ends meet only at the bottom corner
+    (the top is narrower: θ = 2π u (1 − 0.3 v)): a disk whose rim touches itself at one point,
+    two distinct vertices at the same place, as a split leaves where its cut plane runs through
+    a vertex. ``crack``: the ends meet along their whole edge (a tube cut open along a line, as
+    marching cubes leaves duplicated vertices)."""
+    u, v = np.meshgrid(np.linspace(0, 1, n_around + 1), np.linspace(0, 1, n_up + 1), indexing="ij")
+    theta = 2 * np.pi * u * (1.0 if crack else (1.0 - 0.3 * v))
+    verts = np.stack([10 * np.cos(theta), 10 * np.sin(theta), 5 * v], axis=-1).reshape(-1, 3)
+    verts = verts.reshape(n_around + 1, n_up + 1, 3)
+    verts[-1, : (n_up + 1 if crack else 1)] = verts[0, : (n_up + 1 if crack else 1)]  # exactly coincident
+    ids = np.arange((n_around + 1) * (n_up + 1)).reshape(n_around + 1, n_up + 1)
+    a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    return verts.reshape(-1, 3), faces
+
+
+def test_measure_keeps_a_rim_that_touches_itself_apart():
+    """Coincident vertices are merged to close marching-cubes cracks (the cut tube is a tube,
+    χ 0), but two rim vertices at one place are not joined: the strip is a disk (χ 1, one rim
+    loop); merged, it read χ 0 (a split wall read −1)."""
+    import trimesh
+
+    from nemo.morphology import _topology
+
+    verts, faces = _rolled_strip()
+    assert len(np.unique(verts, axis=0)) == len(verts) - 1
+    topo = _topology(verts, faces)
+    assert topo["chi"] == 1 and topo["n_loops"] == 1 and topo["n_components"] == 1
+    res = measure(trimesh.Trimesh(verts, faces, process=False))
+    assert res["euler_characteristic"] == 1 and res["genus"] == 0
+    tube = _topology(*_rolled_strip(crack=True))
+    assert tube["chi"] == 0 and tube["n_loops"] == 2 and tube["watertight"] is False
+
+
 def test_measure_flags_inconsistent_winding_and_non_manifold():
     import trimesh
 
