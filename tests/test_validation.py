@@ -333,6 +333,53 @@ def test_cli_shape_writes_the_stack_and_its_truth(tmp_path, capsys):
     assert read_info(tmp_path / "e.tif").shape["Z"] == vol.shape[0]
 
 
+def test_validate_steps_by_hand_chain_and_refuse_wrong_files(tmp_path, capsys):
+    """The help's chain by hand: a score written without --case aggregates (its own case); a
+    shape's score is strict JSON (no NaN); wrong files and a --case that is no object are named
+    (each was a traceback)."""
+    spec = {"kind": "ellipsoid", "axes": [12, 10, 8]}
+    assert nemo_main(["validate", "shape", json.dumps(spec), "-o", str(tmp_path / "e.tif"),
+                      "--truth", str(tmp_path / "e.json")]) == 0
+    assert nemo_main(["mesh", str(tmp_path / "e.tif"), "-o", str(tmp_path / "e.ply"), "--split", "none"]) == 0
+    assert nemo_main(["validate", "score-shape", str(tmp_path / "e.ply"), str(tmp_path / "e.json"),
+                      "-o", str(tmp_path / "shape.json")]) == 0
+    (row,) = json.loads((tmp_path / "shape.json").read_text(), parse_constant=lambda c: pytest.fail(c))["rows"]
+    assert row["snr"] is None and row["H_err_median"] < 0.05
+    score = tmp_path / "by_hand.json"
+    score.write_text(json.dumps({"n_true": 4, "detection_rate": 1.0, "false_positives": 0, "loc_err_mean": 1.0}))
+    out = V.aggregate([score], [tmp_path / "shape.json"], [], tmp_path / "summary")
+    assert out["cases"]["case"].tolist() == [str(tmp_path / "by_hand")] and out["cases"]["sweep"].tolist() == ["cases"]
+    assert (tmp_path / "summary" / "validation.md").exists()
+    capsys.readouterr()
+    bad = tmp_path / "bad.tsv"
+    bad.write_text("a\tb\n1\t2\n")
+    for args, message in (
+        (["aggregate", "--scores", str(tmp_path / "shape.json")], "is a shape score"),
+        (["aggregate", "--shapes", str(score)], "has no list 'rows'"),
+        (["aggregate", "--scores", str(score), "--stages", str(bad)], "is not a Snakemake benchmark file"),
+        (["score-shape", str(tmp_path / "e.ply"), str(score), "-o", str(tmp_path / "x.json")], "lacks kind"),
+    ):
+        rc = nemo_main(["validate", *args, *([] if "score-shape" in args else ["-o", str(tmp_path / "agg")])])
+        err = capsys.readouterr().err
+        assert rc == 2 and message in err and len(err.splitlines()) == 1, err
+    vesicle = tmp_path / "v.json"
+    vesicle.write_text(json.dumps({"kind": "nemo.synthetic.vesicle", "centre": [0, 0, 0], "spacing": [1, 1, 1]}))
+    rc = nemo_main(["validate", "score-shape", str(tmp_path / "e.ply"), str(vesicle), "-o", str(tmp_path / "x.json")])
+    assert rc == 2 and "not of an analytic shape" in capsys.readouterr().err
+    assert nemo_main(["synth", str(tmp_path / "s.tif"), "--radius", "12", "--size", "60"]) == 0
+    synth = tmp_path / "s.truth.json"
+    defects = tmp_path / "d.parquet"
+    from nemo.synthetic import read_truth
+    from nemo.tables import write_table
+
+    write_table(V.truth_defects(read_truth(synth))[["x", "y", "z", "charge"]].assign(charge_rounded=0.5), defects,
+                kind="defects")
+    capsys.readouterr()
+    rc = nemo_main(["validate", "score", "--truth", str(synth), "--defects", str(defects), "--case", "[1, 2]",
+                    "-o", str(tmp_path / "x.json")])
+    assert rc == 2 and "--case must be a JSON object" in capsys.readouterr().err
+
+
 def test_cli_help_names_every_step(capsys):
     with pytest.raises(SystemExit):
         nemo_main(["validate", "--help"])

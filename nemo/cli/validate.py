@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from nemo.cli.common import positive
@@ -165,12 +166,19 @@ def _shape(args) -> None:
 def _score_shape(args) -> None:
     from nemo import atomic
     from nemo.validation import score_shape
+    from nemo.validation.shapes import SHAPES
 
     truth = _json_file(args.truth, "shape truth")
     missing = [k for k in ("kind", "centre", "spacing") if k not in truth]
     if missing:
         raise NemoError(f"{args.truth} lacks {', '.join(missing)}: write it with 'nemo validate shape --truth'")
+    if truth["kind"] not in SHAPES:
+        raise NemoError(f"{args.truth} is the truth of a {truth['kind']!r}, not of an analytic shape "
+                        f"({', '.join(SHAPES)}): give the --truth of 'nemo validate shape' (a vesicle's truth "
+                        "goes to 'nemo validate score')")
     rows = score_shape(args.mesh, truth)
+    # strict JSON: an undefined score (no noise: SNR; no fit) is null, not NaN
+    rows = [{k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()} for row in rows]
     atomic.make_folder(Path(args.output).parent)
     atomic.write_json(args.output, {"rows": rows}, indent=1)
 
@@ -183,6 +191,9 @@ def _score(args) -> None:
 
     truth = read_truth(args.truth)
     case = _json(args.case, "--case")
+    if not isinstance(case, dict):
+        raise NemoError(f'--case must be a JSON object of the case\'s fields, e.g. {{"case": "snr-10-r1"}}; '
+                        f"got {args.case!r}")
     xyz = ("x", "y", "z")
     defects = read_table(args.defects, kind="defects")
     directors = read_table(args.directors, kind="directors") if args.directors else None

@@ -12,11 +12,16 @@ import numpy as np
 import pandas as pd
 
 from nemo import atomic
+from nemo.errors import NemoError
 
 
 def read_snakemake_benchmark(path: str | os.PathLike) -> dict:
     """Wall time ``s`` and peak ``max_rss`` (MB) of a Snakemake ``benchmark:`` file (mean over repeats)."""
     df = pd.read_csv(path, sep="\t")
+    if "s" not in df:
+        raise NemoError(f"{path} is not a Snakemake benchmark file (tab-separated, with a column 's' of wall "
+                        f"seconds; it has {', '.join(map(str, df.columns)) or 'no columns'}): give the "
+                        "files of the rules' `benchmark:` directives")
     out = {"s": float(df["s"].mean())}
     for col in ("max_rss", "cpu_time", "mean_load"):
         if col in df:
@@ -31,6 +36,38 @@ SWEEP_COLUMNS = [
     "angle_err_ordered_median", "S_ordered_median", "H_relerr_median", "K_relerr_median", "n_vertices", "time_total_s",
     "peak_rss_mb",
 ]
+
+
+def _json_object(path: str | os.PathLike, what: str) -> dict:
+    """The JSON object in ``path``, or a NemoError naming the file and what it should be."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise NemoError(f"cannot read {path} as JSON ({err}): give {what}") from None
+    if not isinstance(record, dict):
+        raise NemoError(f"{path} holds a JSON {type(record).__name__}, not an object: give {what}")
+    return record
+
+
+def _case_record(path: str | os.PathLike) -> dict:
+    """A case's score record; a score written without ``--case`` (by hand) is its own case,
+    named after its path, in the sweep ``"cases"``."""
+    record = _json_object(path, "a score of `nemo validate score` (a JSON object)")
+    if isinstance(record.get("rows"), list):
+        raise NemoError(f"{path} is a shape score (it has 'rows'): give it to --shapes; --scores takes the "
+                        "outputs of `nemo validate score`")
+    defaults = {"case": str(Path(path).with_suffix("")), "sweep": "cases", "parameter": "", "value_label": "",
+                "synth": {}, "run": {}}
+    return {**defaults, **record}
+
+
+def _shape_rows(path: str | os.PathLike) -> list:
+    """The rows of a shape score (``{"rows": [...]}`` from `nemo validate score-shape`)."""
+    record = _json_object(path, "a shape score of `nemo validate score-shape`")
+    if not isinstance(record.get("rows"), list):
+        raise NemoError(f"{path} has no list 'rows': give the output of `nemo validate score-shape` "
+                        "(defect scores go to --scores)")
+    return record["rows"]
 
 
 def aggregate(
@@ -59,7 +96,7 @@ def aggregate(
     out.mkdir(parents=True, exist_ok=True)
     rows, stage_rows = [], []
     for f in scores:
-        s = json.loads(Path(f).read_text())
+        s = _case_record(f)
         timings = s.pop("timings_s", {}) or {}
         for stage, sec in timings.items():
             stage_rows.append({"case": s["case"], "sweep": s["sweep"], "stage": stage, "s": sec,
@@ -67,7 +104,7 @@ def aggregate(
         rows.append(s)
     cases = pd.DataFrame(rows)
     case_sweep = dict(zip(cases["case"], cases["sweep"])) if len(cases) else {}
-    shapes = pd.DataFrame([r for f in shape_scores for r in json.loads(Path(f).read_text())["rows"]])
+    shapes = pd.DataFrame([r for f in shape_scores for r in _shape_rows(f)])
     for f in stage_files:
         p = Path(f)
         b = read_snakemake_benchmark(p)
