@@ -17,10 +17,11 @@ nematic tensor: the weighted mean sums the micro-images' orientation tensors, so
 noise (``c ≈ 0``) adds almost nothing while a cleanly striped one counts fully, and a perfectly
 aligned field still gives S = 1. A fraction ``f`` of random directors of weight ``w`` among
 aligned ones of weight 1 gives ``S ≈ (1 − f) / (1 − f + f w)`` instead of ``1 − f``.
-The library default is the paper's mean; the config's (``order.weights``, ``nemo order``) is
-``coherency``: on synthetic vesicles it raises the S contrast between ordered field and defect
-cores at low SNR and, on clean images, moves S towards the truth (directors of low coherency
-are the inaccurate ones) by at most 0.02 (``benchmarks/bench_order_noise.py``).
+The default (library, config ``order.weights`` and ``nemo order``) is the paper's mean.
+``coherency`` is opt-in: on synthetic vesicles it raises the S contrast between ordered field
+and defect cores at low SNR and, on clean images, moves S towards the truth (directors of low
+coherency are the inaccurate ones) by at most 0.02 (``benchmarks/bench_order_noise.py``); on one
+vesicle it moved two defects by 0.3-0.8 µm (the config schema).
 
 The neighbour sums run over (target, director) pairs from ``cKDTree.sparse_distance_matrix``
 in chunks of targets (bounded memory for millions of targets), accumulated with

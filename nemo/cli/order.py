@@ -9,14 +9,14 @@ DESCRIPTION = """\
 Lift every director to the tangential tensor n nᵀ − ½(I − N Nᵀ), average the tensors of the
 directors within --radius of each target vertex, project onto the target's tangent plane,
 remove the trace and diagonalise: S = 2 λ_max, averaged director = its eigenvector
-(by default each tensor weighted by the director's coherency; --weights none: the paper's
-plain mean). Writes an
-order table: vertex, S, nx, ny, nz, x, y, z, count (directors averaged; S is NaN where 0).
+(by default the paper's plain mean; --weights coherency weights each tensor by its director's
+coherency). Writes an order table: vertex, S, nx, ny, nz, x, y, z, count (directors averaged;
+S is NaN where 0).
 
 examples:
   nemo order inner.ply directors.parquet -o order.parquet --radius 50
   nemo order inner.ply directors.parquet -o order_at_directors.parquet --radius 50 --targets directors
-  nemo order inner.ply directors.parquet -o order_paper.parquet --radius 50 --weights none"""
+  nemo order inner.ply directors.parquet -o order_weighted.parquet --radius 50 --weights coherency"""
 
 
 def add_arguments(parser) -> None:
@@ -30,9 +30,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--targets", choices=("all", "directors"),
                         help="average at every vertex (default) or at the directors' vertices")
     parser.add_argument("--weights", choices=("none", "coherency"),
-                        help="weight of each director in the average: coherency = weighted by its "
-                             "coherency, so noisy, incoherent patches count less (default); none = "
-                             "the paper's unweighted mean")
+                        help="weight of each director in the average: none = the paper's unweighted "
+                             "mean (default, config order.weights); coherency = weighted by its "
+                             "coherency, so noisy, incoherent patches count less")
     add_common(parser, output_help="order table (.parquet)")
 
 
