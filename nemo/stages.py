@@ -569,7 +569,7 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
 
     ``patch_radius`` is the directors' (nominal) patch radius, needed only for the default (one
     per object, :func:`nemo.objects.values`, on a mesh of several objects).
-    ``weights`` (``coherency``, the default, or ``none`` = the paper's plain mean) is kept in the resolved
+    ``weights`` (``none`` = the paper's plain mean, the default, or ``coherency``) is kept in the resolved
     parameters, so the order table's provenance records it.
     """
     from nemo.order import order as q_average
