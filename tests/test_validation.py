@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -378,6 +379,29 @@ def test_validate_steps_by_hand_chain_and_refuse_wrong_files(tmp_path, capsys):
     rc = nemo_main(["validate", "score", "--truth", str(synth), "--defects", str(defects), "--case", "[1, 2]",
                     "-o", str(tmp_path / "x.json")])
     assert rc == 2 and "--case must be a JSON object" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"kind": "ellipsoid", "axes": [10, 10]}, "axes must be 3 numbers > 0"),
+    ({"kind": "ellipsoid", "axes": [-10, 10, 10]}, "axes must be 3 numbers > 0"),
+    ({"kind": "ellipsoid", "axes": [0, 10, 10]}, "axes must be 3 numbers > 0"),
+    ({"kind": "ellipsoid", "axes": "10"}, "axes must be 3 numbers > 0"),
+    ({"kind": "ellipsoid", "axes": [10, 10, 10], "margin": -50}, "margin must be 1 number ≥ 0"),
+    ({"kind": "ellipsoid", "axes": [10, 10, 10], "noise": -5}, "noise must be 1 number ≥ 0"),
+    ({"kind": "ellipsoid", "axes": [10, 10, 10], "blur": "x"}, "blur must be 1 number or 3 numbers > 0"),
+    ({"kind": "ellipsoid", "axes": [10, 10, 10], "seed": -1}, "seed must be an integer ≥ 0"),
+    ({"kind": "ellipsoid", "axes": [10, 10, 10], "seed": "x"}, "seed must be an integer ≥ 0"),
+    ({"kind": "ellipsoid", "axes": [1e6, 10, 10]}, "more than 1e+09"),
+    ({"kind": "shells", "inner": [12, 12], "outer": [16, 16, 16]}, "inner must be 3 numbers > 0"),
+    ({"kind": "shells", "inner": [16, 12, 12], "outer": [16, 16, 16]}, "every inner axis must be below"),
+    ({"kind": "torus", "major": -15, "minor": 5}, "major must be 1 number > 0"),
+    ({"kind": "torus", "major": 15, "minor": 0}, "minor must be 1 number > 0"),
+    ({"kind": "torus", "major": 15, "minor": 20}, "must be below its major radius"),
+])
+def test_shape_spec_errors_are_named(spec, message):
+    """Each was a numpy traceback, a hang or a silently broken image (fuzzing helper)."""
+    with pytest.raises(NemoError, match=re.escape(message)):
+        V.shape_volume(spec)
 
 
 def test_cli_help_names_every_step(capsys):

@@ -8,6 +8,7 @@ values (mean and Gaussian curvature, wall thickness along the normals) are close
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -54,6 +55,50 @@ def shape_sdf(spec: dict, p: np.ndarray) -> np.ndarray:
     raise NemoError(f"unknown shape kind {k!r}; choose one of {', '.join(SHAPES)}")
 
 
+#: Largest stack ``shape_volume`` writes (voxels): 1 GB of uint8, 4 GB while it is rendered.
+MAX_SHAPE_VOXELS = 1e9
+
+
+def _numbers(spec: dict, key: str, count: tuple[int, ...], low: float, strict: bool = True) -> None:
+    """``spec[key]`` (when present) is ``count`` finite numbers above ``low`` (≥ if not ``strict``)."""
+    if key not in spec or spec[key] is None:
+        return
+    value = spec[key]
+    items = value if isinstance(value, (list, tuple)) else [value]
+    ok = (len(items) in count and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items)
+          and all(math.isfinite(v) and (v > low if strict else v >= low) for v in items))
+    if not ok:
+        what = " or ".join(f"{c} number{'s' if c > 1 else ''}" for c in count)
+        raise NemoError(f"shape {key} must be {what} {'>' if strict else '≥'} {low:g}, got {value!r}")
+
+
+def _check_spec(spec: dict) -> None:
+    """Refuse a shape spec with a wrong kind, missing or out-of-range values (named)."""
+    need = {"ellipsoid": ("axes",), "torus": ("major", "minor"), "shells": ("inner", "outer")}
+    if spec.get("kind") not in need:
+        raise NemoError(f"unknown shape kind {spec.get('kind')!r}; choose one of {', '.join(SHAPES)}")
+    missing = [k for k in need[spec["kind"]] if k not in spec]
+    if missing:
+        raise NemoError(f"shape '{spec['kind']}' needs {', '.join(missing)} (µm)")
+    for key in ("axes", "inner", "outer", "spacing"):
+        _numbers(spec, key, (3,), 0.0)
+    for key in ("major", "minor"):
+        _numbers(spec, key, (1,), 0.0)
+    _numbers(spec, "blur", (1, 3), 0.0)
+    _numbers(spec, "photons", (1,), 0.0)
+    for key in ("margin", "noise"):
+        _numbers(spec, key, (1,), 0.0, strict=False)
+    for key in ("foreground", "background"):
+        _numbers(spec, key, (1,), 0.0, strict=False)
+    if spec["kind"] == "torus" and spec["minor"] >= spec["major"]:
+        raise NemoError(f"torus minor radius {spec['minor']} must be below its major radius {spec['major']}")
+    if spec["kind"] == "shells" and not all(i < o for i, o in zip(spec["inner"], spec["outer"])):
+        raise NemoError(f"shells: every inner axis must be below the outer one, got {spec['inner']} and {spec['outer']}")
+    seed = spec.get("seed", 0)
+    if not (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0):
+        raise NemoError(f"shape seed must be an integer ≥ 0, got {seed!r}")
+
+
 def shape_volume(spec: dict, rng: np.random.Generator | int | None = None) -> tuple[np.ndarray, dict]:
     """A blurred solid shape as a uint8 (Z, Y, X) volume and its analytic description.
 
@@ -78,24 +123,18 @@ def shape_volume(spec: dict, rng: np.random.Generator | int | None = None) -> tu
         and ``snr`` (``nemo.synthetic.snr``: (foreground − background) / noise std at the
         background; None without noise).
     """
-    need = {"ellipsoid": ("axes",), "torus": ("major", "minor"), "shells": ("inner", "outer")}
-    if spec.get("kind") not in need:
-        raise NemoError(f"unknown shape kind {spec.get('kind')!r}; choose one of {', '.join(SHAPES)}")
-    missing = [k for k in need[spec["kind"]] if k not in spec]
-    if missing:
-        raise NemoError(f"shape '{spec['kind']}' needs {', '.join(missing)} (µm)")
+    _check_spec(spec)
     sp = np.asarray(spec.get("spacing", [1.0, 1.0, 1.0]), float)
-    if sp.shape != (3,) or np.any(sp <= 0):
-        raise NemoError(f"shape spacing must be [dz, dy, dx] > 0, got {spec.get('spacing')}")
     sig = np.asarray(psf_sigmas(spec.get("blur", sp[2])))  # (sz, sy, sx)
-    if np.any(sig <= 0):
-        raise NemoError(f"shape blur must be > 0 µm (one sigma or sz, sy, sx), got {spec.get('blur')}")
     blur = float(sig.max())
     fg, bg = float(spec.get("foreground", 200)), float(spec.get("background", 20))
     ext = _extent(spec)
     margin = float(spec.get("margin", 4 * blur + 3 * sp.max()))
     half = ext + margin  # x, y, z
     n = (2 * np.ceil(half / sp[::-1]) + 1).astype(int)  # voxels along x, y, z
+    if np.prod(n.astype(float)) > MAX_SHAPE_VOXELS:
+        raise NemoError(f"the shape needs {n[2]} x {n[1]} x {n[0]} voxels (Z, Y, X), more than "
+                        f"{MAX_SHAPE_VOXELS:.0e}: give smaller axes or margin, or a coarser spacing")
     centre = (n - 1) / 2 * sp[::-1]
     z = np.arange(n[2]) * sp[0] - centre[2]
     y = np.arange(n[1]) * sp[1] - centre[1]
