@@ -73,6 +73,7 @@ from nemo.mesh import (
     face_normals_areas,
     mean_edge_length,
     merge_coincident_vertices,
+    object_radius,
     signed_volume,
     vertex_areas,
     vertex_normals,
@@ -744,7 +745,8 @@ def curvature(
         The fit used is in ``df.attrs["fit"]``.
     smooth : float
         Width (σ) of the averaging of H and K over the surface after the fits, as a fraction of
-        ``radius`` (default :data:`DEFAULT_SMOOTH`); 0 keeps the fitted and interpolated values
+        ``radius`` (default :data:`DEFAULT_SMOOTH`; at most twice the object's radius
+        sqrt(area / 4π), where the kernel is already uniform); 0 keeps the fitted and interpolated values
         (the paper). Principal curvatures then follow from the averaged H and K.
         ``df.attrs`` records the fits' scatter about the average (``fit_scatter_H``, 1/unit,
         ``fit_scatter_K``, 1/unit²: their noise; None without averaging).
@@ -805,8 +807,11 @@ def curvature(
     H, K = _clip_to_interior(np.stack([H, K], axis=1), np.stack([band["H"], band["K"]], axis=1), near_rim)
     scatter = np.full(2, np.nan)
     if smooth > 0:
-        with step(f"curvature: averaging H and K over the surface (σ = {smooth * radius:.3g} {unit})"):
-            HK, scatter = _robust_average(mesh, np.stack([H, K], axis=1), smooth * radius, normals, near_rim)
+        # beyond twice the object's radius the kernel is uniform over it (a sphere's l = 1 mode keeps
+        # e^-4): a wider one only costs time (minutes at σ = 400 µm on a 20 µm object)
+        sigma = min(smooth * radius, 2.0 * object_radius(mesh))
+        with step(f"curvature: averaging H and K over the surface (σ = {sigma:.3g} {unit})"):
+            HK, scatter = _robust_average(mesh, np.stack([H, K], axis=1), sigma, normals, near_rim)
         H, K = HK[:, 0], HK[:, 1]
     df = _curvature_table(H, K, idx, out, d1, d2, samples, normals, keep_fitted=not smooth)
     _apply_rim_band(df, band, near_rim, radius, keep_fitted=not smooth)

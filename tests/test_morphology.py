@@ -419,6 +419,26 @@ def test_measure_keeps_a_rim_that_touches_itself_apart():
     assert tube["chi"] == 0 and tube["n_loops"] == 2 and tube["watertight"] is False
 
 
+def test_averaging_width_is_capped_at_the_object(sphere15, monkeypatch):
+    """smooth × radius far beyond the object (σ = 400 µm on a sphere of 15 µm) took 7 minutes for a
+    kernel that is uniform from σ ≈ 2 R on: the width is capped at twice the object's radius."""
+    import nemo.morphology as nm
+
+    widths = []
+    real = nm._robust_average
+
+    def spy(mesh, values, sigma, normals, noisier=None):
+        widths.append(sigma)
+        return real(mesh, values, sigma, normals, noisier)
+
+    monkeypatch.setattr(nm, "_robust_average", spy)
+    with pytest.warns(NemoWarning):  # the radius is too large for the surface
+        curvature(sphere15, 200.0, rng=0, smooth=2.0)
+    curvature(sphere15, 5.0, rng=0)
+    assert widths[0] == pytest.approx(2 * np.sqrt(sphere15.area / (4 * np.pi)))
+    assert widths[1] == pytest.approx(0.35 * 5.0)
+
+
 def test_measure_flags_inconsistent_winding_and_non_manifold():
     import trimesh
 
