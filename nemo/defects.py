@@ -117,6 +117,7 @@ that grows with the gradient and integration scales. The fit's first harmonic te
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,7 +127,7 @@ from scipy import optimize, sparse
 from scipy.spatial import cKDTree
 
 from nemo._log import logger
-from nemo.errors import NemoError, ObjectTooSmallError
+from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.geometry import (
     boundary_loop,
     edge_graph,
@@ -636,6 +637,11 @@ def find_defects(
     cand = np.isfinite(S) & (S < s_threshold)
     logger.info("defects: %d candidate vertices with S < %.3g (S_ref = P90 = %.3g)",
                 int(cand.sum()), s_threshold, s_ref)
+    if st.s_ordered >= s_ref:
+        warnings.warn(f"the contour of a defect must reach S ≥ {st.s_ordered:.3g} (s_ordered, default "
+                      f"s_threshold), above the surface's ordered level S_ref = {s_ref:.3g} (P90 of S): "
+                      "almost every candidate will be rejected as disordered; lower s_threshold (default "
+                      "S_ref / 2) or give s_ordered", NemoWarning, stacklevel=2)
     centres = _suppress(geo.graph, S, cand, min_distance)
     rows, records, tally = _examine(mesh, geo, f, st, centres, cand, contour_radius, r_contour_default,
                                     max_defects, {"refine": refine, "fit_radius": fit_radius,

@@ -28,7 +28,7 @@ from nemo.defects import (
     step_limit_deg,
     winding_steps,
 )
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.geometry import edge_graph, geodesic_ball
 
 TETRA = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / math.sqrt(3)
@@ -327,6 +327,17 @@ def test_max_defects_and_min_distance(sphere60):
     r = np.linalg.norm(df[["x", "y", "z"]].to_numpy(), axis=1)
     np.testing.assert_allclose(r, 60.0, atol=0.1)
     assert match(df, 60.0 * dirs).max() < 3.0
+
+
+def test_a_threshold_above_the_ordered_level_is_warned_about(sphere60):
+    """s_threshold 1 makes every vertex a candidate and, as the contour's S must reach it too (the
+    default s_ordered), rejects the real defects as disordered: warned, with the fix."""
+    dirs = rotated(TETRA, 0)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=0, mesh=sphere60)
+    with pytest.warns(NemoWarning, match=r"above the surface's ordered level.*lower s_threshold"):
+        df = find_defects(mesh, odf, ddf, avg_radius=15.0, s_threshold=1.0)
+    assert len(df) < 4
+    assert len(find_defects(mesh, odf, ddf, avg_radius=15.0, s_threshold=1.0, s_ordered=0.3)) == 4
 
 
 def test_bad_input(sphere60):
