@@ -404,6 +404,13 @@ def test_shape_spec_errors_are_named(spec, message):
         V.shape_volume(spec)
 
 
+def test_shape_spec_takes_numpy_values():
+    """From Python, arrays and numpy scalars are numbers too."""
+    vol, truth = V.shape_volume({"kind": "ellipsoid", "axes": np.array([6.0, 5.0, 4.0]), "seed": np.int64(2),
+                                 "noise": np.float32(3.0)})
+    assert vol.ndim == 3 and truth["snr"] == pytest.approx(60.0)
+
+
 def test_cli_help_names_every_step(capsys):
     with pytest.raises(SystemExit):
         nemo_main(["validate", "--help"])

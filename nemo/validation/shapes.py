@@ -9,6 +9,7 @@ values (mean and Gaussian curvature, wall thickness along the normals) are close
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 
 import numpy as np
@@ -64,8 +65,10 @@ def _numbers(spec: dict, key: str, count: tuple[int, ...], low: float, strict: b
     if key not in spec or spec[key] is None:
         return
     value = spec[key]
-    items = value if isinstance(value, (list, tuple)) else [value]
-    ok = (len(items) in count and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items)
+    items = value.tolist() if isinstance(value, np.ndarray) else value
+    items = list(items) if isinstance(items, (list, tuple)) else [items]
+    ok = (len(items) in count and all(isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+                                      for v in items)
           and all(math.isfinite(v) and (v > low if strict else v >= low) for v in items))
     if not ok:
         what = " or ".join(f"{c} number{'s' if c > 1 else ''}" for c in count)
@@ -95,7 +98,7 @@ def _check_spec(spec: dict) -> None:
     if spec["kind"] == "shells" and not all(i < o for i, o in zip(spec["inner"], spec["outer"])):
         raise NemoError(f"shells: every inner axis must be below the outer one, got {spec['inner']} and {spec['outer']}")
     seed = spec.get("seed", 0)
-    if not (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0):
+    if not (isinstance(seed, numbers.Integral) and not isinstance(seed, (bool, np.bool_)) and seed >= 0):
         raise NemoError(f"shape seed must be an integer ≥ 0, got {seed!r}")
 
 
