@@ -437,6 +437,10 @@ def test_averaging_width_is_capped_at_the_object(sphere15, monkeypatch):
     curvature(sphere15, 5.0, rng=0)
     assert widths[0] == pytest.approx(2 * np.sqrt(sphere15.area / (4 * np.pi)))
     assert widths[1] == pytest.approx(0.35 * 5.0)
+    values = np.asarray(sphere15.vertices)[:, 2]
+    wide, products = nm.smooth_on_surface(sphere15, values, 1000.0)
+    capped, capped_products = nm.smooth_on_surface(sphere15, values, widths[0])
+    assert products == capped_products and np.array_equal(wide, capped)
 
 
 def test_measure_flags_inconsistent_winding_and_non_manifold():

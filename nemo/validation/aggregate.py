@@ -42,6 +42,8 @@ def _json_object(path: str | os.PathLike, what: str) -> dict:
     """The JSON object in ``path``, or a NemoError naming the file and what it should be."""
     try:
         record = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise NemoError(f"{path} not found: give {what}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise NemoError(f"cannot read {path} as JSON ({err}): give {what}") from None
     if not isinstance(record, dict):
