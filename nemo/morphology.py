@@ -1452,6 +1452,48 @@ def _image_quality(mesh: trimesh.Trimesh) -> dict:
     return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "walls")}
 
 
+def _genus(topo: dict, notes: list[str]) -> int | None:
+    """Total genus from χ = Σ 2 − 2g − b (None where undefined); notes on the topology's problems."""
+    if topo["n_collapsed"]:
+        notes.append(f"{topo['n_collapsed']} faces collapse onto coincident vertices; ignored for "
+                     "topology and angles")
+    if topo["non_manifold_edges"]:
+        notes.append(f"{topo['non_manifold_edges']} non-manifold edges (shared by more than two faces)")
+    if not topo["consistent"]:
+        notes.append("face winding is inconsistent: volume and mean curvature are unreliable")
+    genus_twice = 2 * topo["n_components"] - topo["n_loops"] - topo["chi"]
+    if genus_twice >= 0 and genus_twice % 2 == 0 and not topo["non_manifold_edges"]:
+        return genus_twice // 2
+    notes.append("genus undefined: the mesh is not a manifold orientable surface")
+    return None
+
+
+def _fitted_sums(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame, chi: int, n_loops: int, turning: float,
+                 notes: list[str]) -> dict:
+    """``measure``'s sums of the fitted curvature: ∫K dA, its Gauss–Bonnet ratio, mean H and K."""
+    n_vertices = len(mesh.vertices)
+    if len(curvature_df) != n_vertices or "K" not in curvature_df or "H" not in curvature_df:
+        raise NemoError(
+            f"the curvature table has {len(curvature_df)} rows but the mesh {n_vertices} "
+            "vertices (or it lacks H, K): was it computed on this mesh?"
+        )
+    order = np.argsort(curvature_df["vertex"].to_numpy())
+    kf = curvature_df["K"].to_numpy(dtype=np.float64)[order]
+    hf = curvature_df["H"].to_numpy(dtype=np.float64)[order]
+    areas = vertex_areas(mesh)
+    ok = np.isfinite(kf) & np.isfinite(hf)
+    if (~ok & (areas > 0)).any():
+        notes.append(f"fitted curvature is NaN at {int((~ok).sum())} vertices; left out of the sums")
+    ik = float(np.sum(kf[ok] * areas[ok]))
+    a_ok = float(areas[ok].sum())
+    # an open surface's fits are NaN along the rim: the sum then misses a band, no check
+    whole = chi != 0 and not (n_loops and (~ok & (areas > 0)).any())
+    return {"integral_K_fit": ik,
+            "gauss_bonnet_ratio_fit": (ik + turning) / (2 * np.pi * chi) if whole else None,
+            "mean_H_fit": float(np.sum(hf[ok] * areas[ok]) / a_ok) if a_ok > 0 else None,
+            "mean_K_fit": ik / a_ok if a_ok > 0 else None}
+
+
 def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> dict:
     """Global morphology of a surface.
 
@@ -1490,20 +1532,10 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
     n_vertices_in, n_faces_in = len(vertices_in), len(faces_in)
     area = float(face_normals_areas(vertices_in, faces_in)[1].sum())
     topo = _topology(vertices_in, faces_in)
-    if topo["n_collapsed"]:
-        notes.append(f"{topo['n_collapsed']} faces collapse onto coincident vertices; ignored for "
-                     "topology and angles")
-    if topo["non_manifold_edges"]:
-        notes.append(f"{topo['non_manifold_edges']} non-manifold edges (shared by more than two faces)")
-    if not topo["consistent"]:
-        notes.append("face winding is inconsistent: volume and mean curvature are unreliable")
+    genus = _genus(topo, notes)
     watertight = topo["watertight"]
     chi = topo["chi"]
     n_comp, n_loops = topo["n_components"], topo["n_loops"]
-    genus_twice = 2 * n_comp - n_loops - chi
-    genus = genus_twice // 2 if genus_twice >= 0 and genus_twice % 2 == 0 and not topo["non_manifold_edges"] else None
-    if genus is None:
-        notes.append("genus undefined: the mesh is not a manifold orientable surface")
 
     volume = signed_volume(vertices_in, faces_in) if watertight else None
     if not watertight:
@@ -1541,26 +1573,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         **_image_quality(mesh),
     }
     if curvature_df is not None:
-        if len(curvature_df) != n_vertices_in or "K" not in curvature_df or "H" not in curvature_df:
-            raise NemoError(
-                f"the curvature table has {len(curvature_df)} rows but the mesh {n_vertices_in} "
-                "vertices (or it lacks H, K): was it computed on this mesh?"
-            )
-        order = np.argsort(curvature_df["vertex"].to_numpy())
-        kf = curvature_df["K"].to_numpy(dtype=np.float64)[order]
-        hf = curvature_df["H"].to_numpy(dtype=np.float64)[order]
-        areas = vertex_areas(mesh)
-        ok = np.isfinite(kf) & np.isfinite(hf)
-        if (~ok & (areas > 0)).any():
-            notes.append(f"fitted curvature is NaN at {int((~ok).sum())} vertices; left out of the sums")
-        ik = float(np.sum(kf[ok] * areas[ok]))
-        a_ok = float(areas[ok].sum())
-        result["integral_K_fit"] = ik
-        # an open surface's fits are NaN along the rim: the sum then misses a band, no check
-        whole = chi != 0 and not (n_loops and (~ok & (areas > 0)).any())
-        result["gauss_bonnet_ratio_fit"] = (ik + turning) / (2 * np.pi * chi) if whole else None
-        result["mean_H_fit"] = float(np.sum(hf[ok] * areas[ok]) / a_ok) if a_ok > 0 else None
-        result["mean_K_fit"] = ik / a_ok if a_ok > 0 else None
+        result.update(_fitted_sums(mesh, curvature_df, chi, n_loops, turning, notes))
     result["notes"] = notes
     logger.debug("measure: %s", result)
     return result

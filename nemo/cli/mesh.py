@@ -72,14 +72,14 @@ def add_arguments(parser) -> None:
                              "sampling distance --step × (dx + dy)/4, enough for a blurred SNR of 20; 0 = none)")
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
                         help="move the vertices to the sub-voxel edge along their normals (default: off; "
-                             "not with --mask)")
+                             "a --mask has no intensity edge: ignored there, with a warning)")
     parser.add_argument("--refine-sigma", type=non_negative, default=None, metavar="UM",
                         help="blur of the image the refinement reads (default: as much as the noise needs)")
     parser.add_argument("--refine-to", choices=("level", "steepest"), default=None,
                         help="edge the refinement moves to: the iso-level crossing (default) or the steepest "
                              "point of the intensity profile between background and plateau (thin, noisy or "
-                             "z-blurred walls without bright texture next to the edge; needs the half level, "
-                             "not --edge threshold)")
+                             "z-blurred walls without bright texture next to the edge; needs the half level: "
+                             "with --edge threshold or no background it refines to the level, with a warning)")
     parser.add_argument("--threshold", type=_threshold, default=None, metavar="yen|otsu|VALUE",
                         help="automatic threshold or an intensity iso-level (default yen)")
     parser.add_argument("--edge", choices=("half", "threshold"), default=None,
