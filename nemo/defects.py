@@ -995,45 +995,50 @@ def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: floa
         return x0, "vertex"
     t1, t2 = tangent_basis(normals[v])
     idx, dist = geodesic_ball(graph, v, rho + 2 * h)
-    local = (None, None)
+    core, name = None, "vertex"
     if method == "model" and f.dtree is not None:
-        centre = x0
-        for _ in range(2):  # fit, re-centre the window on the fitted core, fit again
-            j = np.asarray(f.dtree.query_ball_point(centre, rho), dtype=np.int64)
-            if r_in > 0:
-                j = j[np.linalg.norm(f.dpos[j] - centre, axis=1) >= r_in]
-            if len(j) < 12:
-                break
-            rel = f.dpos[j] - x0
-            xi, eta = rel @ t1, rel @ t2
-            c0 = (centre - x0) @ np.column_stack([t1, t2])
-            d = f.ddir[j]
-            theta = np.arctan2(d @ t2, d @ t1)
-            w = np.clip(f.dcoh[j], 0.05, None)
-            core = _fit_defect_model(xi - c0[0], eta - c0[1], theta, w, m, rho, harmonic)
-            if core is None:
-                break
-            core = core + c0
-            if np.hypot(*core) > rho:
-                break
-            local = (core, "model")
-            centre = x0 + core[0] * t1 + core[1] * t2
-    if local[0] is None:
-        sel = idx[dist < rho]
-        rel = verts[sel] - x0
-        xi, eta = rel @ t1, rel @ t2
-        nv = f.navg[sel]
-        th = np.arctan2(nv @ t2, nv @ t1)
-        q = f.S[sel, None] * np.column_stack([np.cos(2 * th), np.sin(2 * th)])
-        if len(sel) >= 6 and abs(m) == 0.5:
-            core = _linear_q_zero(xi, eta, q)
-            if core is not None and np.hypot(*core) < 0.5 * rho:
-                local = (core, "q")
-    if local[0] is None:
+        core, name = _model_core(f, x0, t1, t2, m, rho, r_in, harmonic), "model"
+    if core is None and len(idx[dist < rho]) >= 6 and abs(m) == 0.5:
+        core, name = _q_core(f, verts, idx[dist < rho], x0, t1, t2, rho), "q"
+    if core is None:
         return x0, "vertex"
-    core, name = local
     p = x0 + core[0] * t1 + core[1] * t2
     return closest_point_local(mesh, p, idx), name
+
+
+def _model_core(f: _Fields, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray, m: float, rho: float, r_in: float,
+                harmonic: bool) -> np.ndarray | None:
+    """Core (ξ, η) in the tangent frame at ``x0`` of the defect model fitted to the raw directors within
+    ``rho`` (fit, re-centre the window on the fitted core, fit again), or None."""
+    centre, found = x0, None
+    for _ in range(2):
+        j = np.asarray(f.dtree.query_ball_point(centre, rho), dtype=np.int64)
+        if r_in > 0:
+            j = j[np.linalg.norm(f.dpos[j] - centre, axis=1) >= r_in]
+        if len(j) < 12:
+            break
+        rel = f.dpos[j] - x0
+        c0 = (centre - x0) @ np.column_stack([t1, t2])
+        d = f.ddir[j]
+        theta = np.arctan2(d @ t2, d @ t1)
+        core = _fit_defect_model(rel @ t1 - c0[0], rel @ t2 - c0[1], theta, np.clip(f.dcoh[j], 0.05, None), m,
+                                 rho, harmonic)
+        if core is None or np.hypot(*(core + c0)) > rho:
+            break
+        found = core + c0
+        centre = x0 + found[0] * t1 + found[1] * t2
+    return found
+
+
+def _q_core(f: _Fields, verts: np.ndarray, sel: np.ndarray, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray,
+            rho: float) -> np.ndarray | None:
+    """Core (ξ, η) of a ±½ defect where the averaged Q field, linearised around ``x0``, vanishes, or None."""
+    rel = verts[sel] - x0
+    nv = f.navg[sel]
+    th = np.arctan2(nv @ t2, nv @ t1)
+    q = f.S[sel, None] * np.column_stack([np.cos(2 * th), np.sin(2 * th)])
+    core = _linear_q_zero(rel @ t1, rel @ t2, q)
+    return core if core is not None and np.hypot(*core) < 0.5 * rho else None
 
 
 def refine_with_directors(
