@@ -431,6 +431,28 @@ def test_rejection_branches(theta, kwargs, reason):
     assert len(find_defects(mesh, odf, None, avg_radius=6.0, contour_radius=15.0)) == 1
 
 
+def test_a_zero_charge_dip_nearby_does_not_cap_a_defect_contour():
+    """A +½ defect whose disordered core reaches 12 µm, with a spurious S dip 22 µm away: the dip
+    caps the first contour at 0.45 × 22 µm, still in the core (rejected as disordered). Once the
+    dip's own contour reads zero charge, the defect is measured again on wider contours and found."""
+    mesh, odf = _planar_case(lambda x, y: 0.5 * np.arctan2(y, x))
+    v = np.asarray(mesh.vertices)
+    r = np.hypot(v[:, 0], v[:, 1])
+    s = np.clip((r / 15.0) ** 2, 1e-3, 1.0)
+    s[np.hypot(v[:, 0] - 22.0, v[:, 1]) < 3.0] = 0.05  # a disordered spot, no defect
+    odf["S"] = s
+    df = find_defects(mesh, odf, None, avg_radius=6.0, min_distance=15.0)
+    cands = candidate_table(df)
+    assert len(df) == 1, cands
+    assert np.hypot(df["x"].iloc[0], df["y"].iloc[0]) < 1.5
+    assert df["charge_rounded"].iloc[0] == 0.5 and df["contour_radius"].iloc[0] > 0.45 * 22.0
+    assert sorted(cands["reason"]) == ["", "zero charge"]
+    assert df.attrs["parameters"]["rejected"]["disordered contour"] == 0
+    # the dip is what capped it: alone, the first contour is wide enough
+    odf["S"] = np.clip((r / 15.0) ** 2, 1e-3, 1.0)
+    assert len(find_defects(mesh, odf, None, avg_radius=6.0, min_distance=15.0)) == 1
+
+
 def test_contour_shrinks_at_an_open_rim():
     """A defect 8 µm from the rim is measured on a contour shrunk off the rim (the default is
     1.5 × 6 = 9 µm); one 2 µm from the rim has no room for a contour ("contour leaves the surface")."""
