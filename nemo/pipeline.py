@@ -26,14 +26,15 @@ from nemo import atomic, layout, objects, stages
 from nemo import config as nconfig
 from nemo._log import logger, step
 from nemo.errors import NemoError
+from nemo.psf import check_psf
 
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def frame_setup(cfg: dict, dataset: str | None, image, spacing) -> dict:
-    """Image, spacing, mask and segmented channel of a frame: from the dataset, else given."""
+def frame_setup(cfg: dict, dataset: str | None, image, spacing, psf=None) -> dict:
+    """Image, spacing, PSF, mask and segmented channel of a frame: from the dataset, else given."""
     if dataset is None and image is None and len(cfg["datasets"]) == 1:
         dataset = next(iter(cfg["datasets"]))
     d = cfg["datasets"].get(dataset, {}) if dataset is not None else {}
@@ -45,6 +46,7 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing) -> dict:
         raise NemoError("give an image (or a config with a dataset and --dataset NAME)")
     seg = d.get("segment_channel")
     return {"dataset": dataset, "image": str(image), "spacing": spacing or d.get("spacing"),
+            "psf": check_psf(psf if psf is not None else d.get("psf"), "psf"),
             "mask": d.get("mask"), "mask_labels": d.get("mask_labels"), "mask_threshold": d.get("mask_threshold"),
             "surface_mesh": d.get("surface_mesh"), "mesh_unit": d.get("mesh_unit"),
             "seg": cfg["segment_channel"] if seg is None else seg}
@@ -73,6 +75,7 @@ def run_frame(
     c: int = 0,
     spacing: tuple[float, float, float] | None = None,
     dataset: str | None = None,
+    psf: tuple[float, float, float] | None = None,
 ) -> dict:
     """Analyse one (t, c) frame into ``outdir``.
 
@@ -89,8 +92,11 @@ def run_frame(
     spacing : (dz, dy, dx), optional
         Voxel size overriding the file's (and the dataset's) calibration.
     dataset : str, optional
-        Take image, spacing, mask, segmented channel and section overrides from
+        Take image, spacing, PSF, mask, segmented channel and section overrides from
         ``datasets.NAME``.
+    psf : (σz, σy, σx), optional
+        The PSF's standard deviations, overriding the dataset's (:mod:`nemo.psf`: its extra z
+        blur is deconvolved before meshing and peeling).
 
     Returns
     -------
@@ -103,7 +109,7 @@ def run_frame(
     only when every step succeeded: a failed or interrupted run leaves earlier results intact.
     """
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
-    frame = frame_setup(cfg, dataset, image, spacing)
+    frame = frame_setup(cfg, dataset, image, spacing, psf)
     check_selection(cfg, frame, t, c)
     sections = nconfig.analysis(cfg, frame["dataset"])
     final = Path(outdir).resolve()  # `-o .`, `-o a/..` and symlinked folders: stage beside the real one
@@ -190,7 +196,8 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
                "outdir": str(final)}
     written: list[str] = []
-    meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed, final=final)
+    meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed, final=final,
+                                           psf=frame["psf"])
     if c != frame["seg"]:
         with timed("read"):
             volume, info = read_stack(frame["image"], t, c, spacing=sp)
@@ -198,7 +205,7 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
               if layer["channels"] == "all" or c in layer["channels"]}
     results = {name: layer_frame(name, layer, volume, info, meshes, sections, out, written, timed,
                                  prov={"image": frame["image"], "t": t, "c": c, "unit": info.unit},
-                                 final=final, dataset=frame["dataset"])
+                                 final=final, dataset=frame["dataset"], psf=frame["psf"])
                for name, layer in layers.items()}
     del volume
     for a, b in sections["alignment"] or []:
@@ -211,7 +218,8 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     return summary
 
 
-def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, dataset: str | None = None) -> dict:
+def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, dataset: str | None = None,
+                    psf=None) -> dict:
     """The analysis sections with every data-derived default as the number this frame gets.
 
     Meshes the frame (nothing is written); per surface and per layer where a default depends
@@ -223,13 +231,13 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     from nemo.io import read_stack
 
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
-    frame = frame_setup(cfg, dataset, image, spacing)
+    frame = frame_setup(cfg, dataset, image, spacing, psf)
     check_selection(cfg, frame, t, c)
     sections = nconfig.analysis(cfg, frame["dataset"])
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
     mask = _mesh_source(frame, t, volume.shape, sections)  # the same mesh source as run_frame
-    meshes, sections["mesh"] = _mesh_or_import(volume, info, mask, sections["mesh"])
+    meshes, sections["mesh"] = _mesh_or_import(volume, info, mask, sections["mesh"], psf=frame["psf"])
     del volume, mask
     if sections["curvature"] is not None:
         sections["curvature"] = {s: stages.curvature_defaults(meshes[s], sections["curvature"])
@@ -268,16 +276,17 @@ def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict):
                      threshold=frame["mask_threshold"])
 
 
-def _mesh_or_import(volume, info, mask, section: dict):
+def _mesh_or_import(volume, info, mask, section: dict, psf=None):
     """The frame's meshes: reconstructed from the image, or a user's surface checked against it."""
     section = dict(section)
     path, mesh_unit = section.pop("surface_mesh", None), section.pop("mesh_unit", None)
     if path is None:
-        return stages.mesh(volume, info.spacing, section, mask=mask, unit=info.unit)
+        return stages.mesh(volume, info.spacing, section, mask=mask, unit=info.unit, psf=psf)
     return stages.import_mesh(path, volume, info.spacing, section, unit=info.unit, mesh_unit=mesh_unit)
 
 
-def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None):
+def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None,
+                     psf=None):
     """Mesh, measure, curvature and thickness of a time point (the workflow's mesh/morphology rules).
 
     Files go to ``out``; provenance names them in ``final`` (default ``out``), where they end up.
@@ -287,7 +296,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
     from nemo.tables import write_table
 
     with timed("mesh"):
-        meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"])
+        meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf)
         for name, m in meshes.items():
             m.metadata["nemo_params"] = params
             save_mesh(m, out / layout.MESH[name])
@@ -318,7 +327,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
 
 
 def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov,
-                final: Path | None = None, dataset: str | None = None) -> dict:
+                final: Path | None = None, dataset: str | None = None, psf=None) -> dict:
     """Peel → directors → order → defects of one layer (the workflow's per-layer rules).
 
     A layer with ``directors_from`` imports its directors from that file instead of peel →
@@ -349,7 +358,7 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
             shift = field_on_vertices(read_table(out / layout.THICKNESS, "thickness", n_vertices=n), "thickness",
                                       n, layout.THICKNESS, exact=True)
         with timed("peel"):
-            ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift)
+            ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift, psf=psf)
         layer_path = save("layer", ldf, parameters=lp)
         intensity = field_on_vertices(read_table(layer_path, "layer", n_vertices=n), "intensity", n, layer_path,
                                       exact=True)

@@ -790,6 +790,27 @@ def auto_sigma(
     return float(sigma), info
 
 
+def iso_level(volume: np.ndarray, spacing, sigma: float, step: int = 1, threshold: str | float = "yen",
+              edge: Literal["half", "threshold"] = "half") -> float:
+    """The iso-level :func:`reconstruct` would mesh ``volume`` at, in its intensity units.
+
+    Parameters
+    ----------
+    volume : ndarray, shape (Z, Y, X)
+    spacing : (dz, dy, dx)
+    sigma : float
+        The blur σ (physical) of the meshed field.
+    step : int
+        Marching-cubes step (voxels).
+    threshold, edge
+        As in :func:`reconstruct`.
+    """
+    (dz, dy, dx), step, sigma = _check_reconstruct_args(spacing, sigma, "all", edge, step, 0, 0.1)
+    source, _, scale, _ = _source(volume, None)
+    field = _blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), step)
+    return float(_iso_level(field, float(field.min()), float(field.max()), False, threshold, edge, scale)[0]) * scale
+
+
 def parse_threshold(threshold) -> str | float:
     """``"yen"``, ``"otsu"`` (any case) or a finite number, from a string or a number.
 

@@ -545,3 +545,53 @@ def test_a_low_snr_channel_is_warned_about_at_the_mesh_step(rng):
     with pytest.warns(NemoWarning, match="signal-to-noise ratio 1.* the surface is uncertain"):
         _, p = stages.mesh(volume, (1.0, 1.0, 1.0), {"split": "none"})
     assert p["snr"] < 3
+
+
+@pytest.mark.parametrize("blur, noise", [((2.5, 1.0, 1.0), 0.0), ((3.0, 1.0, 1.0), 10.0)])
+def test_mesh_with_the_psf_unbiases_a_z_blurred_shell(blur, noise):
+    """A 4 µm ellipsoidal shell under a z-elongated PSF (2 µm planes): meshed as it is, its walls
+    move apart (the wall never reaches its plateau, the half level drops: +1 µm); meshed with
+    its PSF deconvolved (the level from the image before), the median error is at most a third
+    of the undeconvolved one (measured: 1.12 -> 0.08 µm noise-free, 1.36-1.73 -> 0.34-0.49 µm at
+    σz 3 µm and noise 10 over the noise seeds 1-5)."""
+    from nemo.validation.shapes import shape_volume, shell_thickness
+
+    spec = {"kind": "shells", "inner": [24, 20, 16], "outer": [28, 24, 20], "blur": list(blur),
+            "spacing": [2, 1, 1], "noise": noise}
+    volume, truth = shape_volume(spec, rng=1)
+    errors, params = [], []
+    for psf in (None, blur):
+        meshes, p = stages.mesh(volume, (2.0, 1.0, 1.0), {}, psf=psf)
+        df, _ = stages.thickness(meshes["inner"], meshes["outer"], {})
+        v = np.asarray(meshes["inner"].vertices) - np.asarray(truth["centre"])
+        exact = shell_thickness(v, spec["inner"], spec["outer"])
+        errors.append(float(np.nanmedian(np.abs(df["thickness"].to_numpy() - exact))))
+        params.append(p)
+    assert errors[0] > 0.8, errors  # the bias deconvolution removes
+    assert errors[1] < 0.55 and errors[1] < errors[0] / 3, errors
+    raw, sharp = params
+    assert raw["deconvolution"]["iterations"] == 0 and sharp["deconvolution"]["psf"] == list(blur)
+    assert sharp["level"] == pytest.approx(raw["level"], rel=1e-6) == sharp["deconvolution"]["level"]
+
+
+def test_peel_with_the_psf_reads_the_deconvolved_image():
+    """A thin bright layer 3 µm outside a sphere's surface, blurred along z: peeled at its depth
+    with the PSF deconvolved, the layer reads brighter at the poles than without (its light
+    was spread along z) and no darker at the equator."""
+    spacing = (2.0, 1.0, 1.0)
+    z, y, x = np.meshgrid(*(np.arange(n) * d for n, d in zip((40, 80, 80), spacing)), indexing="ij")
+    r = np.sqrt((z - 39) ** 2 + (y - 39.5) ** 2 + (x - 39.5) ** 2)
+    layer = np.exp(-0.5 * ((r - 28.0) / 0.5) ** 2)
+    from scipy import ndimage as ndi
+
+    volume = ndi.gaussian_filter(100 * layer, (2.5 / 2.0, 1.0, 1.0)) + 10
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=25.0)
+    sphere.apply_translation([39.5, 39.5, 39.0])
+    layer_section = {"range": [2.5, 3.5], "samples": 5}
+    plain, _ = stages.peel(volume, spacing, sphere, layer_section)
+    sharp, p = stages.peel(volume, spacing, sphere, layer_section, psf=(2.5, 1.0, 1.0))
+    nz = np.abs(sphere.vertex_normals[:, 2])
+    poles, equator = nz > 0.9, nz < 0.2
+    assert p["deconvolution"]["iterations"] > 0
+    assert sharp["intensity"][poles].mean() > 1.3 * plain["intensity"][poles].mean()
+    assert sharp["intensity"][equator].mean() > 0.95 * plain["intensity"][equator].mean()

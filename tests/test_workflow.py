@@ -910,3 +910,33 @@ def test_several_objects_through_the_workflow_and_nemo_run(tmp_path, write_two_v
     for name in (layout.layer_file("defects", "film"), layout.layer_file("order", "film"), "curvature_inner.parquet",
                  "thickness.parquet"):
         pd.testing.assert_frame_equal(read_table(frame / name), read_table(tmp_path / "run" / name))
+
+
+def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
+    """datasets.NAME.psf through snakemake: the mesh and peel rules deconvolve the same PSF (their
+    provenance says so), `nemo run` with the same config gives the same tables, and a new PSF
+    reruns the mesh, the peel and what depends on them, nothing of another dataset."""
+    from nemo import layout
+    from nemo.mesh import load_mesh
+    from nemo.tables import read_provenance, read_table
+
+    cfg = {"datasets": {"z": {"path": "z.tif", "psf": [2.0, 1.0, 1.0],
+                              "synthetic": {"radius": 30, "spacing": [2, 1, 1], "blur": [2, 1, 1], "seed": 3}}},
+           "curvature": None, "thickness": None, "layers": {"fibres": {"surface": "inner", "range": [0, 4]}},
+           "alignment": [], "report": {"summary": False, "frames": False}}
+    smk(tmp_path, "--cores", "2", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    frame = tmp_path / "results" / "z" / "t0" / "c0"
+    mesh_params = load_mesh(frame / layout.MESH["inner"]).metadata["nemo_params"]
+    peel_params = read_provenance(frame / layout.layer_file("layer", "fibres"))["parameters"]
+    for record in (mesh_params["deconvolution"], peel_params["deconvolution"]):
+        assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0, record
+    proc = subprocess.run([sys.executable, "-m", "nemo", "run", "--config", str(tmp_path / "c.yaml"), "--dataset",
+                           "z", "-o", str(tmp_path / "run")], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for kind in ("layer", "directors", "order", "defects"):
+        pd.testing.assert_frame_equal(read_table(frame / layout.layer_file(kind, "fibres")),
+                                      read_table(tmp_path / "run" / layout.layer_file(kind, "fibres")))
+    cfg["datasets"]["z"]["psf"] = [2.5, 1.0, 1.0]
+    counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c2.yaml", cfg)))
+    assert counts.get("mesh") == 1 and counts.get("peel") == 1 and "synth_z" not in counts, counts

@@ -22,7 +22,7 @@ def add_common(
 ) -> None:
     """Add the options every subcommand shares.
 
-    ``--t/--c/--spacing`` only for commands that read an image (``frame=True``).
+    ``--t/--c/--spacing/--psf`` only for commands that read an image (``frame=True``).
     """
     if frame:
         parser.add_argument("--t", type=int, default=0, metavar="T", help="time point (0-based, default 0)")
@@ -30,6 +30,12 @@ def add_common(
         parser.add_argument(
             "--spacing", type=number, nargs=3, metavar=("DZ", "DY", "DX"),
             help="voxel size in µm, overriding the file's calibration",
+        )
+        parser.add_argument(
+            "--psf", type=non_negative, nargs=3, metavar=("SZ", "SY", "SX"),
+            help="the microscope's PSF as Gaussian standard deviations in µm (FWHM / 2.355): its extra blur "
+                 "along z is deconvolved (Richardson-Lucy) before meshing and peeling; give the same to "
+                 "nemo mesh and nemo peel (default: none)",
         )
     if output:
         parser.add_argument("-o", "--output", required=output_required, metavar="FILE", help=output_help)

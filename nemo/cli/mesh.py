@@ -171,7 +171,7 @@ def run(args) -> int:
         if args.mesh_unit:
             raise NemoError("--mesh-unit is the unit of a --from-mesh surface: give the surface too")
         meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
-                                     unit=info.unit, centre=args.centre)
+                                     unit=info.unit, centre=args.centre, psf=args.psf)
     del volume, mask
     paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}
     _check_side_outputs(paths, input_files(args))

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from nemo.cli.common import add_common, number, output_path, positive
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 
 HELP = "project an intensity layer (a depth range along the normals) onto a mesh"
 DESCRIPTION = """\
@@ -64,6 +65,16 @@ def _read_shift(spec: str, n_vertices: int) -> np.ndarray:
     return field_on_vertices(df, column, n_vertices, path, exact=True)
 
 
+def _check_same_psf(mesh, psf, mesh_path) -> None:
+    """Warn when the mesh was made from an image deconvolved with another PSF than ``psf``."""
+    made = ((mesh.metadata.get("nemo_params") or {}).get("deconvolution") or {}).get("psf")
+    given = None if psf is None else [float(v) for v in psf]
+    if made is not None and made != given:
+        warnings.warn(f"the mesh {mesh_path} was made with --psf {' '.join(f'{v:g}' for v in made)}, this peel "
+                      f"{'has none' if given is None else 'has another'}: give nemo peel the same --psf",
+                      NemoWarning, stacklevel=2)
+
+
 def profile_path(layer_path: str | Path) -> Path:
     """``LAYER.parquet`` → ``LAYER.profile.parquet``."""
     p = Path(layer_path)
@@ -91,10 +102,12 @@ def run(args) -> int:
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
     check_mesh_image(mesh, info.spacing, info.unit, mesh_name=f"the mesh {args.mesh}",
                      image_name=f"the image {args.image}")
+    _check_same_psf(mesh, args.psf, args.mesh)
     if mesh.metadata.get("spacing") is None:  # made elsewhere: check its scale against the image
         warn_if_mesh_off_object(mesh, volume, info.spacing, mesh_name=f"the mesh {args.mesh}")
     with step(f"peeling {len(mesh.vertices)} vertices in [{dmin:g}, {dmax:g}]"):
-        result = stages.peel(volume, info.spacing, mesh, layer, shift=shift, return_profile=args.profile)
+        result = stages.peel(volume, info.spacing, mesh, layer, shift=shift, return_profile=args.profile,
+                             psf=args.psf)
     df, params = result[:2]
     prov = dict(
         command="peel", image=str(args.image), mesh=str(args.mesh), n_vertices=len(mesh.vertices),

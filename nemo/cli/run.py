@@ -30,7 +30,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("image", nargs="?", help="TIFF hyperstack, OME-TIFF or OME-Zarr folder (default: the dataset's path)")
     parser.add_argument("--config", metavar="FILE", help="the workflow's YAML config (default: built-in defaults)")
     parser.add_argument("--dataset", metavar="NAME",
-                        help="take image, spacing, mask, segmented channel and overrides from datasets.NAME")
+                        help="take image, spacing, psf, mask, segmented channel and overrides from datasets.NAME")
     parser.add_argument("--print-config", action="store_true",
                         help="print the parameters resolved on this frame (meshes it, no other output) and exit")
     add_common(parser, frame=True, output_help="output folder", output_required=False)
@@ -41,18 +41,19 @@ def run(args) -> int:
     from nemo.pipeline import run_frame
 
     spacing = tuple(args.spacing) if args.spacing else None
+    psf = tuple(args.psf) if args.psf else None
     if args.print_config:
         import yaml
 
         from nemo.pipeline import resolved_config
 
         print(yaml.safe_dump(resolved_config(args.image, args.config, t=args.t, c=args.c, spacing=spacing,
-                                             dataset=args.dataset), sort_keys=False), end="")
+                                             dataset=args.dataset, psf=psf), sort_keys=False), end="")
         return 0
     if not args.output:
         raise NemoError("give an output folder with -o OUTDIR")
     summary = run_frame(args.image, args.output, args.config, t=args.t, c=args.c, spacing=spacing,
-                        dataset=args.dataset)
+                        dataset=args.dataset, psf=psf)
     print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels")
     for name, res in summary["layers"].items():
         chk = res["euler_check"]

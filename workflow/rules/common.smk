@@ -306,6 +306,7 @@ def _datasets():
         entry = {
             "path": d["path"],
             "spacing": d["spacing"],
+            "psf": d["psf"],
             "mask": d["mask"],
             "mask_labels": d["mask_labels"],
             "mask_threshold": d["mask_threshold"],
@@ -414,9 +415,14 @@ def frame_file(wildcards, name):
     return f"{FRAME.format(**wildcards)}/{name}"
 
 
-def spacing_opt(wildcards):
-    sp = DATA[wildcards.dataset]["spacing"]
-    return f"--spacing {' '.join(str(v) for v in sp)}" if sp else ""
+def calibration_opts(wildcards):
+    """The dataset's --spacing and --psf (the image's voxel size and PSF), if set."""
+    d = DATA[wildcards.dataset]
+    return " ".join(
+        f"--{key} {' '.join(str(v) for v in d[key])}"
+        for key in ("spacing", "psf")
+        if d[key]
+    )
 
 
 def layer_channels(name, layer):
@@ -569,7 +575,7 @@ SINGLE_MESH = [name for name in DATA if name not in SPLIT_MESH]
 
 MESH_SHELL = nemo_shell(
     "mesh {input.image:q} -o {output.whole:q} --t {wildcards.t} --c {wildcards.c}"
-    " {params.spacing} {params.source} {params.opts} > {log:q} 2>&1"
+    " {params.calibration} {params.source} {params.opts} > {log:q} 2>&1"
 )
 
 

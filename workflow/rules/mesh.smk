@@ -30,7 +30,7 @@ if SPLIT_MESH:
             runtime=res("mesh", "runtime"),
         params:
             opts=opts("mesh"),
-            spacing=spacing_opt,
+            calibration=calibration_opts,
             source=mesh_source_opts,
         shell:
             MESH_SHELL
@@ -61,7 +61,7 @@ if SINGLE_MESH:
             runtime=res("mesh", "runtime"),
         params:
             opts=opts("mesh"),
-            spacing=spacing_opt,
+            calibration=calibration_opts,
             source=mesh_source_opts,
         shell:
             MESH_SHELL

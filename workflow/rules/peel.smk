@@ -22,10 +22,10 @@ rule peel:
         runtime=res("peel", "runtime"),
     params:
         opts=peel_opts,
-        spacing=spacing_opt,
+        calibration=calibration_opts,
         shift=lambda wc, input: optional_file("--shift", input, "shift", ":thickness"),
     shell:
         nemo_shell(
             "peel {input.image:q} {input.mesh:q} -o {output:q} --t {wildcards.t} --c {wildcards.c}"
-            " {params.spacing} {params.opts} {params.shift} > {log:q} 2>&1"
+            " {params.calibration} {params.opts} {params.shift} > {log:q} 2>&1"
         )

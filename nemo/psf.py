@@ -1,0 +1,129 @@
+"""The microscope's point spread function: undoing its blur before the analysis.
+
+A confocal or light-sheet PSF is longer along the optical axis (z) than across it: σz is 2-3
+times σxy. On a curved surface that blur is *anisotropic in the tangent plane* wherever the
+normal is oblique: fibres running across the projected z axis are smeared out, the structure
+tensor then reads whatever texture is left, and near a defect core whole sectors of directors
+turn 30-90° (docs/validation.md, "Defect localisation under a z-elongated PSF"). The light of a
+bright layer blurred along z also pulls the walls towards it at the poles and thickens a shell.
+
+Given the PSF as Gaussian standard deviations (σz, σy, σx) in the image's unit, the stack is
+deconvolved by Richardson-Lucy (:data:`DECONVOLVE_ITERATIONS` iterations) before meshing and
+peeling. Measured on z-blurred vesicles (docs/validation.md, "Deconvolving a known PSF"):
+deconvolving the whole PSF localises defects better than deconvolving only its extra z blur
+(median 1.6 against 2.0 µm), and 30 iterations better than 10. A PSF below a quarter of a
+voxel on every axis needs nothing and the stack is returned unchanged.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from nemo._log import logger
+from nemo.errors import NemoError
+
+#: Richardson-Lucy iterations (measured on z-blurred vesicles at SNR ∞-5: docs/validation.md,
+#: "Deconvolving a known PSF").
+DECONVOLVE_ITERATIONS = 30
+
+#: A PSF narrower than this fraction of the voxel on every axis is not deconvolved.
+MIN_PSF_PER_VOXEL = 0.25
+
+
+def check_psf(psf, name: str = "psf") -> tuple[float, float, float] | None:
+    """``psf`` as three positive floats (σz, σy, σx), or None; a wrong value is named.
+
+    Parameters
+    ----------
+    psf : sequence of 3 numbers or None
+    name : str
+        What the caller calls it (a config key or an option), for the message.
+    """
+    if psf is None:
+        return None
+    try:
+        values = tuple(float(v) for v in psf)
+    except (TypeError, ValueError):
+        raise NemoError(f"{name} must be three numbers σz σy σx (the PSF's standard deviations in the "
+                        f"image's unit), got {psf!r}") from None
+    if len(values) != 3 or not all(np.isfinite(values)) or min(values) < 0:
+        raise NemoError(f"{name} must be three numbers σz σy σx ≥ 0 (the PSF's standard deviations in the "
+                        f"image's unit), got {psf!r}")
+    return values
+
+
+def richardson_lucy_gaussian(volume: np.ndarray, sigma_vox: tuple[float, float, float],
+                             iterations: int = DECONVOLVE_ITERATIONS) -> np.ndarray:
+    """Richardson-Lucy deconvolution of a non-negative stack by a Gaussian PSF.
+
+    Hand-written rather than ``skimage.restoration.richardson_lucy``: that one convolves with a
+    dense kernel array by FFT, while a Gaussian PSF is separable and ``ndimage``'s separable
+    filter is several times faster and lighter on a GB stack.
+
+    Parameters
+    ----------
+    volume : ndarray, shape (Z, Y, X)
+        Non-negative intensities.
+    sigma_vox : (float, float, float)
+        The PSF's standard deviations in voxels along (z, y, x); 0 = no blur on that axis.
+    iterations : int
+
+    Returns
+    -------
+    ndarray of float32, shape (Z, Y, X)
+        The estimate, in the intensity units of ``volume``.
+    """
+    observed = np.asarray(volume, dtype=np.float32)
+    tiny = np.float32(1e-6 * max(float(observed.max()), 1e-30))
+    estimate = observed.copy()
+    for _ in range(iterations):  # the PSF is symmetric: its mirror is itself
+        blurred = ndi.gaussian_filter(estimate, sigma_vox, mode="nearest")
+        ratio = observed / np.maximum(blurred, tiny)
+        estimate *= ndi.gaussian_filter(ratio, sigma_vox, mode="nearest")
+    return estimate
+
+
+def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_ITERATIONS) -> tuple[np.ndarray, dict]:
+    """The stack deconvolved by a Gaussian PSF (module docstring).
+
+    Parameters
+    ----------
+    volume : ndarray, shape (Z, Y, X)
+        One channel of one time point.
+    spacing : (float, float, float)
+        Voxel size (dz, dy, dx) in the image's unit.
+    psf : (float, float, float) or None
+        The PSF's standard deviations (σz, σy, σx) in the image's unit; None = no PSF given.
+    iterations : int
+        Richardson-Lucy iterations.
+
+    Returns
+    -------
+    volume : ndarray, shape (Z, Y, X)
+        Float32 where deconvolved; ``volume`` itself where nothing was to be done.
+    record : dict
+        ``psf``, ``sigma_voxels`` (the PSF in voxels), ``iterations`` (0 if none), ``seconds``.
+    """
+    psf = check_psf(psf)
+    if psf is None:
+        return volume, {"psf": None, "sigma_voxels": None, "iterations": 0, "seconds": 0.0}
+    if not (isinstance(iterations, (int, np.integer)) and not isinstance(iterations, bool) and iterations >= 1):
+        raise NemoError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
+    sigma_vox = tuple(float(s) / float(d) for s, d in zip(psf, spacing))
+    record = {"psf": list(psf), "sigma_voxels": list(sigma_vox), "iterations": 0, "seconds": 0.0}
+    if max(sigma_vox) < MIN_PSF_PER_VOXEL:
+        logger.info("PSF σ %s is below %.2g voxel on every axis: nothing to deconvolve", psf, MIN_PSF_PER_VOXEL)
+        return volume, record
+    start = time.perf_counter()
+    vol = np.nan_to_num(np.asarray(volume, dtype=np.float32))
+    low = float(vol.min())
+    out = richardson_lucy_gaussian(vol - low if low < 0 else vol, sigma_vox, iterations)  # needs data ≥ 0
+    if low < 0:
+        out += low
+    record.update(iterations=int(iterations), seconds=round(time.perf_counter() - start, 3))
+    logger.info("deconvolved by the PSF σ %s (%s voxels), %d Richardson-Lucy iterations, %.1f s", psf,
+                " ".join(f"{v:.3g}" for v in sigma_vox), iterations, record["seconds"])
+    return out, record

@@ -1,0 +1,95 @@
+"""Deconvolving the PSF's extra z blur (nemo.psf) against analytic edges and shells."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import special
+
+from nemo.errors import NemoError
+from nemo.psf import DECONVOLVE_ITERATIONS, check_psf, deconvolve, richardson_lucy_gaussian
+
+
+def _z_edge(sigma_z: float, dz: float = 1.0, noise: float = 0.0, n: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """A step at z = 30 (background 0.1, plateau 1.1) blurred along z by ``sigma_z``; (stack, z)."""
+    z = (np.arange(int(n / dz)) + 0.5) * dz
+    profile = 0.1 + 0.5 * (1 + special.erf((z - 30.0) / (np.sqrt(2) * sigma_z)))
+    stack = np.broadcast_to(profile[:, None, None], (len(z), 12, 12)).copy()
+    stack += noise * np.random.default_rng(0).standard_normal(stack.shape)
+    return stack, z
+
+
+def _edge_sigma_and_middle(profile: np.ndarray, z: np.ndarray) -> tuple[float, float]:
+    """Gaussian σ of an edge from its 25-75 % rise (1.349 σ) and its half-way crossing."""
+    lo, mid, hi = (np.interp(0.1 + f, profile, z) for f in (0.25, 0.5, 0.75))
+    return (hi - lo) / 1.349, mid
+
+
+@pytest.mark.parametrize("sigma_z, dz", [(2.0, 1.0), (3.0, 1.0), (2.5, 2.5)])
+def test_a_z_blurred_edge_is_sharpened_in_place(sigma_z, dz):
+    """A step blurred along z by σz: deconvolved by the PSF (σz, 1, 1), its edge is at most 60 % as
+    wide, its half-way crossing stays within 0.1 σz, and the total intensity is kept
+    (Richardson-Lucy conserves flux)."""
+    stack, z = _z_edge(sigma_z, dz)
+    out, record = deconvolve(stack, (dz, 1.0, 1.0), (sigma_z, 1.0, 1.0))
+    before, mid_before = _edge_sigma_and_middle(stack.mean(axis=(1, 2)), z)
+    after, mid_after = _edge_sigma_and_middle(out.mean(axis=(1, 2)), z)
+    assert record["sigma_voxels"] == pytest.approx([sigma_z / dz, 1.0, 1.0])
+    assert record["iterations"] == DECONVOLVE_ITERATIONS and out.dtype == np.float32
+    assert before == pytest.approx(sigma_z, rel=0.03 if dz == 1.0 else 0.12)  # planes one σ apart read wider
+    assert after < 0.6 * before, (before, after)
+    assert abs(mid_after - mid_before) < 0.1 * sigma_z
+    assert out.sum() == pytest.approx(stack.sum(), rel=1e-4)
+
+
+def test_more_iterations_sharpen_further_and_noise_stays_bounded():
+    stack, z = _z_edge(3.0, noise=0.02)
+    widths = [_edge_sigma_and_middle(deconvolve(stack, (1, 1, 1), (3, 1, 1), iterations=k)[0].mean(axis=(1, 2)), z)[0]
+              for k in (5, 10, 40)]
+    assert widths[0] > widths[1] > widths[2] > 1.0
+    out = deconvolve(stack, (1, 1, 1), (3, 1, 1))[0]
+    flat = out[:15]  # the background far from the edge: the noise is not amplified much
+    assert flat.std() < 2.0 * stack[:15].std()
+
+
+def test_nothing_to_undo_returns_the_stack_itself():
+    stack, _ = _z_edge(1.0)
+    for psf in (None, (0.4, 0.2, 0.2), (0, 0, 0)):  # below a quarter of a voxel on every axis
+        out, record = deconvolve(stack, (2.0, 1.0, 1.0), psf)
+        assert out is stack and record["iterations"] == 0
+
+
+def test_negative_offsets_are_kept():
+    """Richardson-Lucy needs non-negative data: a stack with a negative background (a subtracted
+    camera offset) is shifted for it and back."""
+    stack, z = _z_edge(2.0)
+    out = deconvolve(stack - 0.5, (1, 1, 1), (2.0, 1.0, 1.0))[0]
+    assert out.min() < 0
+    assert _edge_sigma_and_middle(out.mean(axis=(1, 2)) + 0.5, z)[0] < 0.6 * 2.0
+
+
+def test_richardson_lucy_of_a_blurred_point_concentrates_it():
+    """The Gaussian-blurred image of a point is pulled back towards the point."""
+    from scipy import ndimage as ndi
+
+    point = np.zeros((31, 9, 9), np.float32)
+    point[15, 4, 4] = 100.0
+    blurred = ndi.gaussian_filter(point, (3.0, 0, 0), mode="nearest") + 1.0
+    out = richardson_lucy_gaussian(blurred, (3.0, 0.0, 0.0), 30)
+    col = out[:, 4, 4] - 1.0
+    assert np.argmax(col) == 15
+    spread = np.sqrt(np.sum(col * (np.arange(31) - 15) ** 2) / col.sum())
+    assert spread < 0.6 * 3.0
+
+
+@pytest.mark.parametrize("psf", [(1, 2), "abc", (1, -1, 1), (1, float("nan"), 1), ((1, 2), 1, 1)])
+def test_bad_psf_is_named(psf):
+    with pytest.raises(NemoError, match="psf must be three numbers"):
+        check_psf(psf)
+
+
+def test_bad_iterations_are_named():
+    stack, _ = _z_edge(2.0)
+    for bad in (0, 2.5, True):
+        with pytest.raises(NemoError, match="iterations must be a whole number"):
+            deconvolve(stack, (1, 1, 1), (2, 1, 1), iterations=bad)
