@@ -259,7 +259,8 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     if per_layer:
         sections["tracking"] = stages.tracking_distance(sections["tracking"],
                                                         [v["defects"] for v in per_layer.values()])
-    sections.update(image=frame["image"], t=t, c=c, spacing=list(info.spacing), unit=info.unit)
+    sections.update(image=frame["image"], t=t, c=c, spacing=list(info.spacing), unit=info.unit,
+                    psf=None if frame["psf"] is None else list(frame["psf"]))
     return json.loads(json.dumps(sections, default=atomic.json_default))
 
 

@@ -113,6 +113,10 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
     if not (isinstance(iterations, (int, np.integer)) and not isinstance(iterations, bool) and iterations >= 1):
         raise NemoError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
     sigma_vox = tuple(float(s) / float(d) for s, d in zip(psf, spacing))
+    for axis, sv, n, s in zip("zyx", sigma_vox, np.shape(volume), psf):
+        if sv > n / 2:
+            raise NemoError(f"psf σ{axis} {s:g} is {sv:.3g} voxels, more than half the stack's {n} along {axis}: "
+                            "give the PSF's standard deviations in the image's unit (FWHM / 2.355), e.g. µm")
     record = {"psf": list(psf), "sigma_voxels": list(sigma_vox), "iterations": 0, "seconds": 0.0}
     if max(sigma_vox) < MIN_PSF_PER_VOXEL:
         logger.info("PSF σ %s is below %.2g voxel on every axis: nothing to deconvolve", psf, MIN_PSF_PER_VOXEL)

@@ -92,7 +92,7 @@ def mesh(
     mask : ndarray of bool, shape (Z, Y, X), optional
         Object mask used instead of the threshold.
     psf : (σz, σy, σx), optional
-        The PSF's standard deviations: the image is meshed with its extra z blur deconvolved
+        The PSF's standard deviations: the image is meshed deconvolved by it
         (:func:`nemo.psf.deconvolve`; noise, SNR and saturation are still those of the image).
 
     Returns
@@ -476,8 +476,8 @@ def peel(
     """One intensity per vertex over a depth range along the normals (method note §4).
 
     ``params`` is one layer of the ``layers`` section (``range`` required); ``shift`` the
-    per-vertex thickness when the layer's ``shift`` fraction is non-zero; ``psf`` the PSF whose
-    extra z blur is deconvolved first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does).
+    per-vertex thickness when the layer's ``shift`` fraction is non-zero; ``psf`` the PSF the
+    image is deconvolved by first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does).
     Returns the layer table (vertex, intensity), the resolved layer (with ``deconvolution``,
     the deconvolution's record) and, with ``return_profile``, the samples and their depths.
     """

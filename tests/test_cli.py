@@ -305,6 +305,10 @@ for name in ("text", "flat", "zero", "png", "empty", "trunc_mid"):
     case(f"mesh:--mask img.{name}", "mesh", "{img.valid}", "--mask", f"{{img.{name}}}", "-o", "{out}/m.ply",
          expect="error")
 case("mesh:--mask img.valid", "mesh", "{img.valid}", "--mask", "{img.valid}", "-o", "{out}/m.ply", outputs=MESH_OUT)
+case("mesh:--psf 2 1 1", "mesh", "{img.valid}", "-o", "{out}/m.ply", "--psf", "2", "1", "1", expect="ok", outputs=MESH_OUT)
+for label, opts in {"--psf -1 1 1": ["--psf", "-1", "1", "1"], "--psf 1e9 1 1": ["--psf", "1e9", "1", "1"], "--psf nan 1 1": ["--psf", "nan", "1", "1"],
+                    "--psf 1 1": ["--psf", "1", "1"]}.items():
+    case(f"mesh:{label}", "mesh", "{img.valid}", "-o", "{out}/m.ply", *opts, expect="error")
 case("mesh:--mask img.valid --mask-labels 99", "mesh", "{img.valid}", "--mask", "{img.valid}", "--mask-labels", "99",
      "-o", "{out}/m.ply", expect="error")
 case("mesh:--mask img.valid --mask-threshold 1e9", "mesh", "{img.valid}", "--mask", "{img.valid}",
@@ -685,6 +689,23 @@ def test_a_wall_is_never_written_over_the_input_surface(corpus, tmp_path, capsys
                            str(tmp_path / "w.ply")], capsys, "mesh over its input's name")
     assert code == 2 and "is the input" in err
     assert hashlib.md5(surface.read_bytes()).hexdigest() == before
+
+
+def test_peel_warns_when_its_mesh_was_made_with_another_psf(corpus, tmp_path, capsys):
+    """A mesh made from the deconvolved image, peeled from the raw one, is named with the fix."""
+    from nemo.tables import read_provenance
+
+    mesh = tmp_path / "m.ply"
+    assert invoke(["mesh", str(corpus["img.valid"]), "-o", str(mesh), "--psf", "2", "1", "1"], capsys, "mesh")[0] == 0
+    inner = tmp_path / "m.inner.ply"
+    code, _, err = invoke(["peel", str(corpus["img.valid"]), str(inner), "-o", str(tmp_path / "a.parquet")],
+                          capsys, "peel without")
+    assert code == 0 and "was made with --psf 2 1 1" in err and "give nemo peel the same --psf" in err
+    code, _, err = invoke(["peel", str(corpus["img.valid"]), str(inner), "-o", str(tmp_path / "b.parquet"), "--psf",
+                           "2", "1", "1"], capsys, "peel with")
+    assert code == 0 and "--psf" not in err
+    record = read_provenance(tmp_path / "b.parquet")["parameters"]["deconvolution"]
+    assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0
 
 
 def test_walls_of_an_earlier_run_are_named_when_not_replaced(corpus, tmp_path, capsys):

@@ -88,6 +88,12 @@ def test_bad_psf_is_named(psf):
         check_psf(psf)
 
 
+def test_a_psf_wider_than_the_stack_is_named():
+    stack, _ = _z_edge(2.0)  # 60 planes of 1 µm
+    with pytest.raises(NemoError, match="psf σz 500 is 500 voxels, more than half the stack's 60 along z"):
+        deconvolve(stack, (1, 1, 1), (500, 1, 1))
+
+
 def test_bad_iterations_are_named():
     stack, _ = _z_edge(2.0)
     for bad in (0, 2.5, True):

@@ -54,7 +54,10 @@ def run(args) -> int:
         raise NemoError("give an output folder with -o OUTDIR")
     summary = run_frame(args.image, args.output, args.config, t=args.t, c=args.c, spacing=spacing,
                         dataset=args.dataset, psf=psf)
-    print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels")
+    dec = summary["mesh"].get("deconvolution") or {}
+    psf_note = (f", deconvolved by the PSF σ {' '.join(f'{v:g}' for v in dec['psf'])} ({dec['iterations']} iterations)"
+                if dec.get("iterations") else "")
+    print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels{psf_note}")
     for name, res in summary["layers"].items():
         chk = res["euler_check"]
         print(f"layer {name} ({res['surface']} surface, {res['vertices']} vertices): {res['n_directors']} "
