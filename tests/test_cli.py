@@ -306,7 +306,8 @@ for name in ("text", "flat", "zero", "png", "empty", "trunc_mid"):
          expect="error")
 case("mesh:--mask img.valid", "mesh", "{img.valid}", "--mask", "{img.valid}", "-o", "{out}/m.ply", outputs=MESH_OUT)
 case("mesh:--psf 2 1 1", "mesh", "{img.valid}", "-o", "{out}/m.ply", "--psf", "2", "1", "1", expect="ok", outputs=MESH_OUT)
-for label, opts in {"--psf -1 1 1": ["--psf", "-1", "1", "1"], "--psf 1e9 1 1": ["--psf", "1e9", "1", "1"], "--psf nan 1 1": ["--psf", "nan", "1", "1"],
+for label, opts in {"--psf -1 1 1": ["--psf", "-1", "1", "1"], "--psf 1e9 1 1": ["--psf", "1e9", "1", "1"],
+                    "--psf nan 1 1": ["--psf", "nan", "1", "1"],
                     "--psf 1 1": ["--psf", "1", "1"]}.items():
     case(f"mesh:{label}", "mesh", "{img.valid}", "-o", "{out}/m.ply", *opts, expect="error")
 case("mesh:--mask img.valid --mask-labels 99", "mesh", "{img.valid}", "--mask", "{img.valid}", "--mask-labels", "99",
