@@ -95,8 +95,8 @@ def run_frame(
         Take image, spacing, PSF, mask, segmented channel and section overrides from
         ``datasets.NAME``.
     psf : (σz, σy, σx), optional
-        The PSF's standard deviations, overriding the dataset's (:mod:`nemo.psf`: its extra z
-        blur is deconvolved before meshing and peeling).
+        The PSF's standard deviations, overriding the dataset's (:mod:`nemo.psf`: the image is
+        deconvolved by it before meshing and peeling).
 
     Returns
     -------
