@@ -122,6 +122,7 @@ def mesh(
     shape = (volume if volume is not None else mask).shape
     if p["step"] is None:
         p["step"] = 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
+    p["deconvolution"] = deconvolve(None, spacing, None)[1]  # a mask has nothing to deconvolve
     sharp, threshold = _deconvolved(volume, spacing, p, psf) if mask is None else (volume, p["threshold"])
     p["sigma_auto"] = None
     if p["sigma"] is None and volume is not None and mask is None:

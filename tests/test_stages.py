@@ -595,3 +595,13 @@ def test_peel_with_the_psf_reads_the_deconvolved_image():
     assert p["deconvolution"]["iterations"] > 0
     assert sharp["intensity"][poles].mean() > 1.3 * plain["intensity"][poles].mean()
     assert sharp["intensity"][equator].mean() > 0.95 * plain["intensity"][equator].mean()
+
+
+def test_mesh_from_a_mask_deconvolves_nothing():
+    """A mask is meshed as it is, with or without a PSF; the record says nothing was deconvolved."""
+    z, y, x = np.mgrid[:30, :30, :30]
+    mask = (z - 15) ** 2 + (y - 15) ** 2 + (x - 15) ** 2 < 100
+    plain, p0 = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none"}, mask=mask)
+    given, p1 = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none"}, mask=mask, psf=(2.0, 1.0, 1.0))
+    assert p0["deconvolution"]["iterations"] == p1["deconvolution"]["iterations"] == 0
+    np.testing.assert_array_equal(plain["whole"].vertices, given["whole"].vertices)
