@@ -12,7 +12,9 @@ deconvolved by Richardson-Lucy (:data:`DECONVOLVE_ITERATIONS` iterations) before
 peeling. Measured on z-blurred vesicles (docs/validation.md, "Deconvolving a known PSF"):
 deconvolving the whole PSF localises defects better than deconvolving only its extra z blur
 (median 1.6 against 2.0 µm), and 30 iterations better than 10. A PSF below a quarter of a
-voxel on every axis needs nothing and the stack is returned unchanged.
+voxel on every axis needs nothing and the stack is returned unchanged. The price: Richardson-Lucy
+moves a sharpened edge towards its bright side (0.3 µm for σ 2.5 µm), so a thick, clean shell,
+unbiased without it, reads 0.3 µm thinner; thin, noisy or z-blurred walls gain far more.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ MIN_PSF_PER_VOXEL = 0.25
 
 
 def check_psf(psf, name: str = "psf") -> tuple[float, float, float] | None:
-    """``psf`` as three positive floats (σz, σy, σx), or None; a wrong value is named.
+    """``psf`` as three non-negative floats (σz, σy, σx), or None; a wrong value is named.
 
     Parameters
     ----------
@@ -60,8 +62,8 @@ def richardson_lucy_gaussian(volume: np.ndarray, sigma_vox: tuple[float, float, 
     """Richardson-Lucy deconvolution of a non-negative stack by a Gaussian PSF.
 
     Hand-written rather than ``skimage.restoration.richardson_lucy``: that one convolves with a
-    dense kernel array by FFT, while a Gaussian PSF is separable and ``ndimage``'s separable
-    filter is several times faster and lighter on a GB stack.
+    dense kernel array by FFT, while a Gaussian PSF is separable; ``ndimage``'s separable filter
+    needs no kernel array and is faster (30 iterations on 4 M voxels: 6.2 against 8.1 s).
 
     Parameters
     ----------
