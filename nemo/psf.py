@@ -88,6 +88,31 @@ def richardson_lucy_gaussian(volume: np.ndarray, sigma_vox: tuple[float, float, 
     return estimate
 
 
+def _prepared(volume: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]:
+    """A float32 copy for the deconvolution, the factor it was divided by, the non-finite voxels.
+
+    Values beyond float32's range are scaled down (the deconvolution is linear in the
+    intensities); NaN or infinite voxels (no data) take the value of the nearest finite voxel for
+    the deconvolution and are put back as NaN after it.
+    """
+    vol = np.asarray(volume)
+    missing = None
+    if np.issubdtype(vol.dtype, np.inexact):
+        finite = np.isfinite(vol)
+        if not finite.any():
+            raise NemoError("the image has no finite voxel (all NaN or infinite): nothing to deconvolve; "
+                            "check the file, the time point and the channel")
+        missing = None if finite.all() else ~finite
+        top = float(np.abs(vol[finite]).max())
+        scale = top / 1e30 if top > 1e30 else 1.0
+        vol = (vol / scale).astype(np.float32)
+        if missing is not None:
+            nearest = ndi.distance_transform_edt(missing, return_distances=False, return_indices=True)
+            vol = vol[tuple(nearest)]
+        return vol, scale, missing
+    return vol.astype(np.float32), 1.0, missing
+
+
 def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_ITERATIONS) -> tuple[np.ndarray, dict]:
     """The stack deconvolved by a Gaussian PSF (module docstring).
 
@@ -105,7 +130,8 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
     Returns
     -------
     volume : ndarray, shape (Z, Y, X)
-        Float32 where deconvolved; ``volume`` itself where nothing was to be done.
+        Float32 where deconvolved (NaN where ``volume`` was not finite); ``volume`` itself where
+        nothing was to be done.
     record : dict
         ``psf``, ``sigma_voxels`` (the PSF in voxels), ``iterations`` (0 if none), ``seconds``.
     """
@@ -124,11 +150,15 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
         logger.info("PSF σ %s is below %.2g voxel on every axis: nothing to deconvolve", psf, MIN_PSF_PER_VOXEL)
         return volume, record
     start = time.perf_counter()
-    vol = np.nan_to_num(np.asarray(volume, dtype=np.float32))
+    vol, scale, missing = _prepared(volume)
     low = float(vol.min())
     out = richardson_lucy_gaussian(vol - low if low < 0 else vol, sigma_vox, iterations)  # needs data ≥ 0
     if low < 0:
         out += low
+    if scale != 1.0:
+        out *= np.float32(scale)
+    if missing is not None:
+        out[missing] = np.nan  # no data there, as before: peel leaves those vertices NaN
     record.update(iterations=int(iterations), seconds=round(time.perf_counter() - start, 3))
     logger.info("deconvolved by the PSF σ %s (%s voxels), %d Richardson-Lucy iterations, %.1f s", psf,
                 " ".join(f"{v:.3g}" for v in sigma_vox), iterations, record["seconds"])

@@ -122,8 +122,12 @@ def mesh(
     shape = (volume if volume is not None else mask).shape
     if p["step"] is None:
         p["step"] = 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
-    p["deconvolution"] = deconvolve(None, spacing, None)[1]  # a mask has nothing to deconvolve
-    sharp, threshold = _deconvolved(volume, spacing, p, psf) if mask is None else (volume, p["threshold"])
+    if mask is None:
+        sharp, threshold = _deconvolved(volume, spacing, p, psf, unit)
+    else:  # a mask is meshed as given (the layers are still peeled from the deconvolved image)
+        sharp, threshold = volume, p["threshold"]
+        p["deconvolution"] = {**deconvolve(None, spacing, None)[1], "psf": None if psf is None else list(psf),
+                              "reason": "a mask: meshed as given"}
     p["sigma_auto"] = None
     if p["sigma"] is None and volume is not None and mask is None:
         p["sigma"], p["sigma_auto"] = auto_sigma(sharp, spacing, p["step"], threshold=threshold)
@@ -164,21 +168,29 @@ def mesh(
     return meshes, p
 
 
-def _deconvolved(volume: np.ndarray, spacing, p: dict, psf) -> tuple[np.ndarray, str | float]:
+def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str) -> tuple[np.ndarray, str | float]:
     """The image to mesh (deconvolved by ``psf``, :func:`nemo.psf.deconvolve`) and its threshold.
 
-    An automatic threshold is taken on the image **before** deconvolution, at the level it would
-    be meshed at there: Richardson-Lucy overshoots at edges and moves a thin wall's plateau peak
-    (measured on 4 µm shells under a 2.5 µm z-PSF: levels 121-127 or 35 for 110), while the
-    sharpened edges cross the original half level where the object's edge is (thickness 4.06-4.28
-    µm against 5.07-5.69 without deconvolution; docs/validation.md, "Deconvolving a known PSF").
-    ``p["deconvolution"]`` records the deconvolution and that level.
+    An automatic half level (``edge: half``, the default) is taken on the image **before**
+    deconvolution, at its own noise-aware blur, the level it would be meshed at there:
+    Richardson-Lucy overshoots at edges and moves a thin wall's plateau peak (measured on 4 µm
+    shells under a 2.5 µm z-PSF: levels 121-127 or 35 for 110), while the sharpened edges cross
+    the original half level where the object's edge is (thickness 4.06-4.28 µm against 5.07-5.69
+    without deconvolution; docs/validation.md, "Deconvolving a known PSF"). The deconvolved image
+    is then meshed at that level with its own blur. A numeric threshold, or ``edge: threshold``
+    (the threshold itself, which ``refine_to: steepest`` must know as such), is applied to the
+    deconvolved image. ``p["deconvolution"]`` records the deconvolution and the level.
     """
-    from nemo.surface import auto_sigma, iso_level, parse_threshold
+    from nemo.surface import _check_finite, auto_sigma, iso_level, parse_threshold
 
+    if psf is not None:
+        _check_finite(volume)  # before the deconvolution's seconds: the mesh step refuses it anyway
+        if unit in ("pixel", "px", "pixels"):
+            warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give "
+                          "datasets.NAME.spacing (--spacing) to give the psf in µm", NemoWarning, stacklevel=3)
     sharp, p["deconvolution"] = deconvolve(volume, spacing, psf)
     threshold = p["threshold"]
-    if sharp is volume or not isinstance(parse_threshold(threshold), str):
+    if sharp is volume or p["edge"] != "half" or not isinstance(parse_threshold(threshold), str):
         return sharp, threshold
     sigma = p["sigma"] if p["sigma"] is not None else auto_sigma(volume, spacing, p["step"], threshold=threshold)[0]
     level = iso_level(volume, spacing, sigma, p["step"], threshold, p["edge"])

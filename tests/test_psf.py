@@ -1,4 +1,4 @@
-"""Deconvolving the PSF's extra z blur (nemo.psf) against analytic edges and shells."""
+"""Deconvolving a Gaussian PSF (nemo.psf) against analytic edges and points."""
 
 from __future__ import annotations
 
@@ -86,6 +86,22 @@ def test_richardson_lucy_of_a_blurred_point_concentrates_it():
 def test_bad_psf_is_named(psf):
     with pytest.raises(NemoError, match="psf must be three numbers"):
         check_psf(psf)
+
+
+def test_missing_voxels_stay_missing_and_huge_values_are_scaled():
+    """NaN voxels (no data) come back NaN, the rest as without them nearby; a float64 image beyond
+    float32's range is deconvolved like the same image scaled down."""
+    stack, z = _z_edge(2.0)
+    holed = stack.copy()
+    holed[:5] = np.nan  # far from the edge at 30
+    out = deconvolve(holed, (1, 1, 1), (2.0, 1.0, 1.0))[0]
+    ref = deconvolve(stack, (1, 1, 1), (2.0, 1.0, 1.0))[0]
+    assert np.isnan(out[:5]).all() and np.isfinite(out[5:]).all()
+    np.testing.assert_allclose(out[5:], ref[5:], rtol=1e-3)
+    huge = deconvolve(stack.astype(np.float64) * 1e35, (1, 1, 1), (2.0, 1.0, 1.0))[0]
+    np.testing.assert_allclose(huge / 1e35, ref, rtol=1e-4)
+    with pytest.raises(NemoError, match="no finite voxel"):
+        deconvolve(np.full((10, 4, 4), np.nan), (1, 1, 1), (2.0, 1.0, 1.0))
 
 
 def test_a_psf_wider_than_the_stack_is_named():

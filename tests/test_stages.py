@@ -604,4 +604,40 @@ def test_mesh_from_a_mask_deconvolves_nothing():
     plain, p0 = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none"}, mask=mask)
     given, p1 = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none"}, mask=mask, psf=(2.0, 1.0, 1.0))
     assert p0["deconvolution"]["iterations"] == p1["deconvolution"]["iterations"] == 0
+    assert p1["deconvolution"]["psf"] == [2.0, 1.0, 1.0] and "mask" in p1["deconvolution"]["reason"]
     np.testing.assert_array_equal(plain["whole"].vertices, given["whole"].vertices)
+
+
+def _z_blurred_ball() -> np.ndarray:
+    """A ball of radius 10 µm (1 µm voxels) blurred by σ 2.5 / 1 / 1 µm, background 20, plateau 200."""
+    from scipy import ndimage as ndi
+
+    z, y, x = np.mgrid[:40, :40, :40]
+    ball = ((z - 19.5) ** 2 + (y - 19.5) ** 2 + (x - 19.5) ** 2 < 100).astype(np.float32)
+    return 20 + 180 * ndi.gaussian_filter(ball, (2.5, 1.0, 1.0))
+
+
+def test_mesh_with_the_psf_keeps_what_other_thresholds_mean():
+    """With a PSF only the automatic half level comes from the image before deconvolution: a
+    numeric threshold is used as given, and ``edge: threshold`` stays the threshold itself, so
+    ``refine_to: steepest`` still falls back to the level with its warning."""
+    ball = _z_blurred_ball()
+    _, numeric = stages.mesh(ball, (1.0, 1.0, 1.0), {"split": "none", "threshold": 110}, psf=(2.5, 1, 1))
+    assert numeric["level"] == pytest.approx(110.0) and "level" not in numeric["deconvolution"]
+    params = {"split": "none", "edge": "threshold", "refine": True, "refine_to": "steepest"}
+    for psf in (None, (2.5, 1.0, 1.0)):
+        with pytest.warns(NemoWarning, match="steepest"):
+            _, p = stages.mesh(ball, (1.0, 1.0, 1.0), dict(params), psf=psf)
+        assert p["refine_to"] == "level", psf
+
+
+def test_mesh_with_a_psf_on_an_uncalibrated_image_warns():
+    with pytest.warns(NemoWarning, match="the psf is read in pixels"):
+        stages.mesh(_z_blurred_ball(), (1.0, 1.0, 1.0), {"split": "none"}, unit="pixel", psf=(2.5, 1, 1))
+
+
+def test_mesh_with_a_psf_refuses_missing_voxels_before_deconvolving():
+    ball = _z_blurred_ball()
+    ball[0, 0, 0] = np.nan
+    with pytest.raises(NemoError, match="NaN or infinite voxels"):
+        stages.mesh(ball, (1.0, 1.0, 1.0), {"split": "none"}, psf=(2.5, 1, 1))

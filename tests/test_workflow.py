@@ -915,7 +915,7 @@ def test_several_objects_through_the_workflow_and_nemo_run(tmp_path, write_two_v
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
     """datasets.NAME.psf through snakemake: the mesh and peel rules deconvolve the same PSF (their
     provenance says so), `nemo run` with the same config gives the same tables, and a new PSF
-    reruns the mesh, the peel and what depends on them, nothing of another dataset."""
+    reruns the mesh and the peel (and what depends on them), not the synthesis."""
     from nemo import layout
     from nemo.mesh import load_mesh
     from nemo.tables import read_provenance, read_table

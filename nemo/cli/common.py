@@ -33,10 +33,10 @@ def add_common(
         )
         parser.add_argument(
             "--psf", type=non_negative, nargs=3, metavar=("SZ", "SY", "SX"),
-            help="the microscope's PSF as Gaussian standard deviations in µm (FWHM / 2.355): the image is "
-                 "deconvolved by it (Richardson-Lucy, 30 iterations) before meshing and peeling, and the mesh "
-                 "is placed at the level of the image before; give the same to nemo mesh and nemo peel "
-                 "(default: none)",
+            help="the microscope's PSF as Gaussian standard deviations in the image's unit, usually µm "
+                 "(FWHM / 2.355): the image is deconvolved by it (Richardson-Lucy, 30 iterations) before "
+                 "meshing and peeling, and the mesh is placed at the level of the image before; give the "
+                 "same to nemo mesh and nemo peel (default: none)",
         )
     if output:
         parser.add_argument("-o", "--output", required=output_required, metavar="FILE", help=output_help)
