@@ -26,7 +26,7 @@ from nemo import atomic, layout, objects, stages
 from nemo import config as nconfig
 from nemo._log import logger, step
 from nemo.errors import NemoError
-from nemo.psf import check_psf
+from nemo.psf import check_psf, deconvolve
 
 
 def _peak_rss_mb() -> float:
@@ -203,9 +203,13 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
             volume, info = read_stack(frame["image"], t, c, spacing=sp)
     layers = {name: layer for name, layer in (sections["layers"] or {}).items()
               if layer["channels"] == "all" or c in layer["channels"]}
+    deconvolved = None  # several layers peel the same deconvolved channel (each peel rule makes it alike)
+    if frame["psf"] is not None and sum(not layer.get("directors_from") for layer in layers.values()) > 1:
+        with timed("peel"):
+            volume, deconvolved = deconvolve(volume, info.spacing, frame["psf"])
     results = {name: layer_frame(name, layer, volume, info, meshes, sections, out, written, timed,
                                  prov={"image": frame["image"], "t": t, "c": c, "unit": info.unit},
-                                 final=final, dataset=frame["dataset"], psf=frame["psf"])
+                                 final=final, dataset=frame["dataset"], psf=frame["psf"], deconvolved=deconvolved)
                for name, layer in layers.items()}
     del volume
     for a, b in sections["alignment"] or []:
@@ -328,12 +332,14 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
 
 
 def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov,
-                final: Path | None = None, dataset: str | None = None, psf=None) -> dict:
+                final: Path | None = None, dataset: str | None = None, psf=None, deconvolved: dict | None = None) -> dict:
     """Peel → directors → order → defects of one layer (the workflow's per-layer rules).
 
     A layer with ``directors_from`` imports its directors from that file instead of peel →
     directors (the workflow's ``directors_import`` rule). Files go to ``out``; provenance names
-    them in ``final`` (default ``out``), where they end up.
+    them in ``final`` (default ``out``), where they end up. ``psf``: the PSF the peel deconvolves
+    the volume by; ``deconvolved``: the record when the volume already is (:func:`run_frame`
+    deconvolves a channel once for several layers).
     """
     from nemo.mesh import mean_edge_length
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
@@ -359,7 +365,7 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
             shift = field_on_vertices(read_table(out / layout.THICKNESS, "thickness", n_vertices=n), "thickness",
                                       n, layout.THICKNESS, exact=True)
         with timed("peel"):
-            ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift, psf=psf)
+            ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift, psf=psf, deconvolved=deconvolved)
         layer_path = save("layer", ldf, parameters=lp)
         intensity = field_on_vertices(read_table(layer_path, "layer", n_vertices=n), "intensity", n, layer_path,
                                       exact=True)

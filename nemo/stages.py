@@ -485,12 +485,14 @@ def peel(
     shift: np.ndarray | None = None,
     return_profile: bool = False,
     psf: tuple[float, float, float] | None = None,
+    deconvolved: dict | None = None,
 ):
     """One intensity per vertex over a depth range along the normals (method note §4).
 
     ``params`` is one layer of the ``layers`` section (``range`` required); ``shift`` the
     per-vertex thickness when the layer's ``shift`` fraction is non-zero; ``psf`` the PSF the
-    image is deconvolved by first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does).
+    image is deconvolved by first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does), unless
+    ``deconvolved`` says that ``volume`` already is (its record).
     Returns the layer table (vertex, intensity), the resolved layer (with ``deconvolution``,
     the deconvolution's record) and, with ``return_profile``, the samples and their depths.
     """
@@ -504,7 +506,9 @@ def peel(
         normals = -normals
     offset = None if shift is None or not p["shift"] else float(p["shift"]) * np.asarray(shift, dtype=np.float64)
     dmin, dmax = (float(v) for v in p["range"])
-    volume, p["deconvolution"] = deconvolve(volume, spacing, psf)
+    if deconvolved is None:
+        volume, deconvolved = deconvolve(volume, spacing, psf)
+    p["deconvolution"] = deconvolved
     result = sample(volume, spacing, np.asarray(mesh.vertices), normals, dmin, dmax,
                     n_samples=int(p["samples"]), reduce=p["reduce"], interp=p["interp"], shift=offset,
                     return_profile=return_profile)

@@ -922,7 +922,8 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
 
     cfg = {"datasets": {"z": {"path": "z.tif", "psf": [2.0, 1.0, 1.0],
                               "synthetic": {"radius": 30, "spacing": [2, 1, 1], "blur": [2, 1, 1], "seed": 3}}},
-           "curvature": None, "thickness": None, "layers": {"fibres": {"surface": "inner", "range": [0, 4]}},
+           "curvature": None, "thickness": None,
+           "layers": {"fibres": {"surface": "inner", "range": [0, 4]}, "deep": {"surface": "inner", "range": [4, 8]}},
            "alignment": [], "report": {"summary": False, "frames": False}}
     smk(tmp_path, "--cores", "2", "--configfile", write_config(tmp_path / "c.yaml", cfg))
     frame = tmp_path / "results" / "z" / "t0" / "c0"
@@ -934,9 +935,12 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
                            "z", "-o", str(tmp_path / "run")], cwd=tmp_path, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    for kind in ("layer", "directors", "order", "defects"):
-        pd.testing.assert_frame_equal(read_table(frame / layout.layer_file(kind, "fibres")),
-                                      read_table(tmp_path / "run" / layout.layer_file(kind, "fibres")))
+    for layer in ("fibres", "deep"):  # nemo run deconvolves the channel once for both layers' peels
+        for kind in ("layer", "directors", "order", "defects"):
+            pd.testing.assert_frame_equal(read_table(frame / layout.layer_file(kind, layer)),
+                                          read_table(tmp_path / "run" / layout.layer_file(kind, layer)))
+        record = read_provenance(tmp_path / "run" / layout.layer_file("layer", layer))["parameters"]["deconvolution"]
+        assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0, record
     cfg["datasets"]["z"]["psf"] = [2.5, 1.0, 1.0]
     counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c2.yaml", cfg)))
-    assert counts.get("mesh") == 1 and counts.get("peel") == 1 and "synth_z" not in counts, counts
+    assert counts.get("mesh") == 1 and counts.get("peel") == 2 and "synth_z" not in counts, counts
