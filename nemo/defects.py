@@ -783,8 +783,8 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
         found: list[dict] = []
         if _verdict(mesh, geo, f, st, v, wider, dmin, accepted, comp, fit, trial, rows, found) is None:
             tally["rejected"][reasons[v]] -= 1  # the first verdict is replaced by the acceptance
-            for key in ("loop", "ring", "circle", "shrunk"):
-                tally["contours"][key] += trial["contours"][key]
+            for key, n in trial["contours"].items():
+                tally["contours"][key] += n
             records[at] = found[0]
     return rows, records, tally
 

@@ -196,22 +196,22 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
                "outdir": str(final)}
     written: list[str] = []
+    layers = {name: layer for name, layer in (sections["layers"] or {}).items()
+              if layer["channels"] == "all" or c in layer["channels"]}
+    peels = any(not layer.get("directors_from") for layer in layers.values())
+    meshed = mask is None and not frame["surface_mesh"]
+    sharp = _deconvolved(volume, info, frame["psf"], timed, meshed or (peels and c == frame["seg"]))
     meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed, final=final,
-                                           psf=frame["psf"])
+                                           psf=frame["psf"], deconvolved=sharp)
     if c != frame["seg"]:
         with timed("read"):
             volume, info = read_stack(frame["image"], t, c, spacing=sp)
-    layers = {name: layer for name, layer in (sections["layers"] or {}).items()
-              if layer["channels"] == "all" or c in layer["channels"]}
-    deconvolved = None  # several layers peel the same deconvolved channel (each peel rule makes it alike)
-    if frame["psf"] is not None and sum(not layer.get("directors_from") for layer in layers.values()) > 1:
-        with timed("peel"):
-            volume, deconvolved = deconvolve(volume, info.spacing, frame["psf"])
+        sharp = _deconvolved(volume, info, frame["psf"], timed, peels)
     results = {name: layer_frame(name, layer, volume, info, meshes, sections, out, written, timed,
                                  prov={"image": frame["image"], "t": t, "c": c, "unit": info.unit},
-                                 final=final, dataset=frame["dataset"], psf=frame["psf"], deconvolved=deconvolved)
+                                 final=final, dataset=frame["dataset"], psf=frame["psf"], deconvolved=sharp)
                for name, layer in layers.items()}
-    del volume
+    del volume, sharp
     for a, b in sections["alignment"] or []:
         if a in results and b in results:
             align_frame(a, b, meshes[layers[a]["surface"]], out, written)
@@ -220,6 +220,16 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
                    peak_rss_mb=round(_peak_rss_mb(), 1))
     atomic.write_json(out / layout.SUMMARY_JSON, summary)
     return summary
+
+
+def _deconvolved(volume, info, psf, timed, needed: bool):
+    """The channel deconvolved by ``psf`` and its record (:func:`nemo.psf.deconvolve`), made once for
+    the mesh and every peel of it (the workflow's mesh and peel rules each make the same); None when
+    no PSF is given or nothing needs it."""
+    if psf is None or not needed:
+        return None
+    with timed("deconvolve"):
+        return deconvolve(volume, info.spacing, psf)
 
 
 def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, dataset: str | None = None,
@@ -281,17 +291,17 @@ def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict):
                      threshold=frame["mask_threshold"])
 
 
-def _mesh_or_import(volume, info, mask, section: dict, psf=None):
+def _mesh_or_import(volume, info, mask, section: dict, psf=None, deconvolved=None):
     """The frame's meshes: reconstructed from the image, or a user's surface checked against it."""
     section = dict(section)
     path, mesh_unit = section.pop("surface_mesh", None), section.pop("mesh_unit", None)
     if path is None:
-        return stages.mesh(volume, info.spacing, section, mask=mask, unit=info.unit, psf=psf)
+        return stages.mesh(volume, info.spacing, section, mask=mask, unit=info.unit, psf=psf, deconvolved=deconvolved)
     return stages.import_mesh(path, volume, info.spacing, section, unit=info.unit, mesh_unit=mesh_unit)
 
 
 def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None,
-                     psf=None):
+                     psf=None, deconvolved=None):
     """Mesh, measure, curvature and thickness of a time point (the workflow's mesh/morphology rules).
 
     Files go to ``out``; provenance names them in ``final`` (default ``out``), where they end up.
@@ -301,7 +311,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
     from nemo.tables import write_table
 
     with timed("mesh"):
-        meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf)
+        meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf, deconvolved=deconvolved)
         for name, m in meshes.items():
             m.metadata["nemo_params"] = params
             save_mesh(m, out / layout.MESH[name])
@@ -332,14 +342,13 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
 
 
 def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov,
-                final: Path | None = None, dataset: str | None = None, psf=None, deconvolved: dict | None = None) -> dict:
+                final: Path | None = None, dataset: str | None = None, psf=None, deconvolved=None) -> dict:
     """Peel → directors → order → defects of one layer (the workflow's per-layer rules).
 
     A layer with ``directors_from`` imports its directors from that file instead of peel →
     directors (the workflow's ``directors_import`` rule). Files go to ``out``; provenance names
     them in ``final`` (default ``out``), where they end up. ``psf``: the PSF the peel deconvolves
-    the volume by; ``deconvolved``: the record when the volume already is (:func:`run_frame`
-    deconvolves a channel once for several layers).
+    the volume by; ``deconvolved``: that deconvolved volume and its record, when already made.
     """
     from nemo.mesh import mean_edge_length
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table

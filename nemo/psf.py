@@ -91,10 +91,13 @@ def richardson_lucy_gaussian(volume: np.ndarray, sigma_vox: tuple[float, float, 
 def _prepared(volume: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]:
     """A float32 copy for the deconvolution, the factor it was divided by, the non-finite voxels.
 
-    Values beyond float32's range are scaled down (the deconvolution is linear in the
-    intensities); NaN or infinite voxels (no data) take the value of the nearest finite voxel for
-    the deconvolution and are put back as NaN after it.
+    NaN or infinite voxels (no data) take the value of the nearest finite voxel for the
+    deconvolution and are put back as NaN after it; values beyond float32's range are scaled as
+    the mesh step scales them (:func:`nemo.surface._float32_safe`; the deconvolution is linear in
+    the intensities).
     """
+    from nemo.surface import _float32_safe
+
     vol = np.asarray(volume)
     missing = None
     if np.issubdtype(vol.dtype, np.inexact):
@@ -102,15 +105,13 @@ def _prepared(volume: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]
         if not finite.any():
             raise NemoError("the image has no finite voxel (all NaN or infinite): nothing to deconvolve; "
                             "check the file, the time point and the channel")
-        missing = None if finite.all() else ~finite
-        top = float(np.abs(vol[finite]).max())
-        scale = top / 1e30 if top > 1e30 else 1.0
-        vol = (vol / scale).astype(np.float32)
-        if missing is not None:
-            nearest = ndi.distance_transform_edt(missing, return_distances=False, return_indices=True)
-            vol = vol[tuple(nearest)]
-        return vol, scale, missing
-    return vol.astype(np.float32), 1.0, missing
+        if not finite.all():
+            missing = ~finite
+            vol = vol[tuple(ndi.distance_transform_edt(missing, return_distances=False, return_indices=True))]
+    if vol.min() == vol.max():  # constant: nothing to scale (and nothing to sharpen)
+        return vol.astype(np.float32), 1.0, missing
+    vol, scale = _float32_safe(vol)
+    return np.asarray(vol, dtype=np.float32), scale, missing
 
 
 def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_ITERATIONS) -> tuple[np.ndarray, dict]:

@@ -66,6 +66,7 @@ def mesh(
     unit: str = "um",
     centre: np.ndarray | None = None,
     psf: tuple[float, float, float] | None = None,
+    deconvolved: tuple[np.ndarray, dict] | None = None,
 ) -> tuple[dict[str, trimesh.Trimesh], dict]:
     """Surface reconstruction (method note §2), split into inner/outer walls if configured.
 
@@ -94,6 +95,8 @@ def mesh(
     psf : (σz, σy, σx), optional
         The PSF's standard deviations: the image is meshed deconvolved by it
         (:func:`nemo.psf.deconvolve`; noise, SNR and saturation are still those of the image).
+    deconvolved : (ndarray, dict), optional
+        ``volume`` deconvolved by ``psf`` and its record, when already made (the peel reuses it).
 
     Returns
     -------
@@ -123,7 +126,7 @@ def mesh(
     if p["step"] is None:
         p["step"] = 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
     if mask is None:
-        sharp, threshold = _deconvolved(volume, spacing, p, psf, unit)
+        sharp, threshold = _deconvolved(volume, spacing, p, psf, unit, deconvolved)
     else:  # a mask is meshed as given (the layers are still peeled from the deconvolved image)
         sharp, threshold = volume, p["threshold"]
         p["deconvolution"] = {**deconvolve(None, spacing, None)[1], "psf": None if psf is None else list(psf),
@@ -168,7 +171,8 @@ def mesh(
     return meshes, p
 
 
-def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str) -> tuple[np.ndarray, str | float]:
+def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
+                 deconvolved: tuple[np.ndarray, dict] | None) -> tuple[np.ndarray, str | float]:
     """The image to mesh (deconvolved by ``psf``, :func:`nemo.psf.deconvolve`) and its threshold.
 
     An automatic half level (``edge: half``, the default) is taken on the image **before**
@@ -185,12 +189,13 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str) -> tuple[
 
     if psf is not None:
         _check_finite(volume)  # before the deconvolution's seconds: the mesh step refuses it anyway
-        if unit in ("pixel", "px", "pixels"):
+        if unit == "pixel":
             warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give "
                           "datasets.NAME.spacing (--spacing) to give the psf in µm", NemoWarning, stacklevel=3)
-    sharp, p["deconvolution"] = deconvolve(volume, spacing, psf)
+    sharp, record = deconvolved or deconvolve(volume, spacing, psf)
+    p["deconvolution"] = dict(record)  # its own copy: the level below is the mesh's, not the peel's
     threshold = p["threshold"]
-    if sharp is volume or p["edge"] != "half" or not isinstance(parse_threshold(threshold), str):
+    if not p["deconvolution"]["iterations"] or p["edge"] != "half" or not isinstance(parse_threshold(threshold), str):
         return sharp, threshold
     sigma = p["sigma"] if p["sigma"] is not None else auto_sigma(volume, spacing, p["step"], threshold=threshold)[0]
     level = iso_level(volume, spacing, sigma, p["step"], threshold, p["edge"])
@@ -485,14 +490,14 @@ def peel(
     shift: np.ndarray | None = None,
     return_profile: bool = False,
     psf: tuple[float, float, float] | None = None,
-    deconvolved: dict | None = None,
+    deconvolved: tuple[np.ndarray, dict] | None = None,
 ):
     """One intensity per vertex over a depth range along the normals (method note §4).
 
     ``params`` is one layer of the ``layers`` section (``range`` required); ``shift`` the
     per-vertex thickness when the layer's ``shift`` fraction is non-zero; ``psf`` the PSF the
-    image is deconvolved by first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does), unless
-    ``deconvolved`` says that ``volume`` already is (its record).
+    image is deconvolved by first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does), or
+    ``deconvolved`` (that volume and its record, already made) is peeled instead.
     Returns the layer table (vertex, intensity), the resolved layer (with ``deconvolution``,
     the deconvolution's record) and, with ``return_profile``, the samples and their depths.
     """
@@ -506,9 +511,8 @@ def peel(
         normals = -normals
     offset = None if shift is None or not p["shift"] else float(p["shift"]) * np.asarray(shift, dtype=np.float64)
     dmin, dmax = (float(v) for v in p["range"])
-    if deconvolved is None:
-        volume, deconvolved = deconvolve(volume, spacing, psf)
-    p["deconvolution"] = deconvolved
+    volume, record = deconvolved or deconvolve(volume, spacing, psf)
+    p["deconvolution"] = dict(record)
     result = sample(volume, spacing, np.asarray(mesh.vertices), normals, dmin, dmax,
                     n_samples=int(p["samples"]), reduce=p["reduce"], interp=p["interp"], shift=offset,
                     return_profile=return_profile)

@@ -935,12 +935,15 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
                            "z", "-o", str(tmp_path / "run")], cwd=tmp_path, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    for layer in ("fibres", "deep"):  # nemo run deconvolves the channel once for both layers' peels
+    once = json.loads((tmp_path / "run" / layout.SUMMARY_JSON).read_text())["mesh"]["deconvolution"]
+    for layer in ("fibres", "deep"):  # nemo run deconvolves the channel once for the mesh and both peels
         for kind in ("layer", "directors", "order", "defects"):
             pd.testing.assert_frame_equal(read_table(frame / layout.layer_file(kind, layer)),
                                           read_table(tmp_path / "run" / layout.layer_file(kind, layer)))
         record = read_provenance(tmp_path / "run" / layout.layer_file("layer", layer))["parameters"]["deconvolution"]
-        assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0, record
+        rule = read_provenance(frame / layout.layer_file("layer", layer))["parameters"]["deconvolution"]
+        assert record.keys() == rule.keys() and record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0
+        assert record["seconds"] == once["seconds"], (record, once)  # the same deconvolution, not another
     cfg["datasets"]["z"]["psf"] = [2.5, 1.0, 1.0]
     counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c2.yaml", cfg)))
     assert counts.get("mesh") == 1 and counts.get("peel") == 2 and "synth_z" not in counts, counts
