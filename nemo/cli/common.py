@@ -35,7 +35,7 @@ def add_common(
             "--psf", type=non_negative, nargs=3, metavar=("SZ", "SY", "SX"),
             help="the microscope's PSF as Gaussian standard deviations in the image's unit, usually µm "
                  "(FWHM / 2.355): the image is deconvolved by it (Richardson-Lucy, 30 iterations) before "
-                 "meshing and peeling, and the mesh is placed at the level of the image before; give the "
+                 "meshing and peeling (an automatic mesh level is taken on the image before); give the "
                  "same to nemo mesh and nemo peel (default: none)",
         )
     if output:
