@@ -118,7 +118,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -364,6 +364,16 @@ class _Geometry:
     k_source: str
     boundary: np.ndarray  # (N,) bool, vertices on the mesh boundary
     h: float  # mean edge length
+
+
+@dataclass
+class _Search:
+    """What one search has accepted so far and what it keeps across candidates."""
+
+    comp: np.ndarray  # (N,) dip (connected low-S component) of each candidate vertex, else -1
+    fit: dict  # the defect-model fit's settings
+    accepted: list = field(default_factory=list)  # (point, contour radius, dip) of each defect
+    rows: list = field(default_factory=list)  # the defect rows
 
 
 @dataclass
@@ -755,38 +765,46 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
     comp = np.full(len(geo.verts), -1)
     comp[np.flatnonzero(cand)] = sparse.csgraph.connected_components(
         geo.graph[cand][:, cand], directed=False)[1]
-    accepted: list[tuple[np.ndarray, float, int]] = []  # (point, contour radius, dip)
-    rows, records, reasons, retry = [], [], {}, []
+    search = _Search(comp=comp, fit=fit)
+    records, reasons, retry = [], {}, []
     for v in centres:  # a handful of suppressed candidates, not the vertices
-        if max_defects is not None and len(rows) >= max_defects:
+        if max_defects is not None and len(search.rows) >= max_defects:
             break
-        if any(c == comp[v] and np.linalg.norm(p - geo.verts[v]) < r for p, r, c in accepted):
+        if any(c == comp[v] and np.linalg.norm(p - geo.verts[v]) < r for p, r, c in search.accepted):
             reasons[v] = "same dip"
             tally["rejected"]["same dip"] += 1
             records.append(_record(_candidate(geo, f, v), None, "same dip"))
             continue
-        dmin = _nearest(geo, v, [u for u in centres if comp[u] != comp[v]], accepted)
+        dmin = _nearest(geo, v, [u for u in centres if comp[u] != comp[v]], search.accepted)
         radii = _contour_radii(r_default, contour_radius, dmin, geo.h, st.avg_radius)
-        reasons[v] = _verdict(mesh, geo, f, st, v, radii, dmin if len(centres) > 1 else np.inf, accepted, comp,
-                              fit, tally, rows, records)
+        reasons[v], record, contours = _verdict(mesh, geo, f, st, search, v, radii,
+                                                dmin if len(centres) > 1 else np.inf)
+        _count(tally, reasons[v], contours)
+        records.append(record)
         if reasons[v] in ("disordered contour", "unresolved winding"):
             retry.append((v, len(records) - 1, radii))
     for v, at, radii in retry:  # only dips that may still be defects cap the contour now
-        if max_defects is not None and len(rows) >= max_defects:
+        if max_defects is not None and len(search.rows) >= max_defects:
             break
         others = [u for u in centres if comp[u] != comp[v] and reasons.get(u) not in ("zero charge", "same dip")]
-        dmin = _nearest(geo, v, others, accepted)
+        dmin = _nearest(geo, v, others, search.accepted)
         wider = _contour_radii(r_default, contour_radius, dmin, geo.h, st.avg_radius)
         if max(wider) <= max(radii):
             continue
-        trial = {"rejected": dict.fromkeys(tally["rejected"], 0), "contours": dict.fromkeys(tally["contours"], 0)}
-        found: list[dict] = []
-        if _verdict(mesh, geo, f, st, v, wider, dmin, accepted, comp, fit, trial, rows, found) is None:
+        reason, record, contours = _verdict(mesh, geo, f, st, search, v, wider, dmin)
+        if reason is None:
             tally["rejected"][reasons[v]] -= 1  # the first verdict is replaced by the acceptance
-            for key, n in trial["contours"].items():
-                tally["contours"][key] += n
-            records[at] = found[0]
-    return rows, records, tally
+            _count(tally, None, contours)
+            records[at] = record
+    return search.rows, records, tally
+
+
+def _count(tally: dict, reason: str | None, contours: dict) -> None:
+    """Add one verdict (its rejection reason, if any, and the contours it measured) to ``tally``."""
+    for key, n in contours.items():
+        tally["contours"][key] += n
+    if reason:
+        tally["rejected"][reason] += 1
 
 
 def _candidate(geo: _Geometry, f: _Fields, v: int) -> dict:
@@ -800,32 +818,31 @@ def _nearest(geo: _Geometry, v: int, others: list[int], accepted: list) -> float
     return float(np.min(np.linalg.norm(near - geo.verts[v], axis=1))) if len(near) else np.inf
 
 
-def _verdict(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, radii: list[float], dmin: float,
-             accepted: list, comp: np.ndarray, fit: dict, tally: dict, rows: list, records: list) -> str | None:
+def _verdict(mesh, geo: _Geometry, f: _Fields, st: _Settings, search: _Search, v: int, radii: list[float],
+             dmin: float) -> tuple[str | None, dict, dict]:
     """Measure candidate ``v`` on ``radii``; accept it (a row refined within ``dmin / 2``, appended to
-    ``accepted``) or count why not. Its record is appended to ``records``; returns the reason or None."""
+    ``search``) or say why not. Returns the reason (None: accepted), the candidate's record and the
+    contour counts of the measurement."""
     rec = _candidate(geo, f, v)
     res = _measure(geo, f, st, v, radii)
     at_rim = res is AT_RIM
     res = None if at_rim else res
+    contours = {}
     if res is not None:
-        tally["contours"][res["contour"]] += 1
-        tally["contours"]["shrunk"] += int(res["shrunk"])
+        contours = {res["contour"]: 1, "shrunk": int(res["shrunk"])}
     reason = RIM_REASON if at_rim else _rejection(res, st)
     if reason is None:
-        row = _accept(mesh, geo, f, st, v, res, dmin, fit)
+        row = _accept(mesh, geo, f, st, v, res, dmin, search.fit)
         here = np.array([row["x"], row["y"], row["z"]])
         rec.update(x=row["x"], y=row["y"], z=row["z"])
-        if any(np.linalg.norm(p - here) < SAME_DEFECT_PER_AVERAGING * st.avg_radius for p, _, _ in accepted):
+        if any(np.linalg.norm(p - here) < SAME_DEFECT_PER_AVERAGING * st.avg_radius for p, _, _ in search.accepted):
             reason = "same defect"  # two candidates of different dips whose contours found one defect
         else:
-            accepted.append((here, row["contour_radius"], comp[v]))
-            rows.append(row)
+            search.accepted.append((here, row["contour_radius"], search.comp[v]))
+            search.rows.append(row)
     if reason:
-        tally["rejected"][reason] += 1
         logger.debug("rejected candidate at vertex %d (S=%.3g): %s", v, f.S[v], reason)
-    records.append(_record(rec, res, reason or ""))
-    return reason
+    return reason, _record(rec, res, reason or ""), contours
 
 
 def _measure(geo: _Geometry, f: _Fields, st: _Settings, v: int, radii: list[float]) -> dict | None:
