@@ -37,14 +37,27 @@ each vertex's tangent plane, aligned head to tail (``n_{i+1} → −n_{i+1}`` wh
 ``n_i·n_{i+1} < 0``) and the signed turning angle of each step is summed,
 ``atan2((n_i × n_{i+1})·N, n_i·n_{i+1})`` with ``N`` the mean of the two vertex normals (the exact
 angle; the paper's small-angle form ``(n_i × (n_{i+1} − n_i))·N_i`` = sin Δθ underestimates large
-steps, see ``exact_angles``). The curvature term is (1/2π) ∫K dA over the enclosed patch:
-interior vertices count fully and contour vertices half (the contour runs through them). With a
-per-vertex ``curvature`` array it is Σ K·A (barycentric vertex areas); without one, the discrete
-integrated Gaussian curvature (angle defects, ``mesh.vertex_defects``, for which discrete
-Gauss–Bonnet is exact) after three conservative smoothing passes (:func:`smooth_conserving`:
-the total is unchanged, the vertex-to-vertex noise that the contour's half-weighted band would
-pick up is averaged out). Charge = winding + curvature term (``curvature_correction=False``
-drops the second), ``charge_rounded`` = nearest multiple of ½.
+steps, see ``exact_angles``). The curvature term is (1/2π) ∫K dA over the enclosed patch
+(``curvature_source``):
+
+* ``contour`` (the default without a ``curvature`` array): Gauss–Bonnet on the contour itself,
+  ∫K dA = 2π − Σ turning of the contour's tangent (:func:`contour_curvature`), measured with the
+  same points, normals and step angles as the winding. The winding's steps are rotations about
+  those normals, so they carry the holonomy of that discrete surface; taking the K term from
+  the same discretisation cancels it, where the enclosed vertices' ∫K (next item) is a second
+  estimate whose noise on a rough wall does not cancel (the z-blurred vesicles: charge errors up
+  to 0.09 with it, 0.015 with the contour's; docs/validation.md). A contour that turns by more
+  than :data:`MAX_CONTOUR_TURN_DEG` in one step (a zigzag) takes the enclosed vertices' ∫K
+  instead, counted in ``contours["k_from_vertices"]``.
+* ``angle-defects``: interior vertices count fully and contour vertices half (the contour runs
+  through them), the discrete integrated Gaussian curvature (angle defects,
+  ``mesh.vertex_defects``, for which discrete Gauss–Bonnet is exact) after three conservative
+  smoothing passes (:func:`smooth_conserving`: the total is unchanged, the vertex-to-vertex
+  noise that the contour's half-weighted band would pick up is averaged out).
+* ``table``: the same with a per-vertex ``curvature`` array, Σ K·A (barycentric vertex areas).
+
+Charge = winding + curvature term (``curvature_correction=False`` drops the second),
+``charge_rounded`` = nearest multiple of ½.
 
 Rejection of spurious defects (documented S logic, scaled with the sampling)
 -----------------------------------------------------------------------------
@@ -165,6 +178,17 @@ SAME_DEFECT_PER_AVERAGING = 0.5
 #: Largest contour, averaging or fit radius, in units of the surface's size sqrt(area / 4π).
 MAX_RADIUS_PER_SIZE = 2.0
 
+#: Largest turn of a contour's tangent in one step for its Gauss–Bonnet K term (degrees): beyond
+#: it the contour zigzags and the sign of the turn is ambiguous (:func:`contour_curvature`).
+MAX_CONTOUR_TURN_DEG = 90.0
+
+#: Half-width (contour steps) of the chord that gives a contour's tangent for its K term: a loop
+#: of mesh edges zigzags (one turn in four above 90° at one step on the z-blurred vesicles' walls).
+CONTOUR_CHORD_STEPS = 3
+
+#: The K terms of :func:`find_defects` (``curvature_source``).
+CURVATURE_SOURCES = ("contour", "angle-defects", "table")
+
 #: Default contour radius in averaging radii (the suppression radius default is one averaging radius).
 CONTOUR_PER_AVERAGING = 1.5
 
@@ -205,13 +229,45 @@ def winding_steps(dirs: np.ndarray, normals: np.ndarray, exact: bool = True) -> 
     nxt = np.roll(dirs, -1, axis=0)
     dot = np.einsum("ij,ij->i", dirs, nxt)
     nxt = np.where(dot[:, None] < 0, -nxt, nxt)
-    dot = np.abs(dot)
-    cross = np.cross(dirs, nxt)
     if exact:
-        nmid = normals + np.roll(normals, -1, axis=0)
-        nmid /= np.linalg.norm(nmid, axis=1, keepdims=True)
-        return np.arctan2(np.einsum("ij,ij->i", cross, nmid), dot)
-    return np.einsum("ij,ij->i", cross, normals)
+        return _step_angles(dirs, nxt, normals)
+    return np.einsum("ij,ij->i", np.cross(dirs, nxt), normals)
+
+
+def _step_angles(vec: np.ndarray, nxt: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Signed angles (L,) from ``vec[i]`` to ``nxt[i]`` about the mean normal of points i and i + 1."""
+    nmid = normals + np.roll(normals, -1, axis=0)
+    nmid /= np.linalg.norm(nmid, axis=1, keepdims=True)
+    return np.arctan2(np.einsum("ij,ij->i", np.cross(vec, nxt), nmid), np.einsum("ij,ij->i", vec, nxt))
+
+
+def contour_curvature(points: np.ndarray, normals: np.ndarray) -> float | None:
+    """∫K dA inside a closed contour from its own turning (Gauss–Bonnet on a disc).
+
+    Parameters
+    ----------
+    points, normals : ndarray, shape (L, 3)
+        The contour, counter-clockwise seen from the outward normals, and the unit normals there.
+
+    Returns
+    -------
+    float or None
+        2π − Σ turning, the turning of the tangent (the chord from ``CONTOUR_CHORD_STEPS`` points
+        behind to as many ahead, projected on the tangent plane) measured as
+        :func:`winding_steps` measures a director's; None when a step turns by more than
+        :data:`MAX_CONTOUR_TURN_DEG` or a tangent vanishes. Any tangent field that keeps the
+        loop's direction gives the same sum: the turning of a closed loop is topological.
+    """
+    reach = max(1, min(CONTOUR_CHORD_STEPS, len(points) // 16))  # a chord over a few steps: a mesh loop zigzags
+    tangent = project_tangent(np.roll(points, -reach, axis=0) - np.roll(points, reach, axis=0), normals)
+    length = np.linalg.norm(tangent, axis=1, keepdims=True)
+    if not np.all(length > 0):
+        return None
+    tangent = tangent / length
+    turn = _step_angles(tangent, np.roll(tangent, -1, axis=0), normals)
+    if not np.all(np.isfinite(turn)) or np.abs(turn).max() > math.radians(MAX_CONTOUR_TURN_DEG):
+        return None
+    return float(2 * math.pi - turn.sum())
 
 
 def closest_point_local(mesh: trimesh.Trimesh, point: np.ndarray, vertices: np.ndarray) -> np.ndarray:
@@ -384,6 +440,7 @@ class _Settings:
     exact: bool
     charge_tolerance: float
     s_ordered: float
+    k_from_contour: bool = False  # the K term from the contour's turning (module doc)
 
 
 def _check_order_table(mesh: trimesh.Trimesh, order_df: pd.DataFrame, tol: float) -> np.ndarray:
@@ -553,6 +610,7 @@ def find_defects(
     fit_radius: float | None = None,
     fit_exclude: float = 0.0,
     fit_harmonic: bool = False,
+    curvature_source: str | None = None,
 ) -> pd.DataFrame:
     """Locate the topological defects of a tangential nematic field and measure their charge.
 
@@ -568,7 +626,7 @@ def find_defects(
         sub-vertex refinement, the noise floor of ``S``, the averaged field on sampled circle
         contours and ``winding_field="directors"``.
     curvature : ndarray, shape (N,), optional
-        Per-vertex Gaussian curvature K (1/µm²). None: discrete angle defects.
+        Per-vertex Gaussian curvature K (1/µm²), for ``curvature_source="table"``.
     s_threshold : float, optional
         Candidates have ``S`` below it. Default ``0.5 × P90(S)``.
     min_distance : float, optional
@@ -600,6 +658,10 @@ def find_defects(
     fit_radius : float, optional
         Radius of the data used for the sub-vertex refinement (µm). Default 0.75 ×
         ``avg_radius``, at most half the distance to the nearest other low-S centre.
+    curvature_source : {"contour", "angle-defects", "table"}, optional
+        The K term (module doc): Gauss–Bonnet on the contour itself, or the enclosed vertices'
+        angle defects or ``curvature``. Default ``table`` with a ``curvature`` array, else
+        ``contour``.
 
     Returns
     -------
@@ -623,6 +685,14 @@ def find_defects(
             raise NemoError(f"{name} must be a positive number, got {value}")
     if max_defects is not None and max_defects < 1:
         raise NemoError(f"max_defects must be at least 1, got {max_defects}")
+    if curvature_source is None:
+        curvature_source = "contour" if curvature is None else "table"
+    if curvature_source not in CURVATURE_SOURCES:
+        raise NemoError(f"curvature_source must be one of {', '.join(CURVATURE_SOURCES)}, not {curvature_source!r}")
+    if (curvature is not None) != (curvature_source == "table"):
+        raise NemoError("a curvature array goes with curvature_source='table' and only with it: "
+                        f"got curvature_source={curvature_source!r} and "
+                        f"{'a' if curvature is not None else 'no'} curvature array")
     f = _fields(mesh, order_df, directors_df)
     if winding_field == "directors" and f.dtree is None:
         raise NemoError("winding_field='directors' needs a directors table")
@@ -643,7 +713,8 @@ def find_defects(
     min_distance = avg_radius if min_distance is None else min_distance
     r_contour_default = contour_radius if contour_radius is not None else CONTOUR_PER_AVERAGING * avg_radius
     st = _Settings(float(avg_radius), winding_field, bool(curvature_correction), exact_angles,
-                   charge_tolerance, float(s_threshold if s_ordered is None else s_ordered))
+                   charge_tolerance, float(s_threshold if s_ordered is None else s_ordered),
+                   k_from_contour=curvature_source == "contour")
     cand = np.isfinite(S) & (S < s_threshold)
     logger.info("defects: %d candidate vertices with S < %.3g (S_ref = P90 = %.3g)",
                 int(cand.sum()), s_threshold, s_ref)
@@ -663,7 +734,8 @@ def find_defects(
         "s_threshold": float(s_threshold), "s_ref": s_ref, "min_distance": float(min_distance),
         "contour_radius": float(r_contour_default), "avg_radius": float(avg_radius),
         "max_defects": max_defects, "curvature_correction": bool(curvature_correction),
-        "curvature_source": geo.k_source, "winding_field": winding_field, "refine": refine,
+        "curvature_source": curvature_source, "winding_field": winding_field, "refine": refine,
+        "k_term": "Gauss-Bonnet on the contour's turning" if st.k_from_contour else geo.k_source,
         "s_ordered": st.s_ordered, "noise_z": NOISE_Z, "charge_tolerance": charge_tolerance,
         "exact_angles": exact_angles, "fit_radius": fit_radius, **tally,
     }
@@ -757,7 +829,7 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
     """
     tally = {"rejected": dict.fromkeys(("disordered contour", "unresolved winding", "zero charge", "off-half charge",
                                         "no contour", RIM_REASON, "same dip", "same defect"), 0),
-             "contours": dict.fromkeys(("loop", "ring", "circle", "shrunk"), 0)}
+             "contours": dict.fromkeys(("loop", "ring", "circle", "shrunk", "k_from_vertices"), 0)}
     # low-S dips = connected components of the candidate vertices. Several zeros of the averaged
     # Q-tensor can share one dip (an |m| = 1 defect splits into two ±1/2 zeros a few µm apart under
     # noise): the lowest centre of a dip is measured first and the others of the same dip that its
@@ -829,7 +901,7 @@ def _verdict(mesh, geo: _Geometry, f: _Fields, st: _Settings, search: _Search, v
     res = None if at_rim else res
     contours = {}
     if res is not None:
-        contours = {res["contour"]: 1, "shrunk": int(res["shrunk"])}
+        contours = {res["contour"]: 1, "shrunk": int(res["shrunk"]), "k_from_vertices": int(res["k_from_vertices"])}
     reason = RIM_REASON if at_rim else _rejection(res, st)
     if reason is None:
         row = _accept(mesh, geo, f, st, v, res, dmin, search.fit)
@@ -1024,14 +1096,15 @@ def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir:
 
     ``dirs``, ``nrm``, ``pts``: (L, 3) directors, normals and positions in contour order;
     ``s_pts``: (L,) S on the contour; ``n_dir``: directors per averaging disc (None: unknown);
-    ``enclosed``: ∫K dA inside the contour.
+    ``enclosed``: ∫K dA of the vertices inside the contour (used unless ``st.k_from_contour``).
     """
     dirs = project_tangent(dirs, nrm)
     if len(dirs) < 8 or not np.all(np.isfinite(dirs)):
         return None
     steps = winding_steps(dirs, nrm, exact=st.exact)
     wind = float(steps.sum() / (2 * math.pi))
-    kterm = enclosed / (2 * math.pi)
+    on_contour = contour_curvature(pts, nrm) if st.k_from_contour else None
+    kterm = (enclosed if on_contour is None else on_contour) / (2 * math.pi)
     charge = wind + (kterm if st.curvature_correction else 0.0)
     length = float(np.linalg.norm(pts - np.roll(pts, -1, axis=0), axis=1).sum())
     floor = st.s_ordered
@@ -1042,7 +1115,7 @@ def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir:
         "charge_rounded": float(np.round(2 * charge) / 2), "n_contour": len(dirs),
         "contour_S": float(np.nanmedian(s_pts)), "s_floor": float(floor),
         "max_step_deg": float(np.degrees(np.abs(steps).max())), "step_limit_deg": step_limit_deg(len(dirs)),
-        **extra,
+        "k_from_vertices": st.k_from_contour and on_contour is None, **extra,
     }
 
 

@@ -691,8 +691,11 @@ def defects(
     p = nconfig.section("defects", params)
     if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
         raise NemoError("defects.curvature_source is 'table' but no curvature table was given")
+    source = p["curvature_source"]
+    if source == "table" and curvature is None:  # no K term at all (curvature_correction off)
+        source = "angle-defects"
     kwargs = dict(
-        curvature=curvature if p["curvature_source"] == "table" else None,
+        curvature=curvature if source == "table" else None, curvature_source=source,
         s_threshold=p["s_threshold"], min_distance=p["min_distance"], max_defects=p["max_defects"],
         contour_radius=p["contour_radius"], curvature_correction=bool(p["curvature_correction"]),
         avg_radius=avg_radius, winding_field=p["winding_field"], refine=p["refine"],

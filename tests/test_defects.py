@@ -23,6 +23,7 @@ from sparse_fields import stereo_field
 from nemo.defects import (
     CANDIDATE_COLUMNS,
     candidate_table,
+    contour_curvature,
     find_defects,
     noise_floor,
     step_limit_deg,
@@ -252,7 +253,7 @@ def test_sphere_two_plus_one(sphere60):
     assert df.attrs["euler_check"]["matches"]
 
 
-@pytest.mark.parametrize("source", ["angle-defects", "curvature-array"])
+@pytest.mark.parametrize("source", ["contour", "angle-defects", "table"])
 def test_curvature_term_on_strongly_curved_sphere(source):
     """R = 30 µm, contour of geodesic radius 20 µm: the winding alone misses
     ∫K dA / 2π = 1 − cos(r/R) ≈ 0.2 of the charge; with the K term it is exact."""
@@ -260,10 +261,11 @@ def test_curvature_term_on_strongly_curved_sphere(source):
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=radius)  # edge ≈ 1 µm
     dirs = rotated(TETRA, 3)
     _, ddf, odf = sphere_case(radius, None, dirs, [0.5] * 4, 3000, 8.0, seed=1, mesh=mesh)
-    k = np.full(len(mesh.vertices), 1.0 / radius**2) if source == "curvature-array" else None
-    with_k = find_defects(mesh, odf, ddf, curvature=k, avg_radius=8.0, contour_radius=r_c)
+    k = np.full(len(mesh.vertices), 1.0 / radius**2) if source == "table" else None
+    with_k = find_defects(mesh, odf, ddf, curvature=k, avg_radius=8.0, contour_radius=r_c, curvature_source=source)
     without = find_defects(mesh, odf, ddf, curvature=k, avg_radius=8.0, contour_radius=r_c,
-                           curvature_correction=False)
+                           curvature_correction=False, curvature_source=source)
+    assert with_k.attrs["parameters"]["curvature_source"] == source
     assert len(with_k) == len(without) == 4
     # the enclosed Gaussian curvature of each contour (edge-path radius ≥ geodesic radius)
     enclosed = with_k["charge_curvature"].to_numpy()
@@ -273,6 +275,56 @@ def test_curvature_term_on_strongly_curved_sphere(source):
     np.testing.assert_allclose(without["charge"], 0.5 - enclosed, atol=0.02)
     assert np.all(np.abs(without["charge"] - 0.5) > 0.15)
     np.testing.assert_allclose(without["charge_winding"], with_k["charge_winding"], atol=1e-12)
+
+
+def test_contour_curvature_is_the_enclosed_cap_of_a_sphere():
+    """Gauss–Bonnet on a geodesic circle of radius r on a sphere of radius R: ∫K dA =
+    2π (1 − cos(r / R)) from the circle's own turning; a clockwise circle reads the rest of the
+    sphere; a zigzag has no turning to read."""
+    radius = 30.0
+    for r in (5.0, 15.0, 30.0):
+        polar = r / radius
+        phi = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+        normals = np.column_stack([np.sin(polar) * np.cos(phi), np.sin(polar) * np.sin(phi),
+                                   np.full_like(phi, np.cos(polar))])
+        points = radius * normals
+        cap = 2 * np.pi * (1 - np.cos(polar))
+        assert contour_curvature(points, normals) == pytest.approx(cap, rel=1e-3)
+        assert contour_curvature(points[::-1], normals[::-1]) == pytest.approx(4 * np.pi - cap, rel=1e-3)
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 0.9, 0.0]])  # its tangents turn by 120°
+    assert contour_curvature(corners, np.tile([0.0, 0.0, 1.0], (3, 1))) is None
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_contour_k_term_keeps_charges_on_a_rough_wall(seed):
+    """A sphere of R 30 µm whose vertices are jittered 0.3 µm along the radius (edges ≈ 1 µm), as a
+    noisy image's wall: the winding's steps carry the rough wall's holonomy. The K term from the
+    contour's own turning cancels it (charges within 0.03 of ½); the enclosed vertices' angle
+    defects are a second estimate that does not (off by 0.04-0.1 here)."""
+    radius = 30.0
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    rng = np.random.default_rng(seed)
+    jitter = 1 + 0.3 / radius * rng.standard_normal(len(mesh.vertices))
+    mesh = trimesh.Trimesh(mesh.vertices * jitter[:, None], mesh.faces, process=False)
+    _, ddf, odf = sphere_case(radius, None, rotated(TETRA, 3), [0.5] * 4, 3000, 8.0, seed=1, mesh=mesh)
+    contour = find_defects(mesh, odf, ddf, avg_radius=8.0)
+    vertices = find_defects(mesh, odf, ddf, avg_radius=8.0, curvature_source="angle-defects")
+    assert len(contour) == len(vertices) == 4
+    assert contour.attrs["parameters"]["curvature_source"] == "contour"
+    assert contour.attrs["parameters"]["contours"]["k_from_vertices"] == 0
+    assert np.abs(contour["charge"] - 0.5).max() < 0.03
+    assert np.abs(vertices["charge"] - 0.5).max() > 0.04
+
+
+def test_a_curvature_array_goes_with_the_table_source(sphere60):
+    mesh, ddf, odf = sphere_case(60.0, 1.5, rotated(TETRA, 0), [0.5] * 4, 2000, 15.0, mesh=sphere60)
+    k = np.full(len(mesh.vertices), 1 / 60.0**2)
+    with pytest.raises(NemoError, match="curvature_source='table'"):
+        find_defects(mesh, odf, ddf, curvature=k, curvature_source="contour")
+    with pytest.raises(NemoError, match="curvature_source='table'"):
+        find_defects(mesh, odf, ddf, curvature_source="table")
+    with pytest.raises(NemoError, match="curvature_source must be one of"):
+        find_defects(mesh, odf, ddf, curvature_source="faces")
 
 
 def test_curvature_term_matches_marching_cubes_sphere():
@@ -384,7 +436,7 @@ def test_contour_is_the_ball_boundary_loop_and_k_term_is_k_times_area():
     k = np.full(len(mesh.vertices), 1.0 / radius**2)
     df = find_defects(mesh, odf, ddf, curvature=k, avg_radius=8.0, contour_radius=r_c, refine="none")
     assert len(df) == 4
-    assert df.attrs["parameters"]["contours"] == {"loop": 4, "ring": 0, "circle": 0, "shrunk": 0}
+    assert df.attrs["parameters"]["contours"] == {"loop": 4, "ring": 0, "circle": 0, "shrunk": 0, "k_from_vertices": 0}
     graph = edge_graph(mesh)
     h = mesh.edges_unique_length.mean()
     for _, row in df.iterrows():

@@ -43,8 +43,9 @@ def add_arguments(parser) -> None:
                         help="averaging radius of ORDER (default: from its metadata, else estimated)")
     parser.add_argument("--no-curvature-correction", action="store_true",
                         help="drop the (1/2π)∫K dA term (the flat-surface winding only)")
-    parser.add_argument("--curvature-source", choices=("angle-defects", "table"),
-                        help="K term from the mesh's angle defects (default) or from --curvature")
+    parser.add_argument("--curvature-source", choices=("contour", "angle-defects", "table"),
+                        help="K term: Gauss-Bonnet on the charge contour's own turning (default), the "
+                             "enclosed vertices' angle defects, or --curvature (the default when given)")
     parser.add_argument("--winding-field", choices=("average", "directors"),
                         help="director on the contour: averaged field of ORDER or nearest raw director")
     parser.add_argument("--refine", choices=("model", "q", "none"),
