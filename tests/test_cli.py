@@ -530,6 +530,11 @@ case("align:out = input A", "align", "{tab.directors}", "{tab.directors_outer}",
 DEF_OUT = [_out("{out}/x.parquet", "table:defects")]
 DEF = ("defects", "{mesh.inner}", "{tab.order}", "{tab.directors}")
 case("defects:valid", *DEF, "-o", "{out}/x.parquet", expect="ok", outputs=DEF_OUT)
+for source in ("contour", "angle-defects"):
+    case(f"defects:--curvature-source {source}", *DEF, "--curvature-source", source, "-o", "{out}/x.parquet",
+         expect="ok", outputs=DEF_OUT)
+case("defects:--curvature-source table without --curvature", *DEF, "--curvature-source", "table", "-o",
+     "{out}/x.parquet", expect="error")
 case("defects:valid --layer --refined --curvature", *DEF, "--layer", "{tab.layer}", "--refined", "{out}/r.parquet",
      "--curvature", "{tab.curvature}", "--curvature-source", "table", "-o", "{out}/x.parquet", expect="ok",
      outputs=[*DEF_OUT, _out("{out}/r.parquet", "table:directors")])
