@@ -535,6 +535,9 @@ for source in ("contour", "angle-defects"):
          expect="ok", outputs=DEF_OUT)
 case("defects:--curvature-source table without --curvature", *DEF, "--curvature-source", "table", "-o",
      "{out}/x.parquet", expect="error")
+case("defects:--curvature with --curvature-source contour", *DEF, "--curvature", "{tab.curvature}",
+     "--curvature-source", "contour", "-o", "{out}/x.parquet", expect="warn", outputs=DEF_OUT,
+     warns=("is not used",))
 case("defects:valid --layer --refined --curvature", *DEF, "--layer", "{tab.layer}", "--refined", "{out}/r.parquet",
      "--curvature", "{tab.curvature}", "--curvature-source", "table", "-o", "{out}/x.parquet", expect="ok",
      outputs=[*DEF_OUT, _out("{out}/r.parquet", "table:directors")])

@@ -81,9 +81,11 @@ def _averaging_radius(order_path: str) -> float | list[float] | None:
 
 
 def run(args) -> int:
+    import warnings
+
     from nemo import stages
     from nemo.cli.common import section_params
-    from nemo.errors import NemoError
+    from nemo.errors import NemoError, NemoWarning
     from nemo.mesh import load_mesh
     from nemo.tables import field_on_vertices, read_provenance, read_table, write_table
 
@@ -102,6 +104,9 @@ def run(args) -> int:
             raise NemoError(f"{args.curvature} has no finite K value; recompute it with a larger --radius")
         if args.curvature_source is None:
             args.curvature_source = "table"  # a curvature table given is a curvature table used
+        elif args.curvature_source != "table":
+            warnings.warn(f"--curvature {args.curvature} is not used: --curvature-source {args.curvature_source} "
+                          "takes the K term from the mesh (drop one of the two)", NemoWarning, stacklevel=2)
     params = section_params(args, "defects")
     params["curvature_correction"] = False if args.no_curvature_correction else None
     intensity = director_params = None
