@@ -47,8 +47,12 @@ steps, see ``exact_angles``). The curvature term is (1/2π) ∫K dA over the enc
   the same discretisation cancels it, where the enclosed vertices' ∫K (next item) is a second
   estimate whose noise on a rough wall does not cancel (the z-blurred vesicles: charge errors up
   to 0.09 with it, 0.015 with the contour's; docs/validation.md). A contour that turns by more
-  than :data:`MAX_CONTOUR_TURN_DEG` in one step (a zigzag) takes the enclosed vertices' ∫K
-  instead, counted in ``contours["k_from_vertices"]``.
+  than :data:`MAX_CONTOUR_TURN_DEG` in one step (a zigzag), or whose enclosed faces are not a
+  disc (a contour round a tube or a hole, where Gauss–Bonnet on one contour does not hold),
+  takes the enclosed vertices' ∫K instead, counted in ``contours["k_from_vertices"]``. Because
+  the two terms agree, a contour's charge sits near a multiple of ½ whatever the field, so the
+  off-half test below rejects little under this source; the S floor, the step limit and the
+  zero-charge test remain.
 * ``angle-defects``: interior vertices count fully and contour vertices half (the contour runs
   through them), the discrete integrated Gaussian curvature (angle defects,
   ``mesh.vertex_defects``, for which discrete Gauss–Bonnet is exact) after three conservative
@@ -255,8 +259,9 @@ def contour_curvature(points: np.ndarray, normals: np.ndarray) -> float | None:
         2π − Σ turning, the turning of the tangent (the chord from ``CONTOUR_CHORD_STEPS`` points
         behind to as many ahead, projected on the tangent plane) measured as
         :func:`winding_steps` measures a director's; None when a step turns by more than
-        :data:`MAX_CONTOUR_TURN_DEG` or a tangent vanishes. Any tangent field that keeps the
-        loop's direction gives the same sum: the turning of a closed loop is topological.
+        :data:`MAX_CONTOUR_TURN_DEG` or a tangent vanishes. On a smooth contour the chord's
+        reach does not matter; on a rough one the sum depends on it by a few hundredths of 2π,
+        because the step angle about the mean normal is not an exact parallel transport.
     """
     reach = max(1, min(CONTOUR_CHORD_STEPS, len(points) // 16))  # a chord over a few steps: a mesh loop zigzags
     tangent = project_tangent(np.roll(points, -reach, axis=0) - np.roll(points, reach, axis=0), normals)
@@ -1000,6 +1005,7 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
         loop = angle_sorted_contour(geo.verts, geo.verts[v], geo.normals[v], idx, dist, r_c, 2 * h)
         enclosed = float(geo.kdA[idx[dist < r_c]].sum())
         kind = "ring"
+    disc = _is_disc(geo, region if kind == "loop" else idx[dist < r_c])
     n_pts = steps_needed(r_c, st.avg_radius)
     if len(loop) < n_pts * (2 if kind == "ring" else 1):  # a ring is a band about two vertices wide
         return _circle_contour(geo, f, st, v, r_c, idx, 2 * n_pts, shrunk)
@@ -1015,7 +1021,21 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
     else:
         n_dir = None
     return _winding_result(dirs, geo.normals[loop], f.S[loop], n_dir, pts, enclosed, st,
-                           {"contour": kind, "contour_radius": float(r_c), "shrunk": shrunk})
+                           {"contour": kind, "contour_radius": float(r_c), "shrunk": shrunk}, disc)
+
+
+def _is_disc(geo: _Geometry, region: np.ndarray) -> bool:
+    """Whether the faces with all three vertices in ``region`` (vertex indices) form a topological
+    disc (Euler characteristic V − E + F = 1): Gauss–Bonnet on one contour then gives their ∫K.
+    A contour round a tube or a hole of a porous wall encloses no disc."""
+    inside = np.zeros(len(geo.verts), dtype=bool)
+    inside[region] = True
+    faces = geo.faces[np.unique(geo.vf[region].indices)]
+    faces = faces[inside[faces].all(axis=1)]
+    if not len(faces):
+        return False
+    edges = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    return len(np.unique(faces)) - len(edges) + len(faces) == 1
 
 
 def _circle_contour(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float, ball: np.ndarray,
@@ -1047,8 +1067,9 @@ def _circle_contour(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: floa
     r_e = float(np.mean(np.linalg.norm(pts - x0, axis=1)))
     w = np.clip(0.5 + (r_e - np.linalg.norm(geo.verts[ball] - x0, axis=1)) / geo.h, 0.0, 1.0)
     enclosed = float(np.sum(w * geo.kdA[ball]))
+    disc = _is_disc(geo, ball[np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e])
     return _winding_result(dirs, nrm, s_pts, n_dir, pts, enclosed, st,
-                           {"contour": "circle", "contour_radius": float(r_c), "shrunk": shrunk})
+                           {"contour": "circle", "contour_radius": float(r_c), "shrunk": shrunk}, disc)
 
 
 def _field_at_points(geo: _Geometry, f: _Fields, st: _Settings, pts: np.ndarray, nrm: np.ndarray,
@@ -1091,19 +1112,20 @@ def _field_at_points(geo: _Geometry, f: _Fields, st: _Settings, pts: np.ndarray,
 
 
 def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir: float | None,
-                    pts: np.ndarray, enclosed: float, st: _Settings, extra: dict) -> dict | None:
+                    pts: np.ndarray, enclosed: float, st: _Settings, extra: dict, disc: bool = True) -> dict | None:
     """Winding, charge and acceptance diagnostics of one closed contour of L points.
 
     ``dirs``, ``nrm``, ``pts``: (L, 3) directors, normals and positions in contour order;
     ``s_pts``: (L,) S on the contour; ``n_dir``: directors per averaging disc (None: unknown);
-    ``enclosed``: ∫K dA of the vertices inside the contour (used unless ``st.k_from_contour``).
+    ``enclosed``: ∫K dA of the vertices inside the contour (used unless ``st.k_from_contour`` and
+    the contour encloses a ``disc``).
     """
     dirs = project_tangent(dirs, nrm)
     if len(dirs) < 8 or not np.all(np.isfinite(dirs)):
         return None
     steps = winding_steps(dirs, nrm, exact=st.exact)
     wind = float(steps.sum() / (2 * math.pi))
-    on_contour = contour_curvature(pts, nrm) if st.k_from_contour else None
+    on_contour = contour_curvature(pts, nrm) if st.k_from_contour and disc else None
     kterm = (enclosed if on_contour is None else on_contour) / (2 * math.pi)
     charge = wind + (kterm if st.curvature_correction else 0.0)
     length = float(np.linalg.norm(pts - np.roll(pts, -1, axis=0), axis=1).sum())

@@ -316,6 +316,43 @@ def test_contour_k_term_keeps_charges_on_a_rough_wall(seed):
     assert np.abs(vertices["charge"] - 0.5).max() > 0.04
 
 
+def _torus_half_field(mesh: trimesh.Trimesh, major: float, tube_fraction: float = 0.35) -> pd.DataFrame:
+    """An order table on a torus about z: the director turns by half the angle of the constant
+    vector x projected on the tangent plane (±½ zeros where x is normal: the outer and inner
+    equator at y = 0), S falling to the zeros."""
+    v, nm = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    phi = np.arctan2(v[:, 1], v[:, 0])
+    tube = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]) - major)
+    e_phi = np.column_stack([-np.sin(phi), np.cos(phi), 0 * phi])
+    e_tube = np.column_stack([-np.sin(tube) * np.cos(phi), -np.sin(tube) * np.sin(phi), np.cos(tube)])
+    normal = np.column_stack([np.cos(tube) * np.cos(phi), np.cos(tube) * np.sin(phi), np.sin(tube)])
+    x_t = np.array([1.0, 0.0, 0.0]) - normal[:, :1] * normal
+    half = 0.5 * np.arctan2(np.einsum("ij,ij->i", x_t, e_tube), np.einsum("ij,ij->i", x_t, e_phi))
+    n = np.cos(half)[:, None] * e_phi + np.sin(half)[:, None] * e_tube
+    n -= (n * nm).sum(1)[:, None] * nm
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    s = np.clip(np.linalg.norm(x_t, axis=1) / tube_fraction, 0.02, 1.0)
+    return pd.DataFrame({"vertex": np.arange(len(v)), "S": s, "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2]})
+
+
+def test_a_contour_round_the_tube_of_a_torus_takes_the_enclosed_k():
+    """A contour wider than a torus's tube (R 30, r 12 µm; contour radius 40 µm) encloses no disc:
+    Gauss–Bonnet on that one contour does not give the enclosed ∫K and would read a −½ defect of
+    the inner equator as +1. Such contours take the enclosed vertices' K (as `angle-defects`), and
+    at the default radius the contour K keeps the four ±½ defects."""
+    mesh = trimesh.creation.torus(30.0, 12.0, major_sections=180, minor_sections=72)
+    odf = _torus_half_field(mesh, 30.0)
+    wide = find_defects(mesh, odf, None, avg_radius=5.0, contour_radius=40.0, refine="none")
+    same = find_defects(mesh, odf, None, avg_radius=5.0, contour_radius=40.0, refine="none",
+                        curvature_source="angle-defects")
+    assert wide.attrs["parameters"]["contours"]["k_from_vertices"] >= len(wide) > 0
+    np.testing.assert_allclose(np.sort(wide["charge"]), np.sort(same["charge"]))
+    assert np.all(wide["charge_rounded"] == -0.5)
+    default = find_defects(mesh, odf, None, avg_radius=5.0, refine="none")
+    assert sorted(default["charge_rounded"]) == [-0.5, -0.5, 0.5, 0.5]
+    assert np.abs(default["charge"] - default["charge_rounded"]).max() < 0.01
+
+
 def test_a_curvature_array_goes_with_the_table_source(sphere60):
     mesh, ddf, odf = sphere_case(60.0, 1.5, rotated(TETRA, 0), [0.5] * 4, 2000, 15.0, mesh=sphere60)
     k = np.full(len(mesh.vertices), 1 / 60.0**2)
