@@ -1005,10 +1005,10 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
         loop = angle_sorted_contour(geo.verts, geo.verts[v], geo.normals[v], idx, dist, r_c, 2 * h)
         enclosed = float(geo.kdA[idx[dist < r_c]].sum())
         kind = "ring"
-    disc = _is_disc(geo, region if kind == "loop" else idx[dist < r_c])
     n_pts = steps_needed(r_c, st.avg_radius)
     if len(loop) < n_pts * (2 if kind == "ring" else 1):  # a ring is a band about two vertices wide
         return _circle_contour(geo, f, st, v, r_c, idx, 2 * n_pts, shrunk)
+    disc = st.k_from_contour and _is_disc(geo, region if kind == "loop" else idx[dist < r_c])
     pts = geo.verts[loop]
     if st.winding_field == "average":
         dirs = f.navg[loop]
@@ -1067,7 +1067,7 @@ def _circle_contour(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: floa
     r_e = float(np.mean(np.linalg.norm(pts - x0, axis=1)))
     w = np.clip(0.5 + (r_e - np.linalg.norm(geo.verts[ball] - x0, axis=1)) / geo.h, 0.0, 1.0)
     enclosed = float(np.sum(w * geo.kdA[ball]))
-    disc = _is_disc(geo, ball[np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e])
+    disc = st.k_from_contour and _is_disc(geo, ball[np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e])
     return _winding_result(dirs, nrm, s_pts, n_dir, pts, enclosed, st,
                            {"contour": "circle", "contour_radius": float(r_c), "shrunk": shrunk}, disc)
 
