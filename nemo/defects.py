@@ -35,23 +35,27 @@ the outward normal, and each step is one mesh edge. The director on the contour 
 the averaged field ``n_avg`` of the order table, or the nearest raw director) is projected onto
 each vertex's tangent plane, aligned head to tail (``n_{i+1} → −n_{i+1}`` when
 ``n_i·n_{i+1} < 0``) and the signed turning angle of each step is summed,
-``atan2((n_i × n_{i+1})·N, n_i·n_{i+1})`` with ``N`` the mean of the two vertex normals (the exact
-angle; the paper's small-angle form ``(n_i × (n_{i+1} − n_i))·N_i`` = sin Δθ underestimates large
-steps, see ``exact_angles``). The curvature term is (1/2π) ∫K dA over the enclosed patch
+``atan2((R n_i × n_{i+1})·N_{i+1}, R n_i·n_{i+1})`` with ``R`` the smallest rotation taking
+``N_i`` to ``N_{i+1}`` (the discrete parallel transport along the step; the exact angle, the
+paper's small-angle form ``(n_i × (n_{i+1} − n_i))·N_i`` = sin Δθ underestimates large steps,
+see ``exact_angles``). The curvature term is (1/2π) ∫K dA over the enclosed patch
 (``curvature_source``):
 
 * ``contour`` (the default without a ``curvature`` array): Gauss–Bonnet on the contour itself,
   ∫K dA = 2π − Σ turning of the contour's tangent (:func:`contour_curvature`), measured with the
-  same points, normals and step angles as the winding. The winding's steps are rotations about
-  those normals, so they carry the holonomy of that discrete surface; taking the K term from
-  the same discretisation cancels it, where the enclosed vertices' ∫K (next item) is a second
-  estimate whose noise on a rough wall does not cancel (the z-blurred vesicles: charge errors up
-  to 0.09 with it, 0.015 with the contour's; docs/validation.md). A contour that turns by more
+  same points, normals and transported step angles as the winding. The winding's steps carry
+  the holonomy of that discrete surface; taking the K term from the same discretisation cancels
+  it exactly (each step of the director minus the tangent's is the change of the angle between
+  them, so winding + K term is a multiple of ½ on any contour), where the enclosed vertices' ∫K
+  (next item) is a second estimate whose noise on a rough wall does not cancel (the z-blurred
+  vesicles: charge errors up to 0.09 with it, 0.015 with the contour's and the mean-normal step
+  of session 17, docs/validation.md). A contour that turns by more
   than :data:`MAX_CONTOUR_TURN_DEG` in one step (a zigzag), or whose enclosed faces are not a
   disc (a contour round a tube or a hole, where Gauss–Bonnet on one contour does not hold),
   takes the enclosed vertices' ∫K instead, counted in ``contours["k_from_vertices"]``. Because
-  the two terms agree, a contour's charge sits near a multiple of ½ whatever the field, so the
-  off-half test below rejects little under this source; the S floor, the step limit and the
+  the two terms cancel, a contour's charge is a multiple of ½ whatever the field, so the
+  off-half test below rejects nothing under this source (a misread field shows as a wrong
+  multiple, not as an off-half value); the S floor, the step limit and the
   zero-charge test remain.
 * ``angle-defects``: interior vertices count fully and contour vertices half (the contour runs
   through them), the discrete integrated Gaussian curvature (angle defects,
@@ -216,33 +220,51 @@ def winding_steps(dirs: np.ndarray, normals: np.ndarray, exact: bool = True) -> 
     normals : ndarray, shape (L, 3)
         Unit outward normals at the contour points.
     exact : bool
-        ``atan2((n_i × n_{i+1})·N, n_i·n_{i+1})`` (default) or the paper's small-angle form
-        ``(n_i × (n_{i+1} − n_i))·N_i`` (= sin Δθ).
+        The exact angle (default): ``n_i`` is carried to point i + 1 by the smallest rotation
+        taking ``N_i`` to ``N_{i+1}`` (the discrete parallel transport along the step) and the
+        angle to ``n_{i+1}`` is ``atan2((R n_i × n_{i+1})·N_{i+1}, R n_i·n_{i+1})``. Otherwise
+        the paper's small-angle form ``(n_i × (n_{i+1} − n_i))·N_i`` (= sin Δθ).
 
     Returns
     -------
     ndarray, shape (L,)
-        Step angles in radians; their sum / 2π is the winding number.
+        Step angles in radians; their sum / 2π is the winding number. NaN where two successive
+        normals are opposite (no smallest rotation).
 
     Notes
     -----
-    Head–tail alignment flips ``n_{i+1}`` when ``n_i·n_{i+1} < 0``. Done per step against the
-    *unflipped-chain* neighbour, which is equivalent to the iterative flipping of the paper for
-    the step angles (each step is reduced to (−π/2, π/2]).
+    Head–tail alignment flips ``n_{i+1}`` when ``n_i·n_{i+1} < 0`` (after the transport). Done
+    per step against the *unflipped-chain* neighbour, which is equivalent to the iterative
+    flipping of the paper for the step angles (each step is reduced to (−π/2, π/2]).
     """
     nxt = np.roll(dirs, -1, axis=0)
-    dot = np.einsum("ij,ij->i", dirs, nxt)
-    nxt = np.where(dot[:, None] < 0, -nxt, nxt)
-    if exact:
-        return _step_angles(dirs, nxt, normals)
-    return np.einsum("ij,ij->i", np.cross(dirs, nxt), normals)
+    if not exact:
+        nxt = np.where(np.einsum("ij,ij->i", dirs, nxt)[:, None] < 0, -nxt, nxt)
+        return np.einsum("ij,ij->i", np.cross(dirs, nxt), normals)
+    moved = _transport(dirs, normals)
+    nxt = np.where(np.einsum("ij,ij->i", moved, nxt)[:, None] < 0, -nxt, nxt)
+    return _angles_about(moved, nxt, np.roll(normals, -1, axis=0))
 
 
-def _step_angles(vec: np.ndarray, nxt: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Signed angles (L,) from ``vec[i]`` to ``nxt[i]`` about the mean normal of points i and i + 1."""
-    nmid = normals + np.roll(normals, -1, axis=0)
-    nmid /= np.linalg.norm(nmid, axis=1, keepdims=True)
-    return np.arctan2(np.einsum("ij,ij->i", np.cross(vec, nxt), nmid), np.einsum("ij,ij->i", vec, nxt))
+def _transport(vec: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """``vec[i]`` (L, 3) rotated by the smallest rotation taking ``normals[i]`` to ``normals[i + 1]``
+    (cyclic): Rodrigues' formula with axis N_i × N_{i+1}; NaN where the two normals are opposite.
+
+    Measuring each step after this transport makes the step angles of a director and of the
+    contour's tangent differ by exactly the change of the angle between them, so the winding and
+    :func:`contour_curvature` cancel the holonomy of the discrete surface exactly.
+    """
+    nxt = np.roll(normals, -1, axis=0)
+    axis = np.cross(normals, nxt)
+    cos = np.einsum("ij,ij->i", normals, nxt)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = np.einsum("ij,ij->i", axis, vec)[:, None] / (1 + cos)
+    return vec * cos + np.cross(axis, vec) + axis * np.where(cos > -1, along, np.nan)
+
+
+def _angles_about(vec: np.ndarray, nxt: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Signed angles (L,) from ``vec[i]`` to ``nxt[i]`` about ``normals[i]``."""
+    return np.arctan2(np.einsum("ij,ij->i", np.cross(vec, nxt), normals), np.einsum("ij,ij->i", vec, nxt))
 
 
 def contour_curvature(points: np.ndarray, normals: np.ndarray) -> float | None:
@@ -259,9 +281,9 @@ def contour_curvature(points: np.ndarray, normals: np.ndarray) -> float | None:
         2π − Σ turning, the turning of the tangent (the chord from ``CONTOUR_CHORD_STEPS`` points
         behind to as many ahead, projected on the tangent plane) measured as
         :func:`winding_steps` measures a director's; None when a step turns by more than
-        :data:`MAX_CONTOUR_TURN_DEG` or a tangent vanishes. On a smooth contour the chord's
-        reach does not matter; on a rough one the sum depends on it by a few hundredths of 2π,
-        because the step angle about the mean normal is not an exact parallel transport.
+        :data:`MAX_CONTOUR_TURN_DEG` or a tangent vanishes. Each step is measured after the same
+        transport as the winding's (:func:`_transport`), so a director's winding plus this term
+        is a multiple of ½ on any discrete contour: the holonomy cancels exactly.
     """
     reach = max(1, min(CONTOUR_CHORD_STEPS, len(points) // 16))  # a chord over a few steps: a mesh loop zigzags
     tangent = project_tangent(np.roll(points, -reach, axis=0) - np.roll(points, reach, axis=0), normals)
@@ -269,7 +291,7 @@ def contour_curvature(points: np.ndarray, normals: np.ndarray) -> float | None:
     if not np.all(length > 0):
         return None
     tangent = tangent / length
-    turn = _step_angles(tangent, np.roll(tangent, -1, axis=0), normals)
+    turn = _angles_about(_transport(tangent, normals), np.roll(tangent, -1, axis=0), np.roll(normals, -1, axis=0))
     if not np.all(np.isfinite(turn)) or np.abs(turn).max() > math.radians(MAX_CONTOUR_TURN_DEG):
         return None
     return float(2 * math.pi - turn.sum())
