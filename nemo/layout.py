@@ -26,6 +26,8 @@ MESH = {"whole": "mesh.ply", "inner": "mesh.inner.ply", "outer": "mesh.outer.ply
 #: Per-layer tables, in the order of the analysis.
 LAYER_KINDS = ("layer", "directors", "order", "defects")
 THICKNESS = "thickness.parquet"
+#: One frame deconvolved by the dataset's PSF (``nemo deconvolve``; a temporary file of the workflow).
+DECONVOLVED = "deconvolved.tif"
 SUMMARY_JSON = "summary.json"
 #: Per-dataset folders below ``{results}/{dataset}``.
 SUMMARY_DIR, LOG_DIR, BENCH_DIR = "summary", "logs", "benchmarks"

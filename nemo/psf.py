@@ -164,3 +164,97 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
     logger.info("deconvolved by the PSF σ %s (%s voxels), %d Richardson-Lucy iterations, %.1f s", psf,
                 " ".join(f"{v:.3g}" for v in sigma_vox), iterations, record["seconds"])
     return out, record
+
+
+#: Format tag of a deconvolved stack written by :func:`write_deconvolved`.
+DECONVOLVED_FORMAT = "nemo-deconvolved/1"
+
+
+def write_deconvolved(path, deconvolved: np.ndarray, record: dict, source: np.ndarray,
+                      spacing, t: int, c: int, image: str) -> None:
+    """Write one channel's deconvolution (:func:`deconvolve`) for the mesh and peel steps to reuse.
+
+    A float32 TIFF whose description holds the record, the spacing, the frame and the source
+    stack's shape. When nothing was deconvolved (``record["iterations"]`` 0: no PSF, or one
+    below :data:`MIN_PSF_PER_VOXEL`), only the record is written and the readers use the image
+    itself, as :func:`deconvolve` returns it. Written atomically.
+
+    Parameters
+    ----------
+    path : path-like
+        Output ``.tif``.
+    deconvolved : ndarray, shape (Z, Y, X)
+    record : dict
+        :func:`deconvolve`'s record.
+    source : ndarray, shape (Z, Y, X)
+        The stack that was deconvolved (its shape is checked on reading).
+    spacing : (dz, dy, dx)
+    t, c : int
+    image : str
+        The image file, for the messages.
+    """
+    import json
+
+    import tifffile
+
+    from nemo.atomic import atomic_path
+
+    data = np.asarray(deconvolved, dtype=np.float32) if record["iterations"] else np.zeros((1, 1, 1), np.float32)
+    meta = {"format": DECONVOLVED_FORMAT, "record": record, "shape": [int(n) for n in np.shape(source)],
+            "spacing": [float(v) for v in spacing], "t": int(t), "c": int(c), "image": str(image)}
+    with atomic_path(path, keep_suffix=True) as tmp:
+        tifffile.imwrite(tmp, data, description=json.dumps(meta), metadata=None)
+
+
+def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> tuple[np.ndarray, dict]:
+    """The deconvolution :func:`write_deconvolved` wrote for this stack, checked against it.
+
+    Parameters
+    ----------
+    path : path-like
+    volume : ndarray, shape (Z, Y, X)
+        The stack read from the image (returned when the file records no deconvolution).
+    spacing : (dz, dy, dx)
+    psf : (σz, σy, σx)
+        The PSF the caller was given: it must be the file's.
+    t, c : int
+        The frame the caller analyses: it must be the file's.
+
+    Returns
+    -------
+    (ndarray, dict)
+        The deconvolved stack, shape (Z, Y, X), and its record, as :func:`deconvolve` returns them.
+
+    Raises
+    ------
+    NemoError
+        Not such a file, or made for another frame, shape, spacing or PSF (the message names it).
+    """
+    import json
+
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            try:
+                meta = json.loads(tif.pages[0].description or "{}")
+            except ValueError:  # another TIFF's description (ImageJ's, OME-XML)
+                meta = {}
+            ours = isinstance(meta, dict) and meta.get("format") == DECONVOLVED_FORMAT
+            data = tif.asarray() if ours else None
+    except (OSError, ValueError, tifffile.TiffFileError) as exc:
+        raise NemoError(f"cannot read the deconvolved stack {path}: {exc}; make it with nemo deconvolve") from None
+    if data is None:
+        raise NemoError(f"{path} is not a deconvolved stack written by nemo deconvolve: make it with nemo deconvolve")
+    given = check_psf(psf)
+    made = {"the frame": ([meta["t"], meta["c"]], [int(t), int(c)]),
+            "the PSF": (meta["record"]["psf"], None if given is None else list(given)),
+            "the stack's shape": (meta["shape"], [int(n) for n in np.shape(volume)]),
+            "the spacing": (meta["spacing"], [float(v) for v in spacing])}
+    for what, (theirs, ours) in made.items():
+        if theirs != ours:
+            raise NemoError(f"the deconvolved stack {path} was made for {what} {theirs}, this step has {ours}: "
+                            f"run nemo deconvolve again with this step's image, --t, --c, --spacing and --psf")
+    if not meta["record"]["iterations"]:
+        return volume, meta["record"]
+    return data, meta["record"]

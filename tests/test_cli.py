@@ -113,6 +113,11 @@ def check_output(kind: str, path: Path, stdout: str = "") -> None:
         assert info.shape["Z"] >= 1
     elif kind == "json":
         json.loads(path.read_text())
+    elif kind == "deconvolved":
+        import tifffile
+
+        with tifffile.TiffFile(path) as tif:
+            assert json.loads(tif.pages[0].description)["format"] == "nemo-deconvolved/1"
     elif kind == "run":
         assert path.is_dir()
         json.loads((path / "summary.json").read_text())
@@ -305,6 +310,25 @@ for name in ("text", "flat", "zero", "png", "empty", "trunc_mid"):
     case(f"mesh:--mask img.{name}", "mesh", "{img.valid}", "--mask", f"{{img.{name}}}", "-o", "{out}/m.ply",
          expect="error")
 case("mesh:--mask img.valid", "mesh", "{img.valid}", "--mask", "{img.valid}", "-o", "{out}/m.ply", outputs=MESH_OUT)
+# ---------------------------------------------------------------------------- deconvolve (and --deconvolved)
+for name, expect in PIXELS.items():
+    case(f"deconvolve:img.{name}", "deconvolve", f"{{img.{name}}}", "--psf", "2", "1", "1", "-o", "{out}/d.tif",
+         expect="ok" if name == "zero" else expect,  # a blank frame deconvolves (its mesh is refused)
+         outputs=[_out("{out}/d.tif", "deconvolved")])
+case("deconvolve:no --psf", "deconvolve", "{img.valid}", "-o", "{out}/d.tif", expect="error")
+case("deconvolve:out .parquet", "deconvolve", "{img.valid}", "--psf", "2", "1", "1", "-o", "{out}/d.parquet",
+     expect="error")
+case("deconvolve:out = the input image", "deconvolve", "{img.valid}", "--psf", "2", "1", "1", "-o", "{img.valid}",
+     expect="error")
+case("deconvolve:--t 5", "deconvolve", "{img.valid}", "--psf", "2", "1", "1", "-o", "{out}/d.tif", "--t", "5",
+     expect="error")
+for label, opts in {"img.valid (not ours)": ["--deconvolved", "{img.valid}", "--psf", "2", "1", "1"],
+                    "tab.layer": ["--deconvolved", "{tab.layer}", "--psf", "2", "1", "1"],
+                    "missing": ["--deconvolved", "{tab.missing}", "--psf", "2", "1", "1"],
+                    "no --psf": ["--deconvolved", "{img.valid}"]}.items():
+    case(f"mesh:--deconvolved {label}", "mesh", "{img.valid}", "-o", "{out}/m.ply", *opts, expect="error")
+    case(f"peel:--deconvolved {label}", "peel", "{img.valid}", "{mesh.inner}", "-o", "{out}/l.parquet", *opts,
+         expect="error")
 case("mesh:--psf 2 1 1", "mesh", "{img.valid}", "-o", "{out}/m.ply", "--psf", "2", "1", "1", expect="ok", outputs=MESH_OUT)
 for label, opts in {"--psf -1 1 1": ["--psf", "-1", "1", "1"], "--psf 1e9 1 1": ["--psf", "1e9", "1", "1"],
                     "--psf nan 1 1": ["--psf", "nan", "1", "1"],
@@ -715,6 +739,29 @@ def test_peel_warns_when_its_mesh_was_made_with_another_psf(corpus, tmp_path, ca
     assert code == 0 and "--psf" not in err
     record = read_provenance(tmp_path / "b.parquet")["parameters"]["deconvolution"]
     assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0
+
+
+def test_deconvolved_once_meshes_and_peels_as_deconvolving_again(corpus, tmp_path, capsys):
+    """nemo deconvolve, then nemo mesh / peel --deconvolved: the same mesh and layer as with --psf
+    alone (the workflow's path and nemo run's), and a file made for another PSF is refused."""
+    from nemo.mesh import load_mesh
+    from nemo.tables import read_table
+
+    img, psf = str(corpus["img.valid"]), ["--psf", "2", "1", "1"]
+    dec = str(tmp_path / "d.tif")
+    assert invoke(["deconvolve", img, *psf, "-o", dec], capsys, "deconvolve")[0] == 0
+    for tag, extra in (("a", []), ("b", ["--deconvolved", dec])):
+        assert invoke(["mesh", img, *psf, *extra, "-o", str(tmp_path / f"{tag}.ply")], capsys, "mesh")[0] == 0
+        assert invoke(["peel", img, str(tmp_path / f"{tag}.inner.ply"), *psf, *extra, "-o",
+                       str(tmp_path / f"{tag}.parquet")], capsys, "peel")[0] == 0
+    a, b = (load_mesh(tmp_path / f"{tag}.inner.ply") for tag in "ab")
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.faces, b.faces)
+    a, b = (read_table(tmp_path / f"{tag}.parquet") for tag in "ab")
+    np.testing.assert_array_equal(a["intensity"], b["intensity"])
+    code, _, err = invoke(["peel", img, str(tmp_path / "a.inner.ply"), "--psf", "2.5", "1", "1", "--deconvolved",
+                           dec, "-o", str(tmp_path / "c.parquet")], capsys, "other psf")
+    assert code == 2 and "made for the PSF [2.0, 1.0, 1.0]" in err and "nemo deconvolve again" in err
 
 
 def test_walls_of_an_earlier_run_are_named_when_not_replaced(corpus, tmp_path, capsys):

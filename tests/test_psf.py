@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import tifffile
+from scipy import ndimage as ndi
 from scipy import special
 
 from nemo.errors import NemoError
@@ -115,3 +117,33 @@ def test_bad_iterations_are_named():
     for bad in (0, 2.5, True):
         with pytest.raises(NemoError, match="iterations must be a whole number"):
             deconvolve(stack, (1, 1, 1), (2, 1, 1), iterations=bad)
+
+
+def test_a_written_deconvolution_reads_back_bit_for_bit_and_only_for_its_frame(tmp_path):
+    """write_deconvolved / read_deconvolved: the float32 stack and record come back unchanged (so a
+    workflow step that reads it meshes and peels the same numbers as one that deconvolves), and a
+    file made for another PSF, frame, shape or spacing, or another TIFF, is refused by name."""
+    from nemo.psf import read_deconvolved, write_deconvolved
+
+    rng = np.random.default_rng(0)
+    raw = ndi.gaussian_filter(rng.random((12, 20, 20)) * 200, 1).astype(np.uint16)
+    sharp, record = deconvolve(raw, (2.0, 1.0, 1.0), (2.0, 1.0, 1.0))
+    path = tmp_path / "d.tif"
+    write_deconvolved(path, sharp, record, raw, (2.0, 1.0, 1.0), 1, 2, "x.tif")
+    back, rec = read_deconvolved(path, raw, (2.0, 1.0, 1.0), (2.0, 1.0, 1.0), 1, 2)
+    assert back.dtype == np.float32 and np.array_equal(back, sharp) and rec == record
+    for args, what in [((raw, (2.0, 1.0, 1.0), (2.5, 1.0, 1.0), 1, 2), "the PSF"),
+                       ((raw, (2.0, 1.0, 1.0), (2.0, 1.0, 1.0), 0, 2), "the frame"),
+                       ((raw[:-1], (2.0, 1.0, 1.0), (2.0, 1.0, 1.0), 1, 2), "the stack's shape"),
+                       ((raw, (2.5, 1.0, 1.0), (2.0, 1.0, 1.0), 1, 2), "the spacing")]:
+        with pytest.raises(NemoError, match=f"made for {what}.*run nemo deconvolve again"):
+            read_deconvolved(path, *args)
+    other = tmp_path / "other.tif"
+    tifffile.imwrite(other, raw, imagej=True)
+    with pytest.raises(NemoError, match="not a deconvolved stack written by nemo deconvolve"):
+        read_deconvolved(other, raw, (2.0, 1.0, 1.0), (2.0, 1.0, 1.0), 1, 2)
+    # nothing to deconvolve (a PSF below a quarter voxel): only the record is stored, the image is used
+    same, tiny = deconvolve(raw, (2.0, 1.0, 1.0), (0.1, 0.1, 0.1))
+    write_deconvolved(path, same, tiny, raw, (2.0, 1.0, 1.0), 1, 2, "x.tif")
+    back, rec = read_deconvolved(path, raw, (2.0, 1.0, 1.0), (0.1, 0.1, 0.1), 1, 2)
+    assert back is raw and rec["iterations"] == 0 and path.stat().st_size < 2000

@@ -913,9 +913,11 @@ def test_several_objects_through_the_workflow_and_nemo_run(tmp_path, write_two_v
 
 
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
-    """datasets.NAME.psf through snakemake: the mesh and peel rules deconvolve the same PSF (their
-    provenance says so), `nemo run` with the same config gives the same tables, and a new PSF
-    reruns the mesh and the peel (and what depends on them), not the synthesis."""
+    """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
+    mesh and both peels use that one deconvolution (their provenance records the same run),
+    `nemo run` with the same config gives the same tables, a new PSF reruns the deconvolution, the
+    mesh and the peels (and what depends on them), not the synthesis, and a peel's parameter
+    reruns that peel alone."""
     from nemo import layout
     from nemo.mesh import load_mesh
     from nemo.tables import read_provenance, read_table
@@ -931,6 +933,9 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
     peel_params = read_provenance(frame / layout.layer_file("layer", "fibres"))["parameters"]
     for record in (mesh_params["deconvolution"], peel_params["deconvolution"]):
         assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0, record
+    deep = read_provenance(frame / layout.layer_file("layer", "deep"))["parameters"]["deconvolution"]
+    assert peel_params["deconvolution"]["seconds"] == deep["seconds"] == mesh_params["deconvolution"]["seconds"]
+    assert (tmp_path / "results" / "z" / "logs" / "deconvolve" / "t0_c0.log").exists()
     proc = subprocess.run([sys.executable, "-m", "nemo", "run", "--config", str(tmp_path / "c.yaml"), "--dataset",
                            "z", "-o", str(tmp_path / "run")], cwd=tmp_path, capture_output=True, text=True,
                           timeout=600)
@@ -946,4 +951,9 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
         assert record["seconds"] == once["seconds"], (record, once)  # the same deconvolution, not another
     cfg["datasets"]["z"]["psf"] = [2.5, 1.0, 1.0]
     counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c2.yaml", cfg)))
-    assert counts.get("mesh") == 1 and counts.get("peel") == 2 and "synth_z" not in counts, counts
+    assert counts.get("deconvolve") == counts.get("mesh") == 1 and counts.get("peel") == 2, counts
+    assert "synth_z" not in counts, counts
+    cfg["datasets"]["z"]["psf"] = [2.0, 1.0, 1.0]  # back to the PSF the results were made with
+    cfg["layers"]["deep"]["range"] = [4, 9]  # a peel's parameter: that peel, not the deconvolution or the mesh
+    counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c3.yaml", cfg)))
+    assert counts.get("peel") == 1 and "deconvolve" not in counts and "mesh" not in counts, counts

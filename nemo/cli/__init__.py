@@ -29,12 +29,12 @@ from nemo.errors import NemoError, NemoWarning
 
 #: Subcommands in the order ``nemo --help`` lists them (module name = command name).
 COMMANDS = (
-    "info", "synth", "mesh", "curvature", "thickness", "measure", "peel", "directors",
+    "info", "synth", "deconvolve", "mesh", "curvature", "thickness", "measure", "peel", "directors",
     "order", "align", "defects", "run", "track", "render", "view", "validate",
 )
 
 _EPILOG = """\
-data flow: image (t, c) -> mesh (PLY) -> layer (peel) -> directors -> order -> defects;
+data flow: image (t, c) [-> deconvolve, with a PSF] -> mesh (PLY) -> layer (peel) -> directors -> order -> defects;
 curvature/thickness/measure from meshes; align from two director tables.
 Every step reads and writes files, so any step can be rerun alone.
 validate: the validation protocol's steps (scores against a known truth; docs/validation.md).

@@ -19,10 +19,12 @@ def add_common(
     output: bool = True,
     output_help: str = "output file",
     output_required: bool = True,
+    deconvolved: bool = False,
 ) -> None:
     """Add the options every subcommand shares.
 
-    ``--t/--c/--spacing/--psf`` only for commands that read an image (``frame=True``).
+    ``--t/--c/--spacing/--psf`` only for commands that read an image (``frame=True``), and
+    ``--deconvolved`` for those that deconvolve it (``deconvolved=True``: nemo mesh and peel).
     """
     if frame:
         parser.add_argument("--t", type=int, default=0, metavar="T", help="time point (0-based, default 0)")
@@ -38,6 +40,12 @@ def add_common(
                  "meshing and peeling (an automatic mesh level is taken on the image before); give the "
                  "same to nemo mesh and nemo peel (default: none)",
         )
+        if deconvolved:
+            parser.add_argument(
+                "--deconvolved", metavar="FILE.tif",
+                help="this frame deconvolved by --psf once, with nemo deconvolve: used instead of deconvolving "
+                     "again (its frame, spacing and PSF must be this step's)",
+            )
     if output:
         parser.add_argument("-o", "--output", required=output_required, metavar="FILE", help=output_help)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")

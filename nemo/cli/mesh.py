@@ -66,7 +66,7 @@ def _nonneg_int(text: str) -> int:
 
 def add_arguments(parser) -> None:
     parser.add_argument("image", help="TIFF hyperstack, OME-TIFF or OME-Zarr folder")
-    add_common(parser, frame=True, output_help="output mesh (.ply or .obj)")
+    add_common(parser, frame=True, output_help="output mesh (.ply or .obj)", deconvolved=True)
     parser.add_argument("--sigma", type=non_negative, default=None, metavar="UM",
                         help="Gaussian blur sigma in the image unit (default: noise-aware, at least half the "
                              "sampling distance --step × (dx + dy)/4, enough for a blurred SNR of 20; 0 = none)")
@@ -147,6 +147,7 @@ def run(args) -> int:
     from nemo import stages
     from nemo._log import logger
     from nemo.cli.common import section_params
+    from nemo.cli.deconvolve import deconvolved_for
     from nemo.io import read_mask, read_stack
     from nemo.mesh import save_mesh
     from nemo.surface import fit_sphere
@@ -171,7 +172,8 @@ def run(args) -> int:
         if args.mesh_unit:
             raise NemoError("--mesh-unit is the unit of a --from-mesh surface: give the surface too")
         meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
-                                     unit=info.unit, centre=args.centre, psf=args.psf)
+                                     unit=info.unit, centre=args.centre, psf=args.psf,
+                                     deconvolved=deconvolved_for(args, volume, info.spacing))
     del volume, mask
     paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}
     _check_side_outputs(paths, input_files(args))

@@ -52,7 +52,7 @@ def add_arguments(parser) -> None:
                         help="fraction of the --shift field to add (default 1)")
     parser.add_argument("--profile", action="store_true",
                         help="also write the depth profile to LAYER.profile.parquet")
-    add_common(parser, frame=True, output_help="layer table (.parquet)")
+    add_common(parser, frame=True, output_help="layer table (.parquet)", deconvolved=True)
 
 
 def _read_shift(spec: str, n_vertices: int) -> np.ndarray:
@@ -84,6 +84,7 @@ def profile_path(layer_path: str | Path) -> Path:
 def run(args) -> int:
     from nemo import stages
     from nemo._log import step
+    from nemo.cli.deconvolve import deconvolved_for
     from nemo.io import read_stack
     from nemo.mesh import load_mesh
     from nemo.peel import check_mesh_image, warn_if_mesh_off_object
@@ -105,9 +106,10 @@ def run(args) -> int:
     _check_same_psf(mesh, args.psf, args.mesh)
     if mesh.metadata.get("spacing") is None:  # made elsewhere: check its scale against the image
         warn_if_mesh_off_object(mesh, volume, info.spacing, mesh_name=f"the mesh {args.mesh}")
+    deconvolved = deconvolved_for(args, volume, info.spacing)
     with step(f"peeling {len(mesh.vertices)} vertices in [{dmin:g}, {dmax:g}]"):
         result = stages.peel(volume, info.spacing, mesh, layer, shift=shift, return_profile=args.profile,
-                             psf=args.psf)
+                             psf=args.psf, deconvolved=deconvolved)
     df, params = result[:2]
     prov = dict(
         command="peel", image=str(args.image), mesh=str(args.mesh), n_vertices=len(mesh.vertices),

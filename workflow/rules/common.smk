@@ -575,7 +575,7 @@ SINGLE_MESH = [name for name in DATA if name not in SPLIT_MESH]
 
 MESH_SHELL = nemo_shell(
     "mesh {input.image:q} -o {output.whole:q} --t {wildcards.t} --c {wildcards.c}"
-    " {params.calibration} {params.source} {params.opts} > {log:q} 2>&1"
+    " {params.calibration} {params.deconvolved} {params.source} {params.opts} > {log:q} 2>&1"
 )
 
 
@@ -615,8 +615,23 @@ def thickness_mesh(wc, end):
     return frame_file(wc, layout.MESH[sec(wc.dataset, "thickness")[end]])
 
 
+def deconvolved_file(wc):
+    """This frame deconvolved by the dataset's PSF (rule deconvolve), or none without a PSF."""
+    return frame_file(wc, layout.DECONVOLVED) if DATA[wc.dataset]["psf"] else []
+
+
+def mesh_deconvolved(wc):
+    """The deconvolved frame to mesh (none from a mask or from a user's surface)."""
+    d = DATA[wc.dataset]
+    return [] if d["mask"] or d["surface_mesh"] else deconvolved_file(wc)
+
+
 def peel_inputs(wc):
-    inputs = {"image": image(wc), "mesh": layer_mesh(wc)}
+    inputs = {
+        "image": image(wc),
+        "mesh": layer_mesh(wc),
+        "deconvolved": deconvolved_file(wc),
+    }
     if layer_cfg(wc)["shift"]:
         inputs["shift"] = f"{seg_dir(wc)}/{layout.THICKNESS}"
     return inputs

@@ -24,8 +24,12 @@ rule peel:
         opts=peel_opts,
         calibration=calibration_opts,
         shift=lambda wc, input: optional_file("--shift", input, "shift", ":thickness"),
+        deconvolved=lambda wc, input: optional_file(
+            "--deconvolved", input, "deconvolved"
+        ),
     shell:
         nemo_shell(
             "peel {input.image:q} {input.mesh:q} -o {output:q} --t {wildcards.t} --c {wildcards.c}"
-            " {params.calibration} {params.opts} {params.shift} > {log:q} 2>&1"
+            " {params.calibration} {params.deconvolved} {params.opts} {params.shift}"
+            " > {log:q} 2>&1"
         )
