@@ -26,7 +26,7 @@ from nemo import atomic, layout, objects, stages
 from nemo import config as nconfig
 from nemo._log import logger, step
 from nemo.errors import NemoError
-from nemo.psf import check_psf, deconvolve
+from nemo.psf import channel_psf, check_psf_spec, deconvolve
 
 
 def _peak_rss_mb() -> float:
@@ -46,7 +46,7 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing, psf=None) -> dic
         raise NemoError("give an image (or a config with a dataset and --dataset NAME)")
     seg = d.get("segment_channel")
     return {"dataset": dataset, "image": str(image), "spacing": spacing or d.get("spacing"),
-            "psf": check_psf(psf if psf is not None else d.get("psf"), "psf"),
+            "psf": check_psf_spec(psf if psf is not None else d.get("psf"), "psf"),
             "mask": d.get("mask"), "mask_labels": d.get("mask_labels"), "mask_threshold": d.get("mask_threshold"),
             "surface_mesh": d.get("surface_mesh"), "mesh_unit": d.get("mesh_unit"),
             "seg": cfg["segment_channel"] if seg is None else seg}
@@ -96,7 +96,10 @@ def run_frame(
         ``datasets.NAME``.
     psf : (σz, σy, σx), optional
         The PSF's standard deviations, overriding the dataset's (:mod:`nemo.psf`: the image is
-        deconvolved by it before meshing and peeling).
+        deconvolved by it before meshing and peeling), for every channel; a list of them (or
+        None) per channel, in channel order, gives each channel its own, as ``datasets.NAME.psf``
+        does (:func:`nemo.psf.channel_psf`): the mesh takes the segmented channel's, the peels
+        channel ``c``'s.
 
     Returns
     -------
@@ -200,16 +203,17 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
               if layer["channels"] == "all" or c in layer["channels"]}
     peels = any(not layer.get("directors_from") for layer in layers.values())
     meshed = mask is None and not frame["surface_mesh"]
-    sharp = _deconvolved(volume, info, frame["psf"], timed, meshed or (peels and c == frame["seg"]))
+    psf_seg, psf_c = channel_psf(frame["psf"], frame["seg"]), channel_psf(frame["psf"], c)
+    sharp = _deconvolved(volume, info, psf_seg, timed, meshed or (peels and c == frame["seg"]))
     meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed, final=final,
-                                           psf=frame["psf"], deconvolved=sharp)
+                                           psf=psf_seg, deconvolved=sharp, frame={"t": t, "c": frame["seg"]})
     if c != frame["seg"]:
         with timed("read"):
             volume, info = read_stack(frame["image"], t, c, spacing=sp)
-        sharp = _deconvolved(volume, info, frame["psf"], timed, peels)
+        sharp = _deconvolved(volume, info, psf_c, timed, peels)
     results = {name: layer_frame(name, layer, volume, info, meshes, sections, out, written, timed,
                                  prov={"image": frame["image"], "t": t, "c": c, "unit": info.unit},
-                                 final=final, dataset=frame["dataset"], psf=frame["psf"], deconvolved=sharp)
+                                 final=final, dataset=frame["dataset"], psf=psf_c, deconvolved=sharp)
                for name, layer in layers.items()}
     del volume, sharp
     for a, b in sections["alignment"] or []:
@@ -224,8 +228,8 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
 
 def _deconvolved(volume, info, psf, timed, needed: bool):
     """The channel deconvolved by ``psf`` and its record (:func:`nemo.psf.deconvolve`), made once for
-    the mesh and every peel of it (the workflow's mesh and peel rules each make the same); None when
-    no PSF is given or nothing needs it."""
+    the mesh and every peel of it (as the workflow's deconvolve rule makes it once for its mesh and
+    peel rules); None when no PSF is given or nothing needs it."""
     if psf is None or not needed:
         return None
     with timed("deconvolve"):
@@ -251,7 +255,8 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
     mask = _mesh_source(frame, t, volume.shape, sections)  # the same mesh source as run_frame
-    meshes, sections["mesh"] = _mesh_or_import(volume, info, mask, sections["mesh"], psf=frame["psf"])
+    meshes, sections["mesh"] = _mesh_or_import(volume, info, mask, sections["mesh"],
+                                               psf=channel_psf(frame["psf"], frame["seg"]))
     del volume, mask
     if sections["curvature"] is not None:
         sections["curvature"] = {s: stages.curvature_defaults(meshes[s], sections["curvature"])
@@ -274,7 +279,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
         sections["tracking"] = stages.tracking_distance(sections["tracking"],
                                                         [v["defects"] for v in per_layer.values()])
     sections.update(image=frame["image"], t=t, c=c, spacing=list(info.spacing), unit=info.unit,
-                    psf=None if frame["psf"] is None else list(frame["psf"]))
+                    psf=channel_psf(frame["psf"], c))
     return json.loads(json.dumps(sections, default=atomic.json_default))
 
 
@@ -301,10 +306,11 @@ def _mesh_or_import(volume, info, mask, section: dict, psf=None, deconvolved=Non
 
 
 def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None,
-                     psf=None, deconvolved=None):
+                     psf=None, deconvolved=None, frame: dict | None = None):
     """Mesh, measure, curvature and thickness of a time point (the workflow's mesh/morphology rules).
 
     Files go to ``out``; provenance names them in ``final`` (default ``out``), where they end up.
+    ``frame``: the time point and channel meshed (``t``, ``c``), recorded in the meshes' parameters.
     """
     final = final or out
     from nemo.mesh import load_mesh, save_mesh
@@ -312,6 +318,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
 
     with timed("mesh"):
         meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf, deconvolved=deconvolved)
+        params.update(frame or {})
         for name, m in meshes.items():
             m.metadata["nemo_params"] = params
             save_mesh(m, out / layout.MESH[name])

@@ -35,6 +35,48 @@ DECONVOLVE_ITERATIONS = 30
 MIN_PSF_PER_VOXEL = 0.25
 
 
+def is_per_channel(spec) -> bool:
+    """Whether a ``psf`` setting lists one PSF per channel (a list of PSFs or nulls), not one PSF."""
+    return isinstance(spec, (list, tuple)) and len(spec) > 0 and all(
+        item is None or isinstance(item, (list, tuple)) for item in spec)
+
+
+def check_psf_spec(spec, name: str = "psf"):
+    """A ``psf`` setting: None, one PSF for every channel (σz, σy, σx), or one per channel.
+
+    Parameters
+    ----------
+    spec : None, sequence of 3 numbers, or sequence of (3 numbers or None)
+        The last form gives channel c the PSF ``spec[c]`` (None: that channel is not deconvolved).
+    name : str
+        The config key or option, for the message.
+
+    Returns
+    -------
+    None, tuple of 3 floats, or list of (tuple of 3 floats or None)
+    """
+    if not is_per_channel(spec):
+        return check_psf(spec, name)
+    return [check_psf(item, f"{name}[{c}]") for c, item in enumerate(spec)]
+
+
+def channel_psf(spec, c: int, name: str = "psf") -> tuple[float, float, float] | None:
+    """The PSF of channel ``c`` under a ``psf`` setting (:func:`check_psf_spec`).
+
+    Raises
+    ------
+    NemoError
+        A per-channel list without an entry for channel ``c`` (the message names the fix).
+    """
+    spec = check_psf_spec(spec, name)
+    if not isinstance(spec, list):
+        return spec
+    if not 0 <= c < len(spec):
+        raise NemoError(f"{name} lists a PSF for channels 0 to {len(spec) - 1}, not for channel {c}: give one "
+                        f"per channel, in channel order (null for a channel not to deconvolve)")
+    return spec[c]
+
+
 def check_psf(psf, name: str = "psf") -> tuple[float, float, float] | None:
     """``psf`` as three non-negative floats (σz, σy, σx), or None; a wrong value is named.
 

@@ -25,6 +25,7 @@ import shutil
 import subprocess
 import sys
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from nemo.cli import main as nemo_main
+from nemo.errors import NemoWarning
 
 ROOT = Path(__file__).resolve().parents[1]
 NEMO = Path(sys.executable).with_name("nemo")
@@ -739,6 +741,23 @@ def test_peel_warns_when_its_mesh_was_made_with_another_psf(corpus, tmp_path, ca
     assert code == 0 and "--psf" not in err
     record = read_provenance(tmp_path / "b.parquet")["parameters"]["deconvolution"]
     assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0
+
+
+def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():
+    """A mesh of channel 0 deconvolved by channel 0's PSF, peeled on channel 1 with channel 1's
+    PSF (datasets.NAME.psf per channel): no warning; on channel 0 with another PSF: the warning."""
+    import trimesh
+
+    from nemo.cli.peel import _check_same_psf
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    mesh.metadata["nemo_params"] = {"deconvolution": {"psf": [2.0, 1.0, 1.0]}, "t": 0, "c": 0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 1)
+        _check_same_psf(mesh, [2.0, 1.0, 1.0], "m.ply", 0)
+    with pytest.warns(NemoWarning, match="was made with --psf 2 1 1"):
+        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 0)
 
 
 def test_deconvolved_once_meshes_and_peels_as_deconvolving_again(corpus, tmp_path, capsys):

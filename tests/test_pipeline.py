@@ -262,6 +262,25 @@ def test_a_failed_run_leaves_the_previous_results_intact(small_vesicle, small_ru
     assert not [p for p in tmp_path.iterdir() if p.name != "o"], "a staging folder was left behind"
 
 
+def test_run_frame_deconvolves_each_channel_by_its_own_psf(tmp_path):
+    """One PSF per channel: the mesh (segmented channel 0) records channel 0's PSF and its channel,
+    the layer of channel 1 channel 1's; a list without channel 1 is refused with the fix."""
+    path = tmp_path / "two.tif"
+    write_vesicle(path, radius=30.0, spacing=(2.0, 1.0, 1.0), channels=2, second_layer_depth=6.0,
+                  second_layer_channel=1, seed=3)
+    cfg = {"curvature": None, "thickness": None, "alignment": [],
+           "layers": {"deep": {"surface": "inner", "range": [0, 4], "channels": [1]}}}
+    run_frame(path, tmp_path / "out", cfg, c=1, psf=[[2.0, 1.0, 1.0], [3.0, 1.5, 1.5]])
+    from nemo.mesh import load_mesh
+
+    mesh = load_mesh(tmp_path / "out" / layout.MESH["inner"]).metadata["nemo_params"]
+    assert mesh["deconvolution"]["psf"] == [2.0, 1.0, 1.0] and mesh["c"] == 0 and mesh["t"] == 0
+    layer = read_provenance(tmp_path / "out" / layout.layer_file("layer", "deep"))["parameters"]
+    assert layer["deconvolution"]["psf"] == [3.0, 1.5, 1.5] and layer["deconvolution"]["iterations"] > 0
+    with pytest.raises(NemoError, match="not for channel 1"):
+        run_frame(path, tmp_path / "bad", cfg, c=1, psf=[[2.0, 1.0, 1.0]])
+
+
 def test_provenance_names_the_final_folder(small_run):
     """Tables record the mesh path where it ends up, not the staging folder."""
     out, _, _ = small_run

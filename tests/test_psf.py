@@ -147,3 +147,19 @@ def test_a_written_deconvolution_reads_back_bit_for_bit_and_only_for_its_frame(t
     write_deconvolved(path, same, tiny, raw, (2.0, 1.0, 1.0), 1, 2, "x.tif")
     back, rec = read_deconvolved(path, raw, (2.0, 1.0, 1.0), (0.1, 0.1, 0.1), 1, 2)
     assert back is raw and rec["iterations"] == 0 and path.stat().st_size < 2000
+
+
+def test_one_psf_or_one_per_channel():
+    """psf: one PSF for every channel, or a list in channel order (null: that channel is not
+    deconvolved); a list too short for a channel is refused with the fix."""
+    from nemo.psf import channel_psf, check_psf_spec
+
+    assert channel_psf([2, 1, 1], 3) == (2.0, 1.0, 1.0)
+    assert channel_psf(None, 0) is None
+    spec = [[2, 1, 1], None, [3.5, 1.2, 1.2]]
+    assert check_psf_spec(spec) == [(2.0, 1.0, 1.0), None, (3.5, 1.2, 1.2)]
+    assert [channel_psf(spec, c) for c in range(3)] == [(2.0, 1.0, 1.0), None, (3.5, 1.2, 1.2)]
+    with pytest.raises(NemoError, match=r"channels 0 to 2, not for channel 3.*one per channel"):
+        channel_psf(spec, 3)
+    with pytest.raises(NemoError, match=r"psf\[1\] must be three numbers"):
+        check_psf_spec([[2, 1, 1], [2, 1]])

@@ -912,6 +912,31 @@ def test_several_objects_through_the_workflow_and_nemo_run(tmp_path, write_two_v
         pd.testing.assert_frame_equal(read_table(frame / name), read_table(tmp_path / "run" / name))
 
 
+def test_each_channel_is_deconvolved_by_its_own_psf(tmp_path):
+    """datasets.NAME.psf as one PSF per channel: the deconvolve, mesh and peel jobs of each channel
+    get that channel's PSF (dry run), a channel with null is not deconvolved, and a list without
+    an analysed channel is refused naming the key."""
+    cfg = {"datasets": {"two": {"path": "two.tif", "psf": [[2.0, 1.0, 1.0], [3.0, 1.5, 1.5]],
+                                "synthetic": {"radius": 30, "spacing": [2, 1, 1], "channels": 2,
+                                              "second_layer_depth": 6, "second_layer_channel": 1, "seed": 3}}},
+           "curvature": None, "layers": {"fibres": {"surface": "inner", "range": [0, 4], "channels": [1]}},
+           "alignment": [], "report": {"summary": False, "frames": False}}
+    proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    lines = [line for line in proc.stdout.splitlines() if "nemo" in line and "--psf" in line]
+    psf_of = {(cmd, c): " ".join(line.split("--psf ")[1].split()[:3]) for line in lines
+              for cmd in ("deconvolve", "mesh", "peel") for c in (0, 1) if f" {cmd} " in line and f"--c {c}" in line}
+    assert psf_of == {("deconvolve", 0): "2.0 1.0 1.0", ("mesh", 0): "2.0 1.0 1.0",
+                      ("deconvolve", 1): "3.0 1.5 1.5", ("peel", 1): "3.0 1.5 1.5"}, psf_of
+    assert any(" peel " in line and "c1/deconvolved.tif" in line for line in lines), lines
+    cfg["datasets"]["two"]["psf"] = [[2.0, 1.0, 1.0], None]  # channel 1 as recorded: not deconvolved
+    proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c2.yaml", cfg))
+    peel = [line for line in proc.stdout.splitlines() if " peel " in line and "--c 1" in line]
+    assert peel and not any("--psf" in line or "--deconvolved" in line for line in peel), peel
+    cfg["datasets"]["two"]["psf"] = [[2.0, 1.0, 1.0]]
+    proc = smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c3.yaml", cfg), check=False)
+    assert proc.returncode != 0 and "datasets.two.psf" in proc.stderr and "not for channel 1" in proc.stderr
+
+
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
     """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
     mesh and both peels use that one deconvolution (their provenance records the same run),

@@ -175,6 +175,7 @@ def run(args) -> int:
                                      unit=info.unit, centre=args.centre, psf=args.psf,
                                      deconvolved=deconvolved_for(args, volume, info.spacing))
     del volume, mask
+    params.update(t=args.t, c=args.c)  # the frame meshed (nemo peel compares its PSF on the same channel)
     paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}
     _check_side_outputs(paths, input_files(args))
     spheres = {}

@@ -65,11 +65,13 @@ def _read_shift(spec: str, n_vertices: int) -> np.ndarray:
     return field_on_vertices(df, column, n_vertices, path, exact=True)
 
 
-def _check_same_psf(mesh, psf, mesh_path) -> None:
-    """Warn when the mesh was made from an image deconvolved with another PSF than ``psf``."""
-    made = ((mesh.metadata.get("nemo_params") or {}).get("deconvolution") or {}).get("psf")
+def _check_same_psf(mesh, psf, mesh_path, c: int) -> None:
+    """Warn when the mesh was made from this channel deconvolved with another PSF than ``psf`` (a mesh
+    of another channel had that channel's PSF)."""
+    params = mesh.metadata.get("nemo_params") or {}
+    made = (params.get("deconvolution") or {}).get("psf")
     given = None if psf is None else [float(v) for v in psf]
-    if made is not None and made != given:
+    if made is not None and made != given and params.get("c", c) == c:
         warnings.warn(f"the mesh {mesh_path} was made with --psf {' '.join(f'{v:g}' for v in made)}, this peel "
                       f"{'has none' if given is None else 'has another'}: give nemo peel the same --psf",
                       NemoWarning, stacklevel=2)
@@ -103,7 +105,7 @@ def run(args) -> int:
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
     check_mesh_image(mesh, info.spacing, info.unit, mesh_name=f"the mesh {args.mesh}",
                      image_name=f"the image {args.image}")
-    _check_same_psf(mesh, args.psf, args.mesh)
+    _check_same_psf(mesh, args.psf, args.mesh, args.c)
     if mesh.metadata.get("spacing") is None:  # made elsewhere: check its scale against the image
         warn_if_mesh_off_object(mesh, volume, info.spacing, mesh_name=f"the mesh {args.mesh}")
     deconvolved = deconvolved_for(args, volume, info.spacing)

@@ -31,6 +31,7 @@ sys.path.insert(0, workflow.basedir)
 from nemo import config as nconfig  # noqa: E402
 from nemo import layout  # noqa: E402
 from nemo.errors import NemoError  # noqa: E402
+from nemo.psf import channel_psf  # noqa: E402
 
 try:
     _validated = nconfig.validate(config)
@@ -294,6 +295,15 @@ def _check_mask_header(name, path, shape):
         )
 
 
+def _check_psf_channels(name, psf, channels):
+    """A per-channel psf list must cover the analysed and the segmented channels."""
+    for c in channels:
+        try:
+            channel_psf(psf, c)
+        except NemoError as exc:
+            config_error(f"datasets.{name}.psf", str(exc))
+
+
 def _datasets():
     out = {}
     for name, d in config["datasets"].items():
@@ -338,6 +348,7 @@ def _datasets():
                 )
             if shape.get("Z"):
                 entry["stack_mb"] = shape["Z"] * shape["Y"] * shape["X"] * 4 / 1e6
+        _check_psf_channels(name, d["psf"], sorted({*entry["c"], seg}))
         if d["mask"] is not None and not Path(d["mask"]).exists():
             config_error(f"datasets.{name}.mask", f"file not found: {d['mask']}")
         if d["mask"] is not None and shape is not None and shape.get("Z"):
@@ -416,12 +427,13 @@ def frame_file(wildcards, name):
 
 
 def calibration_opts(wildcards):
-    """The dataset's --spacing and --psf (the image's voxel size and PSF), if set."""
+    """The dataset's --spacing and the frame's channel's --psf (voxel size and PSF), if set."""
     d = DATA[wildcards.dataset]
+    values = {"spacing": d["spacing"], "psf": channel_psf(d["psf"], int(wildcards.c))}
     return " ".join(
-        f"--{key} {' '.join(str(v) for v in d[key])}"
-        for key in ("spacing", "psf")
-        if d[key]
+        f"--{key} {' '.join(str(v) for v in value)}"
+        for key, value in values.items()
+        if value
     )
 
 
@@ -617,7 +629,8 @@ def thickness_mesh(wc, end):
 
 def deconvolved_file(wc):
     """This frame deconvolved by the dataset's PSF (rule deconvolve), or none without a PSF."""
-    return frame_file(wc, layout.DECONVOLVED) if DATA[wc.dataset]["psf"] else []
+    psf = channel_psf(DATA[wc.dataset]["psf"], int(wc.c))
+    return frame_file(wc, layout.DECONVOLVED) if psf else []
 
 
 def mesh_deconvolved(wc):
