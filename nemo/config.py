@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import json
 import math
 import os
 from collections.abc import Mapping
@@ -81,7 +82,7 @@ def _messages(errors) -> list[str]:
         if e.validator == "oneOf" and e.context:
             msg = f"{e.instance!r} is not valid: " + "; or ".join(sorted({c.message for c in e.context}))
         if e.validator == "anyOf" and e.absolute_path and e.absolute_path[-1] == "psf":
-            msg = (f"{e.instance!r} is not a PSF: give three numbers [σz, σy, σx] ≥ 0 (the image's unit), "
+            msg = (f"{json.dumps(e.instance, default=str)} is not a PSF: give three numbers [σz, σy, σx] ≥ 0 (the image's unit), "
                    "or a list of them per channel in channel order (null: a channel not deconvolved)")
         if e.validator == "pattern" and "propertyNames" in e.schema_path:
             msg = (f"the name {e.instance!r} is not allowed: use letters, digits, '-' "

@@ -1146,6 +1146,8 @@ def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir:
     if len(dirs) < 8 or not np.all(np.isfinite(dirs)):
         return None
     steps = winding_steps(dirs, nrm, exact=st.exact)
+    if not np.all(np.isfinite(steps)):  # two successive normals opposite: no transport between them
+        return None
     wind = float(steps.sum() / (2 * math.pi))
     on_contour = contour_curvature(pts, nrm) if st.k_from_contour and disc else None
     kterm = (enclosed if on_contour is None else on_contour) / (2 * math.pi)

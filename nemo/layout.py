@@ -26,7 +26,8 @@ MESH = {"whole": "mesh.ply", "inner": "mesh.inner.ply", "outer": "mesh.outer.ply
 #: Per-layer tables, in the order of the analysis.
 LAYER_KINDS = ("layer", "directors", "order", "defects")
 THICKNESS = "thickness.parquet"
-#: One frame deconvolved by the dataset's PSF (``nemo deconvolve``; a temporary file of the workflow).
+#: One frame deconvolved by the dataset's PSF (``nemo deconvolve``; the workflow keeps it for its
+#: mesh and peel rules).
 DECONVOLVED = "deconvolved.tif"
 SUMMARY_JSON = "summary.json"
 #: Per-dataset folders below ``{results}/{dataset}``.

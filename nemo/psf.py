@@ -243,9 +243,22 @@ def write_deconvolved(path, deconvolved: np.ndarray, record: dict, source: np.nd
 
     data = np.asarray(deconvolved, dtype=np.float32) if record["iterations"] else np.zeros((1, 1, 1), np.float32)
     meta = {"format": DECONVOLVED_FORMAT, "record": record, "shape": [int(n) for n in np.shape(source)],
-            "spacing": [float(v) for v in spacing], "t": int(t), "c": int(c), "image": str(image)}
+            "spacing": [float(v) for v in spacing], "t": int(t), "c": int(c), "image": str(image),
+            "source": _fingerprint(source)}
     with atomic_path(path, keep_suffix=True) as tmp:
         tifffile.imwrite(tmp, data, description=json.dumps(meta), metadata=None)
+
+
+def _fingerprint(volume: np.ndarray) -> str:
+    """BLAKE2b digest of a stack's dtype, shape and voxels: tells another image of the same shape
+    from this one, exactly and on any machine (a float sum could differ between CPUs)."""
+    import hashlib
+
+    vol = np.asarray(volume)
+    digest = hashlib.blake2b(f"{vol.dtype.str}{vol.shape}".encode(), digest_size=16)
+    for plane in vol:  # plane by plane: no copy of the stack
+        digest.update(np.ascontiguousarray(plane).tobytes())
+    return digest.hexdigest()
 
 
 def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> tuple[np.ndarray, dict]:
@@ -293,10 +306,13 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
             "the PSF": (meta["record"]["psf"], None if given is None else list(given)),
             "the stack's shape": (meta["shape"], [int(n) for n in np.shape(volume)]),
             "the spacing": (meta["spacing"], [float(v) for v in spacing])}
+    fix = "run nemo deconvolve again with this step's image, --t, --c, --spacing and --psf"
     for what, (theirs, ours) in made.items():
         if theirs != ours:
-            raise NemoError(f"the deconvolved stack {path} was made for {what} {theirs}, this step has {ours}: "
-                            f"run nemo deconvolve again with this step's image, --t, --c, --spacing and --psf")
+            raise NemoError(f"the deconvolved stack {path} was made for {what} {theirs}, this step has {ours}: {fix}")
+    if meta.get("source") != _fingerprint(volume):
+        raise NemoError(f"the deconvolved stack {path} was made from another image ({meta['image']}): its voxels "
+                        f"differ from this step's: {fix}")
     if not meta["record"]["iterations"]:
         return volume, meta["record"]
     return data, meta["record"]

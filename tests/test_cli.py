@@ -331,6 +331,8 @@ for label, opts in {"img.valid (not ours)": ["--deconvolved", "{img.valid}", "--
     case(f"mesh:--deconvolved {label}", "mesh", "{img.valid}", "-o", "{out}/m.ply", *opts, expect="error")
     case(f"peel:--deconvolved {label}", "peel", "{img.valid}", "{mesh.inner}", "-o", "{out}/l.parquet", *opts,
          expect="error")
+case("mesh:--from-mesh mesh.whole --deconvolved", "mesh", "{img.valid}", "--from-mesh", "{mesh.whole}", "--psf", "2",
+     "1", "1", "--deconvolved", "{img.valid}", "-o", "{out}/m.ply", expect="error")
 case("mesh:--psf 2 1 1", "mesh", "{img.valid}", "-o", "{out}/m.ply", "--psf", "2", "1", "1", expect="ok", outputs=MESH_OUT)
 for label, opts in {"--psf -1 1 1": ["--psf", "-1", "1", "1"], "--psf 1e9 1 1": ["--psf", "1e9", "1", "1"],
                     "--psf nan 1 1": ["--psf", "nan", "1", "1"],

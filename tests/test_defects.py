@@ -354,6 +354,26 @@ def test_winding_and_contour_k_cancel_the_holonomy_of_any_loop(m):
     assert abs(untransported - m) > 1e-3
 
 
+def test_a_contour_with_opposite_successive_normals_is_no_defect():
+    """Two successive normals exactly opposite (a folded or flat, two-sided mesh) have no
+    transport between them: the step is NaN, and the contour is refused (no NaN charge that every
+    rejection test would let through)."""
+    from nemo.defects import _Settings, _winding_result
+
+    n_pts = 16
+    phi = 2 * np.pi * np.arange(n_pts) / n_pts
+    pts = np.column_stack([np.cos(phi), np.sin(phi), np.zeros(n_pts)]) * 10
+    nrm = np.tile([0.0, 0.0, 1.0], (n_pts, 1))
+    dirs = np.column_stack([np.cos(phi / 2), np.sin(phi / 2), np.zeros(n_pts)])
+    st = _Settings(avg_radius=5.0, winding_field="average", curvature_correction=True, exact=True,
+                   charge_tolerance=0.15, s_ordered=0.1, k_from_contour=True)
+    good = _winding_result(dirs, nrm, np.ones(n_pts), None, pts, 0.0, st, {})
+    assert good is not None and good["charge"] == pytest.approx(0.5, abs=1e-9)
+    nrm[5] = [0.0, 0.0, -1.0]
+    assert np.isnan(winding_steps(dirs, nrm)).sum() == 2
+    assert _winding_result(dirs, nrm, np.ones(n_pts), None, pts, 0.0, st, {}) is None
+
+
 def _torus_half_field(mesh: trimesh.Trimesh, major: float, tube_fraction: float = 0.35) -> pd.DataFrame:
     """An order table on a torus about z: the director turns by half the angle of the constant
     vector x projected on the tangent plane (±½ zeros where x is normal: the outer and inner

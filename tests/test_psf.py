@@ -138,6 +138,8 @@ def test_a_written_deconvolution_reads_back_bit_for_bit_and_only_for_its_frame(t
                        ((raw, (2.5, 1.0, 1.0), (2.0, 1.0, 1.0), 1, 2), "the spacing")]:
         with pytest.raises(NemoError, match=f"made for {what}.*run nemo deconvolve again"):
             read_deconvolved(path, *args)
+    with pytest.raises(NemoError, match="made from another image"):  # same frame, shape and spacing
+        read_deconvolved(path, raw + 1, (2.0, 1.0, 1.0), (2.0, 1.0, 1.0), 1, 2)
     other = tmp_path / "other.tif"
     tifffile.imwrite(other, raw, imagej=True)
     with pytest.raises(NemoError, match="not a deconvolved stack written by nemo deconvolve"):

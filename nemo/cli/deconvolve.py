@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import warnings
+
 from nemo.cli.common import add_common, output_path
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 
 HELP = "deconvolve one frame by the PSF once, for nemo mesh and nemo peel (--deconvolved)"
 DESCRIPTION = """\
@@ -39,6 +41,9 @@ def run(args) -> int:
     check_outputs_are_not_inputs(args)
     with step(f"reading {args.image} t={args.t} c={args.c}"):
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
+    if info.unit == "pixel":
+        warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give --spacing "
+                      "to give the psf in µm", NemoWarning, stacklevel=2)
     sharp, record = deconvolve(volume, info.spacing, args.psf)
     write_deconvolved(out, sharp, record, volume, info.spacing, args.t, args.c, args.image)
     done = f"{record['iterations']} Richardson-Lucy iterations" if record["iterations"] else "nothing to deconvolve"

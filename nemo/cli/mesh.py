@@ -164,16 +164,17 @@ def run(args) -> int:
     mask = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
                      threshold=args.mask_threshold) if args.mask else None
     if args.from_mesh:
-        if mask is not None:
-            raise NemoError("--from-mesh replaces the meshing of the image: drop --mask")
+        if mask is not None or args.deconvolved:
+            raise NemoError(f"--from-mesh replaces the meshing of the image: drop "
+                            f"{'--mask' if mask is not None else '--deconvolved'}")
         meshes, params = stages.import_mesh(args.from_mesh, volume, info.spacing, section_params(args, "mesh"),
                                             unit=info.unit, mesh_unit=args.mesh_unit, centre=args.centre)
     else:
         if args.mesh_unit:
             raise NemoError("--mesh-unit is the unit of a --from-mesh surface: give the surface too")
+        deconvolved = None if mask is not None else deconvolved_for(args, volume, info.spacing)  # a mask: unused
         meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
-                                     unit=info.unit, centre=args.centre, psf=args.psf,
-                                     deconvolved=deconvolved_for(args, volume, info.spacing))
+                                     unit=info.unit, centre=args.centre, psf=args.psf, deconvolved=deconvolved)
     del volume, mask
     params.update(t=args.t, c=args.c)  # the frame meshed (nemo peel compares its PSF on the same channel)
     paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}

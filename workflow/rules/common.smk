@@ -31,7 +31,7 @@ sys.path.insert(0, workflow.basedir)
 from nemo import config as nconfig  # noqa: E402
 from nemo import layout  # noqa: E402
 from nemo.errors import NemoError  # noqa: E402
-from nemo.psf import channel_psf  # noqa: E402
+from nemo.psf import channel_psf, is_per_channel  # noqa: E402
 
 try:
     _validated = nconfig.validate(config)
@@ -295,13 +295,19 @@ def _check_mask_header(name, path, shape):
         )
 
 
-def _check_psf_channels(name, psf, channels):
-    """A per-channel psf list must cover the analysed and the segmented channels."""
+def _check_psf_channels(name, psf, channels, n_channels=None):
+    """A per-channel psf list must cover the analysed and the segmented channels; one longer than
+    the image's channels is named (often a list in the wrong order)."""
     for c in channels:
         try:
             channel_psf(psf, c)
         except NemoError as exc:
             config_error(f"datasets.{name}.psf", str(exc))
+    if is_per_channel(psf) and n_channels is not None and len(psf) > n_channels:
+        _warn(
+            f"datasets.{name}.psf lists {len(psf)} PSFs but the image has {n_channels} "
+            f"channel{'s' if n_channels != 1 else ''}: the list is in channel order, one per channel"
+        )
 
 
 def _datasets():
@@ -348,7 +354,9 @@ def _datasets():
                 )
             if shape.get("Z"):
                 entry["stack_mb"] = shape["Z"] * shape["Y"] * shape["X"] * 4 / 1e6
-        _check_psf_channels(name, d["psf"], sorted({*entry["c"], seg}))
+        _check_psf_channels(
+            name, d["psf"], sorted({*entry["c"], seg}), shape and shape.get("C")
+        )
         if d["mask"] is not None and not Path(d["mask"]).exists():
             config_error(f"datasets.{name}.mask", f"file not found: {d['mask']}")
         if d["mask"] is not None and shape is not None and shape.get("Z"):
@@ -628,9 +636,17 @@ def thickness_mesh(wc, end):
 
 
 def deconvolved_file(wc):
-    """This frame deconvolved by the dataset's PSF (rule deconvolve), or none without a PSF."""
+    """This frame deconvolved by the dataset's PSF (rule deconvolve), or none without a PSF.
+
+    Not ancient(): with it Snakemake 9 reruns neither the mesh nor the peels after a new PSF
+    (the deconvolve job hides their changed --psf parameter), measured."""
     psf = channel_psf(DATA[wc.dataset]["psf"], int(wc.c))
     return frame_file(wc, layout.DECONVOLVED) if psf else []
+
+
+def deconvolved_opts(wc, input):
+    """``--deconvolved FILE`` when the job has the deconvolved frame as an input."""
+    return optional_file("--deconvolved", input, "deconvolved")
 
 
 def mesh_deconvolved(wc):

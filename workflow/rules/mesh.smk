@@ -61,9 +61,7 @@ if SPLIT_MESH:
         params:
             opts=opts("mesh"),
             calibration=calibration_opts,
-            deconvolved=lambda wc, input: optional_file(
-                "--deconvolved", input, "deconvolved"
-            ),
+            deconvolved=deconvolved_opts,
             source=mesh_source_opts,
         shell:
             MESH_SHELL
@@ -96,9 +94,7 @@ if SINGLE_MESH:
         params:
             opts=opts("mesh"),
             calibration=calibration_opts,
-            deconvolved=lambda wc, input: optional_file(
-                "--deconvolved", input, "deconvolved"
-            ),
+            deconvolved=deconvolved_opts,
             source=mesh_source_opts,
         shell:
             MESH_SHELL

@@ -24,9 +24,7 @@ rule peel:
         opts=peel_opts,
         calibration=calibration_opts,
         shift=lambda wc, input: optional_file("--shift", input, "shift", ":thickness"),
-        deconvolved=lambda wc, input: optional_file(
-            "--deconvolved", input, "deconvolved"
-        ),
+        deconvolved=deconvolved_opts,
     shell:
         nemo_shell(
             "peel {input.image:q} {input.mesh:q} -o {output:q} --t {wildcards.t} --c {wildcards.c}"
