@@ -44,7 +44,9 @@ def run(args) -> int:
     if info.unit == "pixel":
         warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give --spacing "
                       "to give the psf in µm", NemoWarning, stacklevel=2)
-    sharp, record = deconvolve(volume, info.spacing, args.psf)
+    with step(f"deconvolving {'x'.join(map(str, volume.shape))} voxels by the PSF σ "
+              f"{' '.join(f'{v:g}' for v in args.psf)} (Richardson-Lucy, about 1.5 s per million voxels)"):
+        sharp, record = deconvolve(volume, info.spacing, args.psf)
     write_deconvolved(out, sharp, record, volume, info.spacing, args.t, args.c, args.image)
     done = f"{record['iterations']} Richardson-Lucy iterations" if record["iterations"] else "nothing to deconvolve"
     print(f"deconvolved t={args.t} c={args.c} by σ {' '.join(f'{v:g}' for v in record['psf'])} "
