@@ -330,9 +330,12 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
             atomic.write_json(out / layout.measure_file(surface), stages.measure(meshes[surface]))
         written.append(layout.measure_file(surface))
     if sections["curvature"] is not None:
+        done = {}  # an object of one wall has inner = outer = whole: its curvature is computed once
         for surface in sections["surfaces"]:
+            same = next((k for k in done if _same_mesh(meshes[k], meshes[surface])), None)
             with timed("curvature"):
-                df, cp = stages.curvature(meshes[surface], sections["curvature"])
+                df, cp = done[same] if same else stages.curvature(meshes[surface], sections["curvature"])
+            done[surface] = (df, cp)
             write_table(df, out / layout.curvature_file(surface), command="curvature",
                         mesh=str(final / layout.MESH[surface]), n_vertices=len(df), parameters=cp,
                         unit=info.unit)
@@ -346,6 +349,12 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
                     n_vertices=len(df), parameters=tp, unit=info.unit)
         written.append(layout.THICKNESS)
     return meshes, params
+
+
+def _same_mesh(a, b) -> bool:
+    """Whether two meshes have the same vertices and faces (the walls of a one-wall object)."""
+    return (a.vertices.shape == b.vertices.shape and a.faces.shape == b.faces.shape
+            and np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices))
 
 
 def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov,

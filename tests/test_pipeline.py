@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from nemo import layout
@@ -377,15 +378,23 @@ def test_run_frame_with_a_label_mask_analyses_the_chosen_object(ball_and_labels)
     np.testing.assert_allclose(read_mesh_centre(d / "out" / "mesh.ply"), (16, 16, 16), atol=0.2)
 
 
-def test_run_frame_of_a_droplet_at_the_defaults(ball_and_labels):
+def test_run_frame_of_a_droplet_at_the_defaults(ball_and_labels, monkeypatch):
     """A filled ball (one wall) with the default split (auto): the run goes through; the inner and
-    outer surfaces are the ball's, its curvature is 1/R, its thickness NaN (not flagged)."""
+    outer surfaces are the ball's, its curvature is 1/R (computed once for both), its thickness
+    NaN (not flagged)."""
+    from nemo import stages
     from nemo.mesh import load_mesh
 
     d = ball_and_labels
     cfg = {"datasets": {"d": {"path": str(d / "img.tif"), "mask": str(d / "labels.tif"), "mask_labels": [2]}},
            "layers": {}}
+    calls = []
+    curvature = stages.curvature
+    monkeypatch.setattr(stages, "curvature", lambda *a, **k: calls.append(1) or curvature(*a, **k))
     summary = run_frame(None, d / "out", cfg, dataset="d")
+    assert len(calls) == 1  # inner and outer are one surface
+    pd.testing.assert_frame_equal(read_table(d / "out" / "curvature_inner.parquet"),
+                                  read_table(d / "out" / "curvature_outer.parquet"))
     assert summary["mesh"]["split"] == "auto" and summary["mesh"]["walls"] == 1
     inner, outer = (load_mesh(d / "out" / f"mesh.{name}.ply") for name in ("inner", "outer"))
     np.testing.assert_array_equal(inner.vertices, outer.vertices)
