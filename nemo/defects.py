@@ -931,7 +931,8 @@ def _verdict(mesh, geo: _Geometry, f: _Fields, st: _Settings, search: _Search, v
         contours = {res["contour"]: 1, "shrunk": int(res["shrunk"]), "k_from_vertices": int(res["k_from_vertices"])}
     reason = RIM_REASON if at_rim else _rejection(res, st)
     if reason is None:
-        row = _accept(mesh, geo, f, st, v, res, dmin, search.fit)
+        used, row = _accept(mesh, geo, f, st, v, res, dmin, search.fit)
+        contours["k_from_vertices"] |= int(used["k_from_vertices"])  # the recentred contour counts too
         here = np.array([row["x"], row["y"], row["z"]])
         rec.update(x=row["x"], y=row["y"], z=row["z"])
         if any(np.linalg.norm(p - here) < SAME_DEFECT_PER_AVERAGING * st.avg_radius for p, _, _ in search.accepted):
@@ -970,8 +971,10 @@ def _record(rec: dict, res: dict | None, reason: str) -> dict:
     return out
 
 
-def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, dmin: float, fit: dict) -> dict:
-    """Refine an accepted candidate's position and re-measure its charge there (a defect row)."""
+def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, dmin: float,
+            fit: dict) -> tuple[dict, dict]:
+    """Refine an accepted candidate's position and re-measure its charge there: the measurement
+    the row takes (``res`` or the recentred contour's) and the defect row."""
     h = geo.h
     rho = fit["fit_radius"] if fit["fit_radius"] is not None else 0.75 * st.avg_radius
     rho = min(rho, 0.5 * dmin)
@@ -984,7 +987,7 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
         res2 = _charge(geo, f, st, vv, res["contour_radius"])
         if res2 is not None and res2 is not AT_RIM and res2["charge_rounded"] == res["charge_rounded"]:
             res = res2
-    return {
+    return res, {
         "x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(f.S[vv]),
         **{key: res[key] for key in ("charge", "charge_winding", "charge_curvature", "charge_rounded",
                                      "n_contour", "contour_S", "max_step_deg", "contour_radius")},

@@ -317,6 +317,38 @@ def test_contour_k_term_keeps_charges_on_a_rough_wall(jitter, seed):
     assert np.abs(vertices["charge"] - 0.5).max() > 0.04
 
 
+def test_a_recentred_contour_that_takes_the_enclosed_k_is_counted(monkeypatch):
+    """An accepted defect's charge is re-measured on a contour around its refined vertex; when that
+    contour's K comes from the enclosed vertices (a fallback), contours["k_from_vertices"] counts it
+    (it counted the first contour only)."""
+    import nemo.defects as D
+
+    radius = 30.0
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    _, ddf, odf = sphere_case(radius, None, rotated(TETRA, 3), [0.5] * 4, 3000, 8.0, seed=1, mesh=mesh)
+    charge, accept, state = D._charge, D._accept, {"in_accept": False}
+
+    def charge_marking_recentred(*args, **kwargs):
+        res = charge(*args, **kwargs)
+        if state["in_accept"] and isinstance(res, dict) and "k_from_vertices" in res:
+            res = {**res, "k_from_vertices": True}
+        return res
+
+    def accept_flagged(*args, **kwargs):
+        state["in_accept"] = True
+        try:
+            return accept(*args, **kwargs)
+        finally:
+            state["in_accept"] = False
+
+    monkeypatch.setattr(D, "_charge", charge_marking_recentred)
+    monkeypatch.setattr(D, "_accept", accept_flagged)
+    df = find_defects(mesh, odf, ddf, avg_radius=8.0)
+    moved = int((df["shift"] > 0).sum())  # refined off their vertex: recentred where the nearest vertex changed
+    counted = df.attrs["parameters"]["contours"]["k_from_vertices"]
+    assert len(df) == 4 and 1 <= counted <= moved, (counted, moved)
+
+
 @pytest.mark.parametrize("m", [0.5, -0.5, 1.0, 0.0])
 def test_winding_and_contour_k_cancel_the_holonomy_of_any_loop(m):
     """On a rough closed loop with scattered normals (a noisy mesh's contour), a director that
