@@ -353,8 +353,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
 
 def _same_mesh(a, b) -> bool:
     """Whether two meshes have the same vertices and faces (the walls of a one-wall object)."""
-    return (a.vertices.shape == b.vertices.shape and a.faces.shape == b.faces.shape
-            and np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices))
+    return np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices)
 
 
 def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written: list, timed, prov,

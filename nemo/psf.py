@@ -229,7 +229,7 @@ def write_deconvolved(path, deconvolved: np.ndarray, record: dict, source: np.nd
     record : dict
         :func:`deconvolve`'s record.
     source : ndarray, shape (Z, Y, X)
-        The stack that was deconvolved (its shape is checked on reading).
+        The stack that was deconvolved (its shape and a digest of its voxels are checked on reading).
     spacing : (dz, dy, dx)
     t, c : int
     image : str
@@ -283,7 +283,7 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
     Raises
     ------
     NemoError
-        Not such a file, or made for another frame, shape, spacing or PSF (the message names it).
+        Not such a file, or made for another frame, shape, spacing, PSF or image (the message names it).
     """
     import json
 
@@ -295,11 +295,9 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
                 meta = json.loads(tif.pages[0].description or "{}")
             except ValueError:  # another TIFF's description (ImageJ's, OME-XML)
                 meta = {}
-            ours = isinstance(meta, dict) and meta.get("format") == DECONVOLVED_FORMAT
-            data = tif.asarray() if ours else None
     except (OSError, ValueError, tifffile.TiffFileError) as exc:
         raise NemoError(f"cannot read the deconvolved stack {path}: {exc}; make it with nemo deconvolve") from None
-    if data is None:
+    if not (isinstance(meta, dict) and meta.get("format") == DECONVOLVED_FORMAT):
         raise NemoError(f"{path} is not a deconvolved stack written by nemo deconvolve: make it with nemo deconvolve")
     given = check_psf(psf)
     made = {"the frame": ([meta["t"], meta["c"]], [int(t), int(c)]),
@@ -315,4 +313,4 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
                         f"differ from this step's: {fix}")
     if not meta["record"]["iterations"]:
         return volume, meta["record"]
-    return data, meta["record"]
+    return tifffile.imread(path), meta["record"]  # read once the description says it is this frame's

@@ -780,6 +780,13 @@ def test_deconvolved_once_meshes_and_peels_as_deconvolving_again(corpus, tmp_pat
     np.testing.assert_array_equal(a.faces, b.faces)
     a, b = (read_table(tmp_path / f"{tag}.parquet") for tag in "ab")
     np.testing.assert_array_equal(a["intensity"], b["intensity"])
+    import tifffile
+
+    from nemo.tables import read_provenance
+
+    made = json.loads(tifffile.TiffFile(dec).pages[0].description)["record"]
+    used = read_provenance(tmp_path / "b.parquet")["parameters"]["deconvolution"]
+    assert used == made  # the file's deconvolution (its record, seconds included), not one made again
     code, _, err = invoke(["peel", img, str(tmp_path / "a.inner.ply"), "--psf", "2.5", "1", "1", "--deconvolved",
                            dec, "-o", str(tmp_path / "c.parquet")], capsys, "other psf")
     assert code == 2 and "made for the PSF [2.0, 1.0, 1.0]" in err and "nemo deconvolve again" in err
