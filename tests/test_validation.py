@@ -183,18 +183,27 @@ def test_shape_volume_edge_at_the_surface():
 
 def test_score_shape_concentric_spheres(tmp_path):
     from nemo.mesh import save_mesh
-    from nemo.surface import reconstruct
+    from nemo.surface import reconstruct, split_mesh
 
     spec = {"kind": "shells", "inner": [20, 20, 20], "outer": [26, 26, 26], "spacing": [2, 1, 1],
             "radius_edges": [5.0], "name": "spheres"}
     vol, truth = V.shape_volume(spec)
     mesh = reconstruct(vol, truth["spacing"], threshold=truth["threshold"], keep="all")
     save_mesh(mesh, tmp_path / "m.ply")
-    (row,) = V.score_shape(tmp_path / "m.ply", truth)
+    row, default = V.score_shape(tmp_path / "m.ply", truth)
+    assert row["radius_source"] == "fixed" and row["radius_edges"] == pytest.approx(5.0)
     assert row["thickness_valid"] > 0.99
     assert row["thickness_err_median"] < 0.25 * 1.0  # within a quarter lateral voxel (dz = 2 dx)
     assert row["H_err_median"] < 0.03 and row["K_err_median"] < 0.06
     assert row["gauss_bonnet_ratio"] == pytest.approx(1.0, abs=1e-6)
+    # the row users get: the workflow's curvature rule at its radius from the surface
+    from nemo import stages
+
+    _, resolved = stages.curvature(split_mesh(mesh, by="centre", centre=truth["centre"])[0])
+    assert default["radius_source"] == "default"
+    assert default["curvature_radius"] == pytest.approx(resolved["radius"])
+    assert default["H_err_median"] < 0.02 and default["K_err_median"] < 0.04
+    assert default["thickness_err_median"] == row["thickness_err_median"]
 
 
 # ----------------------------------------------------------------------------- cases, aggregate
@@ -344,8 +353,9 @@ def test_validate_steps_by_hand_chain_and_refuse_wrong_files(tmp_path, capsys):
     assert nemo_main(["mesh", str(tmp_path / "e.tif"), "-o", str(tmp_path / "e.ply"), "--split", "none"]) == 0
     assert nemo_main(["validate", "score-shape", str(tmp_path / "e.ply"), str(tmp_path / "e.json"),
                       "-o", str(tmp_path / "shape.json")]) == 0
-    (row,) = json.loads((tmp_path / "shape.json").read_text(), parse_constant=lambda c: pytest.fail(c))["rows"]
-    assert row["snr"] is None and row["H_err_median"] < 0.05
+    rows = json.loads((tmp_path / "shape.json").read_text(), parse_constant=lambda c: pytest.fail(c))["rows"]
+    assert [r["radius_source"] for r in rows] == ["fixed", "default"]
+    assert all(r["snr"] is None and r["H_err_median"] < 0.05 for r in rows)
     score = tmp_path / "by_hand.json"
     score.write_text(json.dumps({"n_true": 4, "detection_rate": 1.0, "false_positives": 0, "loc_err_mean": 1.0}))
     out = V.aggregate([score], [tmp_path / "shape.json"], [], tmp_path / "summary")
@@ -445,9 +455,12 @@ def test_ci_variant_through_snakemake(tmp_path):
     r = cases.loc["noise-40-r1"]
     assert r["detection_rate"] == 1.0 and r["false_positives"] == 0, r
     assert r["loc_err_max"] < 4.0 and r["charge_correct"] == 1.0 and r["angle_err_median"] < 12.0, r
-    ell = shapes.set_index("shape").loc["ellipsoid"]
+    fixed = shapes[shapes["radius_source"] == "fixed"].set_index("shape")
+    ell = fixed.loc["ellipsoid"]
     assert ell["H_err_median"] < 0.03 and ell["K_err_median"] < 0.05
-    sph = shapes.set_index("shape").loc["spheres"]
+    ell = shapes[shapes["radius_source"] == "default"].set_index("shape").loc["ellipsoid"]
+    assert ell["H_err_median"] < 0.03 and ell["K_err_median"] < 0.05  # the workflow's own radius
+    sph = fixed.loc["spheres"]
     assert sph["thickness_err_median"] < 0.25
     assert {"mesh", "directors", "order", "defects"} <= set(stages["stage"])
     assert (stages["s"] > 0).all()
@@ -457,7 +470,7 @@ def test_ci_variant_through_snakemake(tmp_path):
     assert cases.loc["snr-5-r1", "snr"] == pytest.approx(5.0, abs=0.01)
     assert cases.loc["snr-5-r1", "blur_z"] == 2.5 and cases.loc["snr-5-r1", "photons"] == pytest.approx(34.72)
     assert cases.loc["open-r1", "open"] and cases.loc["open-r1", "n_out_of_view"] >= 0
-    psf = shapes.set_index("shape").loc["spheres_psf"]
+    psf = fixed.loc["spheres_psf"]
     assert psf["snr"] == pytest.approx(5.0, abs=0.01) and psf["blur_z"] == 2.5
     for png in ("error_vs_noise.png", "error_vs_anisotropy.png", "error_vs_snr.png", "shapes_vs_snr.png",
                 "time_per_stage.png"):

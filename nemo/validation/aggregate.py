@@ -208,7 +208,8 @@ def markdown(cases: pd.DataFrame, sweeps: pd.DataFrame, shapes: pd.DataFrame, st
                   "sphere); thickness error in µm along the inner wall's normals.", "",
                   _table(shapes, [("shape", "shape", -1), ("dz_dx", "dz/dx", 1), ("blur_z", "σz (µm)", 1),
                                   ("snr", "SNR", 1), ("n_vertices", "vertices", 0),
-                                  ("radius_edges", "radius (edges)", 1), ("curvature_radius", "radius (µm)", 1),
+                                  ("radius_source", "radius", -1), ("radius_edges", "radius (edges)", 1),
+                                  ("curvature_radius", "radius (µm)", 1),
                                   ("H_err_median", "H med", 4), ("H_err_p90", "H P90", 4),
                                   ("K_err_median", "K med", 4), ("K_err_p90", "K P90", 4),
                                   ("K_sign_agreement", "K sign", 3), ("gauss_bonnet_ratio", "∫K/2πχ", 4),
@@ -253,60 +254,90 @@ def _snr_axis(ax, label: str) -> None:
     ax.grid(alpha=0.3)
 
 
+def _radius_label(shapes: pd.DataFrame) -> pd.Series:
+    """``default radius`` for the workflow's own radius, ``N edges`` for a fixed one."""
+    fixed = shapes["radius_edges"].map(lambda r: f"{r:g} edges")
+    if "radius_source" not in shapes:
+        return fixed
+    return fixed.where(shapes["radius_source"] != "default", "default radius")
+
+
+#: Vesicle sweeps drawn against SNR, with their legend.
+SNR_SWEEPS = {"snr": "defaults", "snr_psf": "PSF given (deconvolved)"}
+
+
 def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, plt) -> list[Path]:
-    """Defects (vesicles of the ``snr`` sweep) and curvature/thickness (analytic shapes) against SNR."""
-    written = []
-    sub = cases[cases["sweep"] == "snr"].copy() if len(cases) and "sweep" in cases else pd.DataFrame()
-    if len(sub) and "snr" in sub:
-        sub["x"] = sub["snr"].map(_snr_x)
-        metrics = [("detection_rate", "detection rate", None), ("false_positives", "false positives / case", None),
-                   ("loc_err_median", "localisation error (µm)", "loc_err_max"),
-                   ("charge_err_max", "charge error |Δq| (max)", None),
-                   ("H_relerr_median", "H error, median (sphere)", None)]
-        fig, axes = plt.subplots(1, len(metrics), figsize=(3.6 * len(metrics), 3.2))
-        for (col, label, col2), ax in zip(metrics, axes):
-            if col not in sub:
+    """Defects (vesicles of the SNR sweeps) and curvature/thickness (analytic shapes) against SNR."""
+    return _plot_snr_vesicles(cases, outdir, plt) + _plot_snr_shapes(shapes, outdir, plt)
+
+
+def _plot_snr_vesicles(cases: pd.DataFrame, outdir: Path, plt) -> list[Path]:
+    """``error_vs_snr.png``: the vesicles of :data:`SNR_SWEEPS`, one colour per sweep."""
+    has = len(cases) and "sweep" in cases and "snr" in cases
+    sub = cases[cases["sweep"].isin(list(SNR_SWEEPS))].copy() if has else pd.DataFrame()
+    if not len(sub):
+        return []
+    sub["x"] = sub["snr"].map(_snr_x)
+    metrics = [("detection_rate", "detection rate", None), ("false_positives", "false positives / case", None),
+               ("loc_err_median", "localisation error (µm)", "loc_err_max"),
+               ("charge_err_max", "charge error |Δq| (max)", None),
+               ("H_relerr_median", "H error, median (sphere)", None)]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(3.6 * len(metrics), 3.4))
+    for (col, label, col2), ax in zip(metrics, axes):
+        for (sweep, what), colour in zip(SNR_SWEEPS.items(), ("C0", "C1")):
+            ss = sub[sub["sweep"] == sweep]
+            if col not in ss or not len(ss):
                 continue
-            g = sub.groupby("x")[col]
-            ax.plot(g.mean().index, g.mean().values, "o-", label="mean over rotations" if col2 is None else "median")
-            ax.scatter(sub["x"], sub[col], s=10, alpha=0.4)
-            if col2 and col2 in sub:
-                g2 = sub.groupby("x")[col2]
-                ax.plot(g2.max().index, g2.max().values, "s--", label="max")
-                ax.legend(fontsize=7)
-            _snr_axis(ax, label)
-        fig.suptitle("vesicles R = 80 µm, dz = 2.5 dx (dx = 1 µm), PSF σ 2.5 / 1 / 1 µm", fontsize=9)
-        fig.tight_layout()
-        _save(fig, outdir / "error_vs_snr.png")
-        plt.close(fig)
-        written.append(outdir / "error_vs_snr.png")
-    if shapes is not None and len(shapes) and "snr" in shapes and "blur_z" in shapes:
-        sh = shapes[shapes["blur_z"] != shapes["blur_xy"]].copy()
-        if len(sh):
-            sh["x"] = sh["snr"].map(_snr_x)
-            sh["family"] = sh["shape"].str.replace(r"_snr\d+$", "", regex=True)
-            fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
-            for fam, ss in sh.groupby("family"):
-                for r, rr in ss.groupby("radius_edges"):
-                    rr = rr.sort_values("x")
-                    if fam.startswith(("ellipsoid_", "torus")):
-                        axes[0].plot(rr["x"], 100 * rr["H_err_median"], "o-", label=f"{fam}, {r:g} edges")
-                        axes[1].plot(rr["x"], 100 * rr["K_err_median"], "o-", label=f"{fam}, {r:g} edges")
-                if "thickness_err_median" in ss and ss["thickness_err_median"].notna().any():
-                    t = ss.drop_duplicates("x").sort_values("x")
-                    axes[2].plot(t["x"], t["thickness_err_median"], "o-", label=fam)
-            for ax, label in zip(axes, ("H error, median (%)", "K error, median (%)", "thickness error, median (µm)")):
-                _snr_axis(ax, label)
-                if any(np.nan_to_num(np.asarray(ln.get_ydata(), float)).max(initial=0) > 0 for ln in ax.get_lines()):
-                    ax.set_yscale("log")
-                if ax.get_legend_handles_labels()[0]:
-                    ax.legend(fontsize=6)
-            fig.suptitle("analytic shapes, PSF σ 2.5 / 1 / 1 µm", fontsize=9)
-            fig.tight_layout()
-            _save(fig, outdir / "shapes_vs_snr.png")
-            plt.close(fig)
-            written.append(outdir / "shapes_vs_snr.png")
-    return written
+            g = ss.groupby("x")[col]
+            ax.plot(g.mean().index, g.mean().values, "o-", color=colour, label=what if col2 is None else f"{what}: median")
+            ax.scatter(ss["x"], ss[col], s=10, alpha=0.4, color=colour)
+            if col2 and col2 in ss:
+                g2 = ss.groupby("x")[col2]
+                ax.plot(g2.max().index, g2.max().values, "s--", color=colour, label=f"{what}: max")
+        if col2:
+            ax.axhline(3.0, color="grey", lw=0.8, ls=":")  # the issue's bound: every defect within 3 µm
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
+        _snr_axis(ax, label)
+    fig.suptitle("vesicles R = 80 µm, dz = 2.5 dx (dx = 1 µm), PSF σ 2.5 / 1 / 1 µm", fontsize=9)
+    fig.tight_layout()
+    _save(fig, outdir / "error_vs_snr.png")
+    plt.close(fig)
+    return [outdir / "error_vs_snr.png"]
+
+
+def _plot_snr_shapes(shapes: pd.DataFrame | None, outdir: Path, plt) -> list[Path]:
+    """``shapes_vs_snr.png``: the analytic shapes under an anisotropic PSF, solid at the default radius."""
+    if shapes is None or not len(shapes) or "snr" not in shapes or "blur_z" not in shapes:
+        return []
+    sh = shapes[shapes["blur_z"] != shapes["blur_xy"]].copy()
+    if not len(sh):
+        return []
+    sh["x"] = sh["snr"].map(_snr_x)
+    sh["family"] = sh["shape"].str.replace(r"_snr\d+$", "", regex=True)
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
+    for fam, ss in sh.groupby("family"):
+        for r, rr in ss.groupby(_radius_label(ss)):
+            rr = rr.sort_values("x")
+            if fam.startswith(("ellipsoid_", "torus")):
+                style = "o-" if r == "default radius" else "o:"
+                axes[0].plot(rr["x"], 100 * rr["H_err_median"], style, label=f"{fam}, {r}")
+                axes[1].plot(rr["x"], 100 * rr["K_err_median"], style, label=f"{fam}, {r}")
+        if "thickness_err_median" in ss and ss["thickness_err_median"].notna().any():
+            t = ss.drop_duplicates("x").sort_values("x")
+            axes[2].plot(t["x"], t["thickness_err_median"], "o-", label=fam)
+    axes[2].axhline(0.25, color="grey", lw=0.8, ls=":")  # the issue's bound at 1 µm voxels
+    for ax, label in zip(axes, ("H error, median (%)", "K error, median (%)", "thickness error, median (µm)")):
+        _snr_axis(ax, label)
+        if any(np.nan_to_num(np.asarray(ln.get_ydata(), float)).max(initial=0) > 0 for ln in ax.get_lines()):
+            ax.set_yscale("log")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
+    fig.suptitle("analytic shapes, PSF σ 2.5 / 1 / 1 µm", fontsize=9)
+    fig.tight_layout()
+    _save(fig, outdir / "shapes_vs_snr.png")
+    plt.close(fig)
+    return [outdir / "shapes_vs_snr.png"]
 
 
 def plot(cases: pd.DataFrame, stages: pd.DataFrame, outdir: str | os.PathLike,

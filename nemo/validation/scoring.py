@@ -35,16 +35,19 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
     """Curvature and thickness of a reconstructed analytic shape against the exact values.
 
     Curvature (``nemo.morphology.curvature``) is fitted at every ``radius_edges`` × mean edge
-    length; errors are |est − exact| / RMS(exact) over the vertices (the relative error for a
-    sphere). Shells are split into inner/outer walls (``nemo.surface.split_mesh``) and the
-    thickness from the inner wall along its normals is compared with the exact normal-ray
-    distance (µm and in voxels of the largest spacing).
+    length (``radius_source`` ``fixed``) and at the workflow's default radius and averaging
+    (:func:`nemo.stages.curvature`, ``radius_source`` ``default``); errors are
+    |est − exact| / RMS(exact) over the vertices (the relative error for a sphere). Shells are
+    split into inner/outer walls (``nemo.surface.split_mesh``) and the thickness from the inner
+    wall along its normals is compared with the exact normal-ray distance (µm and in voxels of
+    the largest spacing).
 
     Returns
     -------
     list of dict
-        One row per curvature radius.
+        One row per curvature radius (the fixed ones, then the default).
     """
+    from nemo import stages
     from nemo.mesh import load_mesh, mean_edge_length
     from nemo.morphology import curvature, measure, thickness
     from nemo.surface import split_mesh
@@ -87,10 +90,14 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
             "thickness_bias": float(np.median((d - d0)[ok])) if ok.any() else np.nan,
             "thickness_valid": float(ok.mean()), "time_thickness_s": t_thick,
         }
-    for fac in truth.get("radius_edges", [5.0]):
-        radius = float(fac) * edge
+    fixed = [("fixed", float(fac) * edge) for fac in truth.get("radius_edges", [5.0])]
+    for source, radius in [*fixed, ("default", None)]:
         t0 = time.perf_counter()
-        cdf = curvature(surf, radius, rng=0)
+        if radius is None:  # what the workflow's curvature rule gives: the radius from the surface
+            cdf, resolved = stages.curvature(surf)
+            radius = float(resolved["radius"])
+        else:
+            cdf = curvature(surf, radius, rng=0)
         t_curv = time.perf_counter() - t0
         H, K = cdf["H"].to_numpy(), cdf["K"].to_numpy()
         ok = np.isfinite(H) & np.isfinite(K)
@@ -98,7 +105,7 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
         strong = np.abs(K0) > 0.2 * np.abs(K0).max()
         rows.append({
             **base, "n_vertices": len(surf.vertices), "mean_edge": edge,
-            "radius_edges": float(fac), "curvature_radius": radius,
+            "radius_source": source, "radius_edges": radius / edge, "curvature_radius": radius,
             "H_err_median": _pct(eh, 50), "H_err_p90": _pct(eh, 90),
             "K_err_median": _pct(ek, 50), "K_err_p90": _pct(ek, 90),
             "K_sign_agreement": (float(np.mean(np.sign(K[ok & strong]) == np.sign(K0[ok & strong])))
