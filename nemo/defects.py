@@ -1059,8 +1059,7 @@ def _is_disc(geo: _Geometry, region: np.ndarray) -> bool:
     faces = faces[inside[faces].all(axis=1)]
     if not len(faces):
         return False
-    edges = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
-    return len(np.unique(faces)) - len(edges) + len(faces) == 1
+    return trimesh.Trimesh(geo.verts, faces, process=False).euler_number == 1  # counts referenced vertices
 
 
 def _circle_contour(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float, ball: np.ndarray,
