@@ -115,6 +115,11 @@ PILOT_SAMPLES = 2000
 PILOT_PAIR_BUDGET, PILOT_MIN_SAMPLES = 1_000_000, 200
 #: The ladder's top is lowered until at least this many vertices keep a fit off the rim there.
 LADDER_MIN_PROBES = 50
+#: The climb stops early once the change has grown for two pairs past its smallest to at least
+#: this multiple of it: the shape's change grows at least as the radius squared (× 2 per rung),
+#: while a rough wall's change can rise by 1.2–1.6 × over a few rungs and then fall (the SNR-3
+#: vesicles' walls, whose bumps are a few µm wide; docs/validation.md "The climb's early stop").
+CLIMB_STOP_GROWTH = 2.0
 #: Width (σ) of the averaging of H and K over the surface after the fits, as a fraction of the
 #: fitting radius (a debiased diffusion, :func:`smooth_on_surface`). On the validation's noisy
 #: shapes it brings the SNR-10 ellipsoid from 2.4 to 1.3 % (H) at the default radius, and it
@@ -643,7 +648,7 @@ def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d
     :data:`PILOT_PAIR_BUDGET` (vertex, neighbour) pairs. On an open surface the ladder ends
     below any rung at which fewer than :data:`LADDER_MIN_PROBES` vertices stay off the rim. The
     climb stops early once the change (:func:`_ladder_change`) has grown for two pairs past its
-    smallest: the largest fits cost most.
+    smallest, to :data:`CLIMB_STOP_GROWTH` × it (:func:`_climb_settled`): the largest fits cost most.
     """
     tree = cKDTree(vertices)
     while len(radii) > 1 and np.count_nonzero(d_rim[order] > radii[-1]) < LADDER_MIN_PROBES:
@@ -661,10 +666,16 @@ def _ladder_fits(vertices: np.ndarray, normals: np.ndarray, order: np.ndarray, d
         ks.append(np.stack([out["k1"], out["k2"]], axis=1))
         if j:
             change += _ladder_change(ks[-2:], radii[j - 1:j + 1], quantile)
-        finite = [c for c in change if math.isfinite(c)]
-        if len(finite) >= 3 and min(finite) < finite[-2] < finite[-1]:
+        if _climb_settled(change):
             break
     return ks, change, len(probe)
+
+
+def _climb_settled(change: list[float]) -> bool:
+    """Whether the ladder is past its stablest pair: the change has grown for the last two pairs
+    and to :data:`CLIMB_STOP_GROWTH` × its smallest (the shape's change, not a rough wall's)."""
+    finite = [c for c in change if math.isfinite(c)]
+    return len(finite) >= 3 and min(finite) < finite[-2] < finite[-1] and finite[-1] >= CLIMB_STOP_GROWTH * min(finite)
 
 
 def _largest_component_area(mesh: trimesh.Trimesh) -> float:
