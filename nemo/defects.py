@@ -730,11 +730,11 @@ def find_defects(
     size = math.sqrt(float(mesh.area) / (4 * math.pi))  # radius of the sphere of equal area
     for name, value in (("contour_radius", contour_radius), ("avg_radius", avg_radius), ("fit_radius", fit_radius)):
         if value is not None and value > MAX_RADIUS_PER_SIZE * size:
+            reason = (f"`{name}` {value:.4g} is larger than {MAX_RADIUS_PER_SIZE:g} × the surface's size ({size:.4g}, "
+                      f"the radius of the sphere of equal area)")
             raise ObjectTooSmallError(
-                f"`{name}` {value:.4g} is larger than {MAX_RADIUS_PER_SIZE:g} × the surface's size ({size:.4g}, "
-                f"the radius of the sphere of equal area): a defect's contour must enclose a small piece of "
-                f"the surface; leave it unset (derived from the averaging radius) or give a smaller value"
-            )
+                f"{reason}: a defect's contour must enclose a small piece of the surface; leave it unset (derived "
+                f"from the averaging radius) or give a smaller value", reason)
     if avg_radius is None:
         avg_radius = _estimate_avg_radius(geo, S, s_ref, size)
     min_distance = avg_radius if min_distance is None else min_distance

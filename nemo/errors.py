@@ -16,8 +16,13 @@ class ObjectTooSmallError(NemoError):
     """A length of the analysis (patch, averaging or contour radius) does not fit on the object.
 
     Raised apart so that a frame of several objects (``mesh.keep: all``) can leave that object
-    out of the step, with a warning and a quality flag, and go on with the others.
+    out of the step, with a warning and a quality flag, and go on with the others. ``reason``
+    says what does not fit, without the advice to the user (the message).
     """
+
+    def __init__(self, message: str, reason: str | None = None):
+        super().__init__(message)
+        self.reason = reason or message
 
 
 class NemoWarning(UserWarning):

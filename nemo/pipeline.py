@@ -6,7 +6,8 @@ thickness → per layer: peel → directors → order → defects (with refineme
 writes every file under the workflow's names (:mod:`nemo.layout`) into one folder. Every
 intermediate passes through its file, as between the workflow's jobs, so the workflow and
 ``nemo run`` give the same numbers for the same config. ``summary.json`` records the resolved
-parameters, timings, peak memory, counts and the Euler check of each layer.
+parameters, timings, peak memory, counts, the Euler check of each layer and the quality control
+of ``frames.parquet`` (``qc``: ``qc_pass`` and ``qc_flags`` per layer and object).
 """
 
 from __future__ import annotations
@@ -220,10 +221,35 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
         if a in results and b in results:
             align_frame(a, b, meshes[layers[a]["surface"]], out, written)
     summary.update(config=sections, mesh=mesh_params, layers=results, files=sorted(written),
+                   qc=_quality(out, sections, layers, t, c, frame["seg"]),
                    timings_s=timings, total_s=round(time.perf_counter() - start, 3),
                    peak_rss_mb=round(_peak_rss_mb(), 1))
     atomic.write_json(out / layout.SUMMARY_JSON, summary)
     return summary
+
+
+def _quality(out: Path, sections: dict, layers: dict, t: int, c: int, seg: int) -> list[dict]:
+    """The frame's quality control, as the workflow's ``frames.parquet`` has it: one record per
+    layer (per surface without layers) and object, with ``qc_pass`` and ``qc_flags``
+    (:func:`nemo.summary.frame_summary` on the files just written)."""
+    from nemo.summary import frame_summary
+
+    def morphology(surface: str) -> dict:
+        thick = sections["thickness"] is not None and sections["thickness"]["from"] == surface
+        return {"measure": out / layout.measure_file(surface),
+                "curvature": out / layout.curvature_file(surface) if sections["curvature"] is not None else None,
+                "thickness": out / layout.THICKNESS if thick else None}
+
+    records = [{"t": t, "c": c, "layer": name, "surface": layer["surface"], **morphology(layer["surface"]),
+                **{"layer_table" if k == "layer" else k: out / layout.layer_file(k, name) for k in layout.LAYER_KINDS
+                   if k != "layer" or not layer.get("directors_from")}}
+               for name, layer in layers.items()]
+    if not sections["layers"]:
+        records = [{"t": t, "c": seg, "layer": "", "surface": surface, **morphology(surface)}
+                   for surface in sections["surfaces"]]
+    rows = frame_summary(records)
+    return [{"layer": r.layer, "surface": r.surface, "object": int(r.object), "qc_pass": bool(r.qc_pass),
+             "qc_flags": str(r.qc_flags)} for r in rows.itertuples()]
 
 
 def _deconvolved(volume, info, psf, timed, needed: bool):

@@ -31,6 +31,7 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 from __future__ import annotations
 
 import os
+import types
 import warnings
 
 import numpy as np
@@ -688,6 +689,20 @@ def defects(
     if split:
         return _defects_by_object(split, order_df, directors_df, params, avg_radius, curvature, intensity,
                                   director_params)
+    try:
+        return _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, intensity, director_params)
+    except ObjectTooSmallError as exc:
+        p = nconfig.section("defects", params)
+        if p["contour_radius"] is not None:
+            raise  # the user's own radius: theirs to change
+        # a radius derived from the data (the averaging radius): the morphology of a small object is still wanted
+        whole = types.SimpleNamespace(label=None, mesh=mesh)
+        return _no_defects(whole, params, f"the object is too small for the lengths derived from the data: "
+                                          f"{exc.reason}")
+
+
+def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, intensity, director_params):
+    """:func:`defects` on a mesh of one object."""
     p = nconfig.section("defects", params)
     if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
         raise NemoError("defects.curvature_source is 'table' but no curvature table was given")
@@ -766,7 +781,8 @@ def _no_defects(part, params: dict | None, reason: str) -> tuple[pd.DataFrame, N
     from nemo.defects import COLUMNS
     from nemo.errors import NemoWarning
 
-    warnings.warn(f"object {part.label}: no defect search ({reason})", NemoWarning, stacklevel=3)
+    what = "" if part.label is None else f"object {part.label}: "
+    warnings.warn(f"{what}no defect search ({reason})", NemoWarning, stacklevel=3)
     df = pd.DataFrame(columns=list(COLUMNS))
     df.attrs["euler_check"] = {"sum_charge": 0.0, "sum_charge_rounded": 0.0, "closed": bool(part.mesh.is_watertight),
                                "euler_characteristic": int(part.mesh.euler_number), "matches": False,

@@ -295,6 +295,8 @@ def _skipped_searches(r: Mapping) -> dict[int, str]:
     if not r.get("defects"):
         return {}
     check = read_provenance(r["defects"]).get("euler_check") or {}
+    if check.get("skipped"):  # a frame of one object
+        return {0: check["skipped"]}
     return {int(o["object"]): o["skipped"] for o in check.get("objects") or [] if o.get("skipped")}
 
 

@@ -469,6 +469,8 @@ def test_run_frame_analyses_each_object_on_its_own(two_vesicles):
     frames = frame_summary([rec])
     assert frames["object"].tolist() == [0, 1] and (frames["n_objects"] == 2).all()
     assert frames["qc_pass"].all(), frames["qc_flags"].tolist()
+    qc = json.loads((out / "summary.json").read_text())["qc"]  # nemo run's own verdict: the same rows
+    assert [(q["layer"], q["object"], q["qc_pass"]) for q in qc] == [("film", 0, True), ("film", 1, True)]
     np.testing.assert_allclose(frames["charge_sum"], 2.0, atol=0.05)  # χ = 2 for each vesicle
     np.testing.assert_allclose(frames["euler_characteristic"], 2)
     for (_, row), true, radius in zip(frames.iterrows(), truth, (30, 22)):

@@ -292,6 +292,27 @@ def test_an_object_too_small_for_its_patch_is_left_out_not_fatal():
         np.testing.assert_allclose(inner.vertices[rec["vertex"]], [rec["x"], rec["y"], rec["z"]], atol=1e-4)
 
 
+def test_a_single_object_too_small_for_the_derived_averaging_radius_keeps_its_frame():
+    """One small shell whose inner wall (r 8) is below half the averaging radius derived from the
+    data: its defect search is skipped with a warning and an empty table that says why (the frame's
+    mesh, curvature, directors and order stand); a contour radius the user gave is still refused."""
+    from nemo.errors import NemoWarning, ObjectTooSmallError
+
+    vol = _textured_shells((40, 40, 40), [(20, 20, 20, 8, 13)])
+    meshes, _ = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
+    inner = meshes["inner"]
+    intensity = 1.0 + 0.5 * np.cos(2 * np.pi * np.asarray(inner.vertices)[:, 2] / 4.0)
+    ddf, _ = stages.directors(inner, intensity, {"patch_radius": 3.0, "n_patches": 200})
+    odf, _ = stages.order(inner, ddf, {"radius": 6.0})
+    size = np.sqrt(inner.area / (4 * np.pi))
+    with pytest.warns(NemoWarning, match="no defect search .*too small"):
+        fdf, extra, fp = stages.defects(inner, odf, ddf, None, avg_radius=2.5 * size)
+    assert len(fdf) == 0 and extra is None and "avg_radius" in fp["skipped"]
+    assert fdf.attrs["euler_check"]["skipped"] == fp["skipped"]
+    with pytest.raises(ObjectTooSmallError, match="contour_radius"):
+        stages.defects(inner, odf, ddf, {"contour_radius": 2.5 * size}, avg_radius=4.0)
+
+
 def test_a_surface_holding_one_object_keeps_its_label():
     """A droplet (object 0, the larger) and a shell (object 1): the inner surface holds only object 1
     and says so in its tables and measure."""

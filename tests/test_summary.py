@@ -81,6 +81,17 @@ def test_frame_summary_means_ignore_nan(frame_files):
     assert str(out["n_directors"].dtype) == "Int64" and str(out["n_defects"].dtype) == "Int64"
 
 
+def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
+    """A frame of one object whose defect search could not run (nemo.stages.defects: an object
+    too small for its derived lengths) fails the QC with the reason, as an object of several does."""
+    reason = "the object is too small for the lengths derived from the data"
+    write_table(_defects([], []), frame_files["defects"],
+                euler_check={"sum_charge": 0.0, "euler_characteristic": 2, "closed": True, "matches": False,
+                             "skipped": reason})
+    row = frame_summary([frame_files]).iloc[0]
+    assert not row["qc_pass"] and f"no defect search: {reason}" in row["qc_flags"]
+
+
 def test_frame_summary_walls_come_from_the_mesh_step(frame_files):
     """The mesh step's walls (1 or 2; one per object with several) reach the row; a frame of one
     wall with its NaN thickness is not flagged for it."""

@@ -401,6 +401,14 @@ def test_nemo_run_with_the_workflow_config_gives_the_workflows_numbers(demo_run,
         pd.testing.assert_frame_equal(read_table(frame / name), read_table(out / name))
     measure = "measure_inner.json"
     assert json.loads((frame / measure).read_text()) == json.loads((out / measure).read_text())
+    # the same quality control: frames.parquet's rows of t1, and nemo run's summary and report
+    frames = pd.read_parquet(demo_run / "results" / "demo" / "summary" / "frames.parquet")
+    frames = frames[frames["t"] == 1].sort_values("layer")
+    qc = sorted(json.loads((out / "summary.json").read_text())["qc"], key=lambda q: q["layer"])
+    assert [q["layer"] for q in qc] == frames["layer"].tolist() and len(qc) == len(cfg["layers"])
+    assert [q["qc_pass"] for q in qc] == frames["qc_pass"].tolist()
+    assert [q["qc_flags"] for q in qc] == frames["qc_flags"].tolist()
+    assert proc.stdout.count("quality control (layer ") == len(qc)
 
 
 def _droplets(path: Path, radii, spacing=(1.0, 0.42, 0.42)) -> None:

@@ -67,5 +67,10 @@ def run(args) -> int:
                   f"(~{d['charge_rounded']:+g}), S {d['S']:.3f}")
         print(f"  {len(res['defects'])} defect(s), sum of charges {chk['sum_charge']:.3f} vs chi = "
               f"{chk['euler_characteristic']}{'' if chk['closed'] else ' (open surface)'}")
+    for q in summary["qc"]:
+        what = " ".join(x for x in (q["layer"] and f"layer {q['layer']}", q["surface"],
+                                    len(summary["qc"]) > 1 and f"object {q['object']}") if x)
+        verdict = "pass" if q["qc_pass"] else f"FAIL: {q['qc_flags']}"
+        print(f"quality control ({what}): {verdict}")
     print(f"done in {summary['total_s']:.1f} s, peak memory {summary['peak_rss_mb']:.0f} MB -> {args.output}")
     return 0
