@@ -129,6 +129,9 @@ def _calibration(vals: list[float | None], units: list[str | None]) -> tuple[tup
     keeps the sizes (their ratios still matter) with unit ``"pixel"``, uncalibrated.
     """
     dz = vals[0] if vals[0] is not None else vals[2]
+    if vals[0] is None:
+        warnings.warn("the file has no z spacing (OME PhysicalSizeZ): assuming dz = dx; set it with `spacing` if "
+                      "wrong", NemoWarning, stacklevel=4)
     if not any(units):
         return (float(dz), float(vals[1]), float(vals[2])), "pixel", False
     scales = [unit_scale(u) if u else None for u in units]
@@ -166,6 +169,8 @@ def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, floa
         unit = {3: "cm", 2: None}.get(code)  # 2 = inch: not a microscopy unit
         if code == 1:
             unit = None
+        if code == 2:  # dots per inch (72 from a generic writer): a print size, not the voxels' size
+            dx = dy = None
     has_xy = dx is not None and dy is not None and not (dx == 1.0 and dy == 1.0 and unit is None)
     if not has_xy and (dz is None or unit is None):
         return (1.0, 1.0, 1.0), "pixel", False
@@ -497,6 +502,9 @@ def _read_pixels(series: tifffile.TiffPageSeries, key: tuple, path: str | os.Pat
                 arr = arr["0"]
             data = np.asarray(arr[key])
         except (tifffile.TiffFileError, ValueError, OSError, EOFError, zlib.error, KeyError, RuntimeError) as exc:
+            if "imagecodecs" in str(exc):  # a compression whose codec is not installed: the file is fine
+                raise NemoError(f"{path} is compressed with a codec that is not installed ({exc}): install it "
+                                "(pip install imagecodecs), or re-save the file uncompressed") from None
             raise _truncated(path, f"reading its pixels failed ({exc})") from None
         finally:
             store.close()

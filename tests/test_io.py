@@ -132,6 +132,36 @@ def test_imagej_pixel_unit_is_uncalibrated_and_spacing_override_sets_um(tmp_path
     assert info.unit == "um" and info.spacing == (2.0, 0.5, 0.5)
 
 
+def test_a_print_resolution_in_dots_per_inch_is_no_calibration(tmp_path, rng):
+    """A generic writer's 72 dpi (ResolutionUnit inch) is a print size: spacing 1, unit pixel,
+    uncalibrated (it read as 1/72 per voxel, labelled pixel)."""
+    tifffile.imwrite(tmp_path / "dpi.tif", _data((4, 6, 7), rng), resolution=(72.0, 72.0), resolutionunit="INCH",
+                     metadata={"axes": "ZYX"})
+    info = read_info(tmp_path / "dpi.tif")
+    assert info.spacing == (1.0, 1.0, 1.0) and info.unit == "pixel" and not info.calibrated
+
+
+def test_an_ome_tiff_without_a_z_size_warns(tmp_path, rng):
+    ome = tmp_path / "noz.ome.tif"
+    tifffile.imwrite(ome, _data((4, 6, 7), rng), ome=True,
+                     metadata={"axes": "ZYX", "PhysicalSizeX": 0.5, "PhysicalSizeY": 0.5})
+    with pytest.warns(NemoWarning, match="no z spacing"):
+        info = read_info(ome)
+    assert info.spacing == (0.5, 0.5, 0.5)
+
+
+def test_compressed_tiffs_are_read(tmp_path, rng):
+    """LZW and Zstd, as microscopes and Fiji write them (imagecodecs, a dependency)."""
+    data = _data((4, 6, 7), rng)
+    for compression in ("lzw", "zstd"):
+        path = tmp_path / f"{compression}.tif"
+        tifffile.imwrite(path, data, imagej=True, compression=compression,
+                         resolution=(2.0, 2.0), metadata={"axes": "ZYX", "unit": "um", "spacing": 1.0})
+        stack, info = read_stack(path)
+        np.testing.assert_array_equal(stack, data)
+        assert info.spacing == (1.0, 0.5, 0.5)
+
+
 def test_missing_dz_falls_back_to_dx_with_a_warning(tmp_path, rng):
     data = _data((3, 5, 5), rng)
     tifffile.imwrite(tmp_path / "nodz.tif", data, imagej=True, resolution=(2.0, 2.0),
