@@ -725,6 +725,7 @@ def curvature(
     rng: np.random.Generator | int | None = None,
     fit: FitKind = "auto",
     smooth: float = DEFAULT_SMOOTH,
+    warn_large: Literal["radius", "mesh"] | None = "radius",
 ) -> pd.DataFrame:
     """Mean and Gaussian curvature at every vertex from local quadric fits.
 
@@ -769,6 +770,12 @@ def curvature(
         (the paper). Principal curvatures then follow from the averaged H and K.
         ``df.attrs`` records the fits' scatter about the average (``fit_scatter_H``, 1/unit,
         ``fit_scatter_K``, 1/unit²: their noise; None without averaging).
+    warn_large : {"radius", "mesh"} or None
+        Warn when ``radius`` looks large for the surface (radius × median |k| above a limit),
+        advising a smaller radius (``"radius"``: a radius the user chose) or a finer mesh
+        (``"mesh"``: the smallest radius :func:`default_radius` allows, a few edges, is already
+        that large). None: no such warning (a radius :func:`default_radius` chose above its
+        floor already weighs the wall's roughness against the shape's change).
 
     Returns
     -------
@@ -816,7 +823,7 @@ def curvature(
     with step(f"curvature: {fit} fits at {n} of {n_vert} vertices (radius {radius:g} {unit}, "
               f"~{per_sample:.0f} neighbours each)"):
         out, d1, d2 = _fit_samples(vertices, normals, tree, samples, radius, fit, chunk)
-    _warn_fit_problems(mesh, out, radius, vertices, unit, fit)
+    _warn_fit_problems(mesh, out, radius, vertices, unit, fit, warn_large)
 
     with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
         H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
@@ -1060,7 +1067,7 @@ def _fit_samples(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, sampl
 
 
 def _warn_fit_problems(mesh: trimesh.Trimesh, out: dict, radius: float, vertices: np.ndarray, unit: str,
-                       fit: str) -> None:
+                       fit: str, warn_large: str | None = "radius") -> None:
     """Warn (at the caller of :func:`curvature`) about too few neighbours, a radius too large
     for the surface, and degenerate fits."""
     few = out["count"] < MIN_NEIGHBOURS
@@ -1083,8 +1090,9 @@ def _warn_fit_problems(mesh: trimesh.Trimesh, out: dict, radius: float, vertices
             NemoWarning,
             stacklevel=3,
         )
-    _warn_large_radius(radius, out["k1"], out["k2"], vertices, unit,
-                       LARGE_RADIUS_RK * (2.0 if fit == "quartic" else 1.0))
+    if warn_large:
+        _warn_large_radius(radius, out["k1"], out["k2"], vertices, unit,
+                           LARGE_RADIUS_RK * (2.0 if fit == "quartic" else 1.0), warn_large)
     bad_fit = ~few & ~np.isfinite(out["H"])
     if bad_fit.any():
         warnings.warn(
@@ -1132,20 +1140,25 @@ def _curvature_table(H: np.ndarray, K: np.ndarray, idx: np.ndarray, out: dict, d
 
 
 def _warn_large_radius(
-    radius: float, k1: np.ndarray, k2: np.ndarray, vertices: np.ndarray, unit: str, limit: float
+    radius: float, k1: np.ndarray, k2: np.ndarray, vertices: np.ndarray, unit: str, limit: float,
+    advice: str = "radius",
 ) -> None:
     """Warn when the fitting radius is large for the surface: the fits then average over
-    regions of changing curvature and bias H and K (towards 0 on a closed surface)."""
+    regions of changing curvature and bias H and K (towards 0 on a closed surface). ``advice``:
+    ``"radius"`` names a smaller radius, ``"mesh"`` a finer mesh (the radius is at its floor)."""
     kmax = np.fmax(np.abs(k1), np.abs(k2))
     rk = float(radius * np.nanmedian(kmax)) if np.isfinite(kmax).any() else 0.0
     diag = float(np.linalg.norm(np.ptp(vertices, axis=0)))
     if rk > limit or radius > 0.25 * diag:
         kmed = float(np.nanmedian(kmax)) if np.isfinite(kmax).any() else 0.0
         better = 0.25 * diag if kmed == 0 else min(0.25 * diag, 0.5 * limit / kmed)
+        fix = (f"use a radius of about {better:.2g} {unit} or less" if advice == "radius" else
+               "this is the default's smallest radius (a few mesh edges): the mesh is coarse for this surface; "
+               "a finer one (mesh.step 1, finer voxels) fits it better")
         warnings.warn(
             f"curvature radius {radius:g} {unit} is large for this surface (radius × median |k1| = "
             f"{rk:.2g}, bounding-box diagonal {diag:.4g} {unit}): the fits span regions of changing "
-            f"curvature and H, K are biased; use a radius of about {better:.2g} {unit} or less",
+            f"curvature and H, K are biased; {fix}",
             NemoWarning,
             stacklevel=4,  # curvature -> _warn_fit_problems -> here
         )
@@ -1460,7 +1473,8 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
 def _image_quality(mesh: trimesh.Trimesh) -> dict:
     """What NEMO's mesh step found in the image (None for meshes from elsewhere)."""
     params = mesh.metadata.get("nemo_params") or {}
-    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "walls")}
+    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "walls",
+                                             "turned_out")}
 
 
 def _genus(topo: dict, notes: list[str]) -> int | None:
@@ -1530,7 +1544,8 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         surface whose fits are NaN along the rim: the sum misses that band), ``mean_H_fit``,
         ``mean_K_fit`` (over the vertices with a fit); ``n_objects``, ``snr``, ``noise`` and
         ``saturated`` of the image the mesh was made from, ``rim_loops`` (where the image
-        border cuts the object) and ``walls`` (1 or 2; a list per object with several), from
+        border cuts the object), ``walls`` (1 or 2; a list per object with several) and
+        ``turned_out`` (objects that enclosed the dark side, turned out), from
         NEMO's mesh step (None otherwise); ``notes`` (list of
         str). Coincident vertices are merged (and the faces they collapse ignored) for the
         topology and the angles.

@@ -108,7 +108,8 @@ def mesh(
         ``noise``, ``snr``, ``saturated`` and ``background`` (:func:`nemo.surface.image_noise`;
         None with a mask), ``refine_to`` as applied,
         ``deconvolution`` (:func:`nemo.psf.deconvolve`'s record),
-        ``n_objects`` (:func:`nemo.surface.find_objects`), ``walls`` (1 or 2; a list per
+        ``n_objects`` (:func:`nemo.surface.find_objects`), ``turned_out`` (objects enclosing the
+        dark side, turned out: :func:`nemo.surface.turn_out_dark_objects`), ``walls`` (1 or 2; a list per
         object with ``keep: all`` and several objects), ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
@@ -120,7 +121,15 @@ def mesh(
         and no object that has two walls.
     """
     from nemo.geometry import rim
-    from nemo.surface import auto_sigma, default_sigma, find_objects, image_noise, one_object, reconstruct
+    from nemo.surface import (
+        auto_sigma,
+        default_sigma,
+        find_objects,
+        image_noise,
+        one_object,
+        reconstruct,
+        turn_out_dark_objects,
+    )
 
     p = nconfig.section("mesh", params)
     shape = (volume if volume is not None else mask).shape
@@ -141,6 +150,13 @@ def mesh(
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit,
                         border=p["border"], refine=bool(p["refine"]), refine_sigma=p["refine_sigma"],
                         refine_to=p["refine_to"])
+    whole, p["turned_out"] = turn_out_dark_objects(whole)
+    if p["turned_out"]:
+        warnings.warn(f"{p['turned_out']} object(s) are dark regions enclosed by a foreground that fills the stack "
+                      "around them (a dark object in a bright surround, or a mask's background class): their normals "
+                      "are turned to point out of the enclosed region, as for a bright object. If the object is the "
+                      "bright surround, give a mask of it; with a probability map, give the object's class",
+                      NemoWarning, stacklevel=2)
     surface = whole.metadata["nemo_surface"]
     surface["keep"] = p["keep"]
     p["level"] = float(surface["level"])
@@ -432,10 +448,20 @@ def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.Dat
         return _combined([curvature(part.mesh, params) for part in split], split)
     p = curvature_defaults(mesh, params)
     df = fit_curvature(mesh, float(p["radius"]), n_samples=p["samples"], fraction=p["fraction"],
-                       k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"], smooth=float(p["smooth"]))
+                       k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"], smooth=float(p["smooth"]),
+                       warn_large=_large_radius_advice(p))
+
     p.update(fit_used=df.attrs.get("fit"), n_fitted=df.attrs.get("n_samples"),
              fit_scatter_H=df.attrs.get("fit_scatter_H"), fit_scatter_K=df.attrs.get("fit_scatter_K"))
     return df, p
+
+
+def _large_radius_advice(p: dict) -> str | None:
+    """What a "curvature radius is large" warning advises: a smaller radius (the user's), a finer mesh
+    (the default at its floor of a few edges), or nothing (a default chosen above its floor)."""
+    if "radius_from" not in p:
+        return "radius"
+    return "mesh" if p["radius_from"]["limited_by"] == "min_edges" else None
 
 
 def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,

@@ -185,6 +185,9 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     snr = row.get("snr", math.nan)
     if np.isfinite(snr) and snr < QC_MIN_SNR:
         flags.append(f"low signal-to-noise ratio {snr:.1f} in the segmented channel")
+    if measure.get("turned_out"):
+        flags.append(f"{measure['turned_out']} object(s) enclosed by the foreground, turned out (a dark object in a "
+                     "bright surround, or a mask's background class: check the channel or mask)")
     saturated = measure.get("saturated")
     if saturated is not None and saturated > QC_MAX_SATURATED:
         flags.append(f"{100 * saturated:.1f} % of the object's core saturated: walls placed outward, "

@@ -283,6 +283,48 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
              "centre": centre[c] / max(comp_area[c], 1e-300)} for c in big[~nested]]
 
 
+def turn_out_dark_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -> tuple[trimesh.Trimesh, int]:
+    """Turn out the objects whose closed surface encloses the dark side of the image.
+
+    Marching cubes winds a surface with its normals towards the darker side. An object
+    (:func:`find_objects`) that is closed, not nested in another surface, and encloses a
+    negative volume is a dark region in a foreground that fills the stack around it (the image
+    border's caps removed, ``border: open``): a vesicle in a stained medium, or a mask whose
+    background class was given. Its faces, and those of every surface nested in it, are turned
+    so that the normals point out of the enclosed region, as for a bright object.
+
+    Returns
+    -------
+    mesh : trimesh.Trimesh
+        ``mesh`` itself when nothing is turned, else a copy with the turned faces.
+    n_turned : int
+        Objects turned out.
+    """
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    labels = face_components(faces, len(vertices))
+    rim_vertex = rim(faces, len(vertices))["vertices"]
+    components, first_face = np.unique(labels, return_index=True)
+    turn = np.zeros(len(faces), dtype=bool)
+    n_turned = 0
+    for obj in find_objects(mesh, min_fraction):  # a loop over the few objects
+        own = labels == obj["component"]
+        tri = vertices[faces[own]]
+        volume = np.einsum("ij,ij->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
+        if rim_vertex[faces[own]].any() or volume >= 0:
+            continue
+        others = np.setdiff1d(components, [obj["component"]])
+        probes = vertices[faces[first_face[others], 0]]  # one vertex of every other component
+        inside = others[np.abs(_winding_numbers(probes, vertices, faces[own])) > 0.5]
+        turn |= own | np.isin(labels, inside)
+        n_turned += 1
+    if not n_turned:
+        return mesh, 0
+    turned = mesh.copy()
+    turned.faces = np.where(turn[:, None], faces[:, ::-1], faces)
+    turned.metadata.update(mesh.metadata)
+    return turned, n_turned
+
+
 def _describe_objects(objects: list[dict], unit: str) -> str:
     return "; ".join(
         f"area {o['area']:.4g} {unit}² (radius of equal area {o['radius']:.4g} {unit}) centred at "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -256,6 +258,57 @@ def test_mesh_refuses_an_object_smaller_than_a_voxel():
     vol[10, 10, 10] = 200.0  # one bright voxel: a speck, not an object
     with pytest.raises(NemoError, match="smaller than a voxel"):
         stages.mesh(vol, (1.0, 1.0, 1.0), {"sigma": 0.3, "threshold": 50})
+
+
+def test_a_dark_object_in_a_bright_surround_is_turned_out_and_flagged():
+    """A mask of the background class (every voxel but a ball of r 10) and the image of a dark ball in a
+    bright medium (at the half level: the automatic level assumes a bright object): the surface
+    encloses the dark side; its normals are turned out of the ball (H = +1/r,
+    positive volume), with a warning and a QC flag. A bright ball and a shell are left as they are."""
+    from nemo.morphology import measure
+    from nemo.summary import quality_flags
+
+    ball = _balls((40, 40, 40), [(20, 20, 20, -1, 10)]) > 100
+    bright, _ = stages.mesh(None, (1.0, 1.0, 1.0), {"sigma": 1.0}, mask=ball)
+    for mask, volume in ((~ball, None), (None, np.where(ball, 20.0, 200.0).astype(np.float32))):
+        with pytest.warns(NemoWarning, match="dark regions enclosed by a foreground"):
+            meshes, p = stages.mesh(volume, (1.0, 1.0, 1.0), {"sigma": 1.0, "threshold": 110}, mask=mask)
+        whole = meshes["whole"]
+        assert p["turned_out"] == 1 and whole.volume > 0
+        assert whole.volume == pytest.approx(bright["whole"].volume, rel=0.03)  # measured: 0.0 (mask), 0.006
+        whole.metadata["nemo_params"] = p  # as nemo mesh and nemo run write it
+        m = measure(whole)
+        assert m["mean_H"] == pytest.approx(1 / 9.8, rel=0.05) and m["turned_out"] == 1  # r 9.8 (the voxelised ball)
+        assert any("turned out" in f for f in quality_flags({"euler_characteristic": 2}, m))
+    meshes, p = stages.mesh(_balls((40, 40, 40), [(20, 20, 20, 7, 12)]), (1.0, 1.0, 1.0))
+    assert p["turned_out"] == 0 and meshes["inner"].volume > 0 and meshes["outer"].volume > meshes["inner"].volume
+
+
+def test_the_large_radius_warning_does_not_contradict_the_default():
+    """The real Drosophila wall (bundled): its default radius (12.2 px, above the ladder's floor) is
+    not followed by "radius is large … use about 5 px" as it was (both reviews saw it); the same
+    radius given by the user is. A coarse sphere (R 6, edge 0.9) whose default is the floor of a few
+    edges is warned about with the mesh named as the cause, not a radius below the floor."""
+    import warnings
+
+    from nemo.errors import NemoWarning
+    from nemo.io import read_stack
+
+    real = Path(__file__).resolve().parents[1] / "data" / "real" / "drosophila_CAAX-mCherry.tif"
+    with pytest.warns(NemoWarning, match="no spatial calibration"):
+        volume, info = read_stack(real)
+    meshes, _ = stages.mesh(volume, info.spacing)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _, p = stages.curvature(meshes["inner"])
+    assert p["radius_from"]["limited_by"] != "min_edges"
+    assert not [w for w in caught if "large for this surface" in str(w.message)]
+    with pytest.warns(NemoWarning, match="large for this surface.*use a radius of about"):
+        stages.curvature(meshes["inner"], {"radius": p["radius"]})
+    sphere = trimesh.creation.icosphere(3, radius=6.0)
+    with pytest.warns(NemoWarning, match="large for this surface.*the mesh is coarse"):
+        _, p = stages.curvature(sphere)
+    assert p["radius_from"]["limited_by"] == "min_edges"
 
 
 def _textured_shells(shape, spheres, period=4.0):
