@@ -544,8 +544,24 @@ def peel(
                     n_samples=int(p["samples"]), reduce=p["reduce"], interp=p["interp"], shift=offset,
                     return_profile=return_profile)
     intensity = result[0] if return_profile else result
+    _check_texture_depth(volume, spacing, mesh, normals, dmin, dmax, p)
     df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity}), mesh)
     return (df, p, result[1], result[2]) if return_profile else (df, p)
+
+
+def _check_texture_depth(volume: np.ndarray, spacing, mesh: trimesh.Trimesh, normals: np.ndarray, dmin: float,
+                         dmax: float, p: dict) -> None:
+    """Record where the image's texture peaks around the layer (``p["texture"]``:
+    :func:`nemo.peel.texture_profile`) and warn when the peak lies outside the layer's range."""
+    from nemo.peel import texture_profile
+
+    prof = texture_profile(volume, spacing, np.asarray(mesh.vertices), normals, dmin, dmax)
+    p["texture"] = {k: prof[k] for k in ("peak_depth", "peak", "inside", "outside")}
+    if prof["outside"]:
+        warnings.warn(f"the image's texture peaks at depth {prof['peak_depth']:.3g} along the normals, outside the "
+                      f"layer's range [{dmin:g}, {dmax:g}] ({prof['peak'] / max(prof['inside'], 1e-30):.2g} × the "
+                      "strongest within it): the layer may miss the structure it is meant to peel; set its range "
+                      "(layers.NAME.range) to include that depth", NemoWarning, stacklevel=3)
 
 
 def _warn_one_wall_layer(mesh: trimesh.Trimesh, p: dict) -> None:

@@ -130,6 +130,13 @@ def _objects(m: Mapping) -> list[tuple[int, Mapping]]:
     return [(0, m)]
 
 
+def _layer_texture(r: Mapping) -> dict:
+    """The peel's texture check (``nemo.stages.peel``: where the texture peaks around the layer)."""
+    if not r.get("layer_table"):
+        return {}
+    return (read_provenance(r["layer_table"]).get("parameters") or {}).get("texture") or {}
+
+
 def _coherency_noise(r: Mapping, label: int) -> float:
     """The directors step's texture floor for object ``label`` (NaN: imported directors, older tables)."""
     params = read_provenance(r["directors"]).get("parameters") or {}
@@ -166,7 +173,8 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     row : mapping
         The row's columns so far (``euler_characteristic``, ``charge_sum``, ``n_defects``,
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
-        ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed).
+        ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed; ``texture``,
+        the peel's check of where the texture peaks, :func:`nemo.peel.texture_profile`).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
         ``n_boundary_loops``, ``n_objects``, ``saturated``).
@@ -224,6 +232,10 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
     elif np.isfinite(coherency) and np.isfinite(floor) and coherency < floor:
         flags.append(f"median director coherency {coherency:.2f}, below white noise's {floor:.2f} with these "
                      "patches: no texture to orient (noise, or no fibres at that depth)")
+    texture = row.get("texture") or {}
+    if texture.get("outside"):
+        flags.append(f"the image's texture peaks at depth {texture['peak_depth']:.3g}, outside the layer's range "
+                     "(set layers.NAME.range to include it)")
     charge = row["charge_sum"]
     if closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
         flags.append(f"Σ charge {charge:.2f} ≠ χ {chi:.0f} ({row['n_defects']} defects)")
@@ -328,6 +340,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
         row["coherency_noise"] = _coherency_noise(r, label)
+        row["texture"] = _layer_texture(r)
     flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped else [])
     row["qc_pass"] = not flags
     row["qc_flags"] = "; ".join(flags)

@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 import tifffile
 import trimesh
+from scipy import ndimage
 
 from nemo.errors import NemoError, NemoWarning
 from nemo.io import write_hyperstack
@@ -280,3 +281,48 @@ def test_cli_peel_refuses_a_shift_table_from_another_mesh(meshed_shell, tmp_path
                            "--range", "0", "1", "--shift", f"{tmp_path / 'th.parquet'}:thickness",
                            "--shift-fraction", "0.2")
     cli_error(code, err, "th.parquet", "vertices")
+
+
+def _textured_wall(depth: float, R: float = 20.0):
+    """A ball of radius R (1 µm voxels) under a smooth 9 µm wall whose fibres (meridional stripes,
+    2 µm wide) lie ``depth`` µm outside it; the wall's inner surface as an icosphere."""
+    n = 80
+    z, y, x = (np.indices((n, n, n)) - n / 2 + 0.5).astype(np.float64)
+    r = np.sqrt(x**2 + y**2 + z**2)
+    wall = ((r >= R) & (r <= R + 9)).astype(np.float32) * 100
+    stripes = np.cos(12 * np.arctan2(y, x)) > 0.5
+    volume = ndimage.gaussian_filter(wall + 300 * (np.abs(r - R - depth) < 1.0) * stripes, 1.0)  # a PSF
+    sphere = trimesh.creation.icosphere(5, radius=R)
+    sphere.apply_translation([n / 2 - 0.5] * 3)
+    return volume, sphere
+
+
+@pytest.mark.parametrize("depth", [3.0, 7.0])
+def test_texture_profile_finds_the_depth_of_the_fibres(depth):
+    """The texture along the surface peaks at the fibres' depth; a layer [0, 5] µm holds the
+    fibres at 3 µm and misses those at 7 µm (then ``outside``); the smooth wall has no texture."""
+    from nemo.peel import texture_profile
+
+    volume, sphere = _textured_wall(depth)
+    prof = texture_profile(volume, (1.0, 1.0, 1.0), sphere.vertices, vertex_normals(sphere), 0.0, 5.0)
+    assert prof["peak_depth"] == pytest.approx(depth, abs=0.6)
+    assert prof["outside"] == (depth > 5)
+    wall = ndimage.gaussian_filter(np.where(volume > 105, 100.0, volume), 1.0)  # no fibres
+    smooth = texture_profile(wall, (1.0, 1.0, 1.0), sphere.vertices, vertex_normals(sphere), 0.0, 5.0)
+    assert not smooth["outside"] and smooth["peak"] < 0.2 * prof["peak"]
+
+
+def test_a_layer_that_misses_the_texture_is_warned_about_and_flagged():
+    from nemo import stages
+    from nemo.summary import quality_flags
+
+    volume, sphere = _textured_wall(7.0)
+    with pytest.warns(NemoWarning, match="texture peaks at depth 7"):
+        _, p = stages.peel(volume, (1.0, 1.0, 1.0), sphere, {"range": [0, 5]})
+    assert p["texture"]["outside"] and p["texture"]["peak_depth"] == pytest.approx(7.0, abs=0.6)
+    _, p = stages.peel(volume, (1.0, 1.0, 1.0), sphere, {"range": [4, 9]})
+    assert not p["texture"]["outside"]
+    row = {"euler_characteristic": 2, "charge_sum": 2.0, "n_defects": 4, "n_directors": 100, "S_mean": 0.8}
+    assert quality_flags(row, {}) == []
+    row["texture"] = {"outside": True, "peak_depth": 7.0}
+    assert [f for f in quality_flags(row, {}) if "texture peaks at depth 7" in f]
