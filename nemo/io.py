@@ -549,17 +549,18 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     return mask
 
 
-def _warn_if_probabilities(data: np.ndarray, name: str) -> None:
+def _warn_if_probabilities(data: np.ndarray, name: str) -> bool:
     """Warn when a mask read without a threshold looks like a probability map on another scale:
     float values beyond 1 (cut at 0.5 they select nearly every nonzero voxel), or integers that
-    vary from voxel to voxel inside the object (a label image is constant within each label)."""
+    vary from voxel to voxel inside the object (a label image is constant within each label).
+    Returns whether the mask is a probability map (float, or warned about)."""
     top = float(np.nanmax(data))
     if np.issubdtype(data.dtype, np.floating):
         if top > 1.0:
             warnings.warn(f"{name} is a float image with values up to {top:.4g}: cut at 0.5 as a probability map "
                           "in [0, 1]; if its scale is another, give mask_threshold (e.g. half its maximum)",
                           NemoWarning, stacklevel=4)
-        return
+        return True
     rows = data[:: max(1, data.shape[0] // 16), :: max(1, data.shape[1] // 256)]  # a sample of whole rows
     left, right = rows[:, :, :-1], rows[:, :, 1:]
     inside = (left != 0) & (right != 0)
@@ -569,6 +570,32 @@ def _warn_if_probabilities(data: np.ndarray, name: str) -> None:
                       f"to {top:.4g}): it looks like a probability map saved as integers, read here as labels "
                       "(every nonzero voxel is object); give mask_threshold (e.g. half its range) if it is one",
                       NemoWarning, stacklevel=4)
+        return True
+    return False
+
+
+def _warn_if_labels_touch(data: np.ndarray, name: str) -> None:
+    """Warn when labels of an integer label image touch: every nonzero label is object, so touching
+    objects (Cellpose cells, packed nuclei) merge into one surface."""
+    if np.issubdtype(data.dtype, np.floating) or data.dtype == bool:
+        return
+    pairs: set[tuple[int, int]] = set()
+
+    def add(lo: np.ndarray, hi: np.ndarray) -> None:
+        touch = (lo != hi) & (lo != 0) & (hi != 0)
+        if touch.any():
+            pairs.update(zip(np.minimum(lo[touch], hi[touch]).tolist(), np.maximum(lo[touch], hi[touch]).tolist()))
+
+    for z in range(len(data)):  # plane by plane: a large label image needs no full-size temporaries
+        plane = data[z]
+        add(plane[:-1], plane[1:])
+        add(plane[:, :-1], plane[:, 1:])
+        if z + 1 < len(data):
+            add(plane, data[z + 1])
+    if pairs:
+        shown = ", ".join(f"{a}–{b}" for a, b in sorted(pairs)[:5]) + (" …" if len(pairs) > 5 else "")
+        warnings.warn(f"{name}: labels touch ({shown}): with every nonzero label as object they are meshed as one "
+                      "surface; give mask_labels to select one object", NemoWarning, stacklevel=4)
 
 
 def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float | None,
@@ -585,7 +612,8 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
                             f"{present[:20].tolist()}{' …' if present.size > 20 else ''}")
         return mask
     if threshold is None:
-        _warn_if_probabilities(data, name)
+        if not _warn_if_probabilities(data, name):
+            _warn_if_labels_touch(data, name)
     if threshold is None and np.issubdtype(data.dtype, np.floating):
         threshold = 0.5
     mask = data > threshold if threshold is not None else data != 0

@@ -511,9 +511,9 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
         return mesh if split or keep == "all" else _with_metadata(keep_components(mesh, keep), mesh)
     warnings.warn(
         f"the image holds {len(objects)} objects: analysing the largest ({_describe_objects(objects[:1], unit)}) "
-        f"and ignoring {len(objects) - 1} other object(s): {_describe_objects(objects[1:], unit)}; give a "
-        "`mask` or crop the image to analyse another one" + (
-            "" if split else ", or set `keep` all (config mesh.keep: all) to analyse each of them"),
+        f"and ignoring {len(objects) - 1} other object(s): {_describe_objects(objects[1:], unit)}; set `keep` all "
+        "(config mesh.keep: all) to analyse each of them, select one with a `mask` (with a label image: "
+        "mask_labels), or crop the image",
         NemoWarning, stacklevel=3)
     if split:  # the largest object with its own inner walls (components nested in it)
         return _with_metadata(_object_with_nested(mesh, objects[0]["component"]), mesh)

@@ -378,6 +378,25 @@ def test_mask_from_a_label_image(segmentation):
         read_mask(d / "labels.tif", 0, 0, shape, labels=[5])
 
 
+def test_touching_labels_are_warned_about(tmp_path):
+    """Two touching cells of a label image merge into one surface when every label is object: warned,
+    naming the pair; a label selection, separate labels and a binary mask are not."""
+    labels = np.zeros((6, 10, 16), np.uint16)
+    labels[1:5, 2:8, 2:8], labels[1:5, 2:8, 8:14] = 1, 2  # touching along x
+    write_hyperstack(tmp_path / "touch.tif", labels, (1, 1, 1), axes="ZYX")
+    with pytest.warns(NemoWarning, match="labels touch \\(1–2\\).*mask_labels"):
+        read_mask(tmp_path / "touch.tif", 0, 0, labels.shape)
+    apart = labels.copy()
+    apart[:, :, 8] = 0
+    write_hyperstack(tmp_path / "apart.tif", apart, (1, 1, 1), axes="ZYX")
+    write_hyperstack(tmp_path / "binary.tif", (labels > 0).astype(np.uint8), (1, 1, 1), axes="ZYX")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_mask(tmp_path / "touch.tif", 0, 0, labels.shape, labels=[2])
+        read_mask(tmp_path / "apart.tif", 0, 0, labels.shape)
+        read_mask(tmp_path / "binary.tif", 0, 0, labels.shape)
+
+
 def test_mask_from_a_probability_map(segmentation):
     d, labels = segmentation
     shape = labels.shape[1:]
