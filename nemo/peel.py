@@ -379,7 +379,7 @@ def texture_profile(volume: np.ndarray, spacing, vertices: np.ndarray, normals: 
     """Where along the normals the image has texture, around a layer's depth range.
 
     At depths from ``d_min − w`` to ``d_max + w`` (w = the range's width, at least 2 of the
-    largest voxel; steps of half the smallest voxel, at least ¼ of the range) the image is sampled
+    largest voxel; steps of half the smallest voxel, at most ¼ of w, at most 121 depths) the image is sampled
     at up to :data:`TEXTURE_VERTICES` vertices; the texture at a depth is the RMS over them of
     each sample minus the mean of its :data:`TEXTURE_NEIGHBOURS` nearest (a high-pass along the
     surface: fibres and spots stand out, a smooth wall and the PSF's orientation dependence do
@@ -408,7 +408,7 @@ def texture_profile(volume: np.ndarray, spacing, vertices: np.ndarray, normals: 
 
     sp = np.asarray(check_spacing(spacing), dtype=np.float64)
     width = max(d_max - d_min, 2.0 * float(sp.max()))
-    step = min(0.5 * float(sp.min()), 0.25 * width) if d_max > d_min else 0.5 * float(sp.min())
+    step = max(min(0.5 * float(sp.min()), 0.25 * width), (d_max - d_min + 2 * width) / 120)
     depths = np.arange(d_min - width, d_max + width + 0.5 * step, step)
     pick = np.random.default_rng(rng).permutation(len(vertices))[:TEXTURE_VERTICES]
     v, n = np.asarray(vertices, dtype=np.float64)[pick], np.asarray(normals, dtype=np.float64)[pick]
@@ -419,7 +419,7 @@ def texture_profile(volume: np.ndarray, spacing, vertices: np.ndarray, normals: 
     _, near = cKDTree(v).query(v, k=TEXTURE_NEIGHBOURS)
     points = v[None] + depths[:, None, None] * n[None]  # (D, P, 3), x y z
     zyx = (points[..., ::-1] / sp).reshape(-1, 3).T
-    values = ndimage.map_coordinates(np.asarray(volume, dtype=np.float32), zyx, order=1, mode="nearest")
+    values = ndimage.map_coordinates(volume, zyx, order=1, mode="nearest", output=np.float32)  # no copy of the stack
     values = values.reshape(len(depths), len(v))
     texture = np.sqrt(np.mean((values - values[:, near].mean(axis=2)) ** 2, axis=1))
     within = (depths >= d_min - 1e-9) & (depths <= d_max + 1e-9)
