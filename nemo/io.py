@@ -514,7 +514,8 @@ def _read_pixels(series: tifffile.TiffPageSeries, key: tuple, path: str | os.Pat
 
 
 def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
-              labels: list[int] | None = None, threshold: float | None = None) -> np.ndarray:
+              labels: list[int] | None = None, threshold: float | None = None,
+              channel: int | None = None) -> np.ndarray:
     """The object mask for time point ``t``, channel ``c`` of an image, from a segmentation.
 
     The mask is a TIFF or OME-Zarr image with its own T and C axes (then ``t``/``c`` select
@@ -525,6 +526,9 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
       objects; without it every nonzero label is object;
     * a probability map (ilastik pixel classification, float values in [0, 1]): object where
       the value exceeds ``threshold`` (0.5 for a float image without a threshold).
+
+    ``channel`` picks the mask's channel (a probability map with one channel per class: the
+    object's class); None takes ``c`` when the mask has channels, else its only one.
 
     Returns
     -------
@@ -539,6 +543,11 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     info = read_info(path)
     mt = t if info.shape["T"] > 1 else 0
     mc = c if info.shape["C"] > 1 else 0
+    if channel is not None:
+        if not 0 <= int(channel) < info.shape["C"]:
+            raise NemoError(f"mask_channel {channel} is not a channel of the mask {path}, which has "
+                            f"{info.shape['C']} channel(s) (0 to {info.shape['C'] - 1})")
+        mc = int(channel)
     data, _ = read_stack(path, mt, mc, spacing=(1.0, 1.0, 1.0), sparse=True)  # its calibration is irrelevant
     if data.shape != tuple(shape):
         raise NemoError(

@@ -49,6 +49,7 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing, psf=None) -> dic
     return {"dataset": dataset, "image": str(image), "spacing": spacing or d.get("spacing"),
             "psf": check_psf_spec(psf if psf is not None else d.get("psf"), "psf"),
             "mask": d.get("mask"), "mask_labels": d.get("mask_labels"), "mask_threshold": d.get("mask_threshold"),
+            "mask_channel": d.get("mask_channel"),
             "surface_mesh": d.get("surface_mesh"), "mesh_unit": d.get("mesh_unit"),
             "seg": cfg["segment_channel"] if seg is None else seg}
 
@@ -319,7 +320,7 @@ def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict):
     if not frame["mask"]:
         return None
     return read_mask(frame["mask"], t, frame["seg"], shape, labels=frame["mask_labels"],
-                     threshold=frame["mask_threshold"])
+                     threshold=frame["mask_threshold"], channel=frame["mask_channel"])
 
 
 def _mesh_or_import(volume, info, mask, section: dict, psf=None, deconvolved=None):

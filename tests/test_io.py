@@ -378,6 +378,18 @@ def test_mask_from_a_label_image(segmentation):
         read_mask(d / "labels.tif", 0, 0, shape, labels=[5])
 
 
+def test_the_masks_channel_picks_the_class_of_a_probability_map(tmp_path):
+    """ilastik's map of one channel per class (0 background, 1 object): mask_channel 1 is the object
+    whatever the image's channel; a channel the mask lacks is named."""
+    ball = np.zeros((6, 10, 10), np.float32)
+    ball[1:5, 2:8, 2:8] = 0.9
+    write_hyperstack(tmp_path / "classes.tif", np.stack([1 - ball, ball], axis=1), (1, 1, 1), axes="ZCYX")
+    np.testing.assert_array_equal(read_mask(tmp_path / "classes.tif", 0, 0, ball.shape, channel=1), ball > 0.5)
+    np.testing.assert_array_equal(read_mask(tmp_path / "classes.tif", 0, 0, ball.shape), ball < 0.5)  # c = 0
+    with pytest.raises(NemoError, match="mask_channel 2 is not a channel of the mask .* 2 channel"):
+        read_mask(tmp_path / "classes.tif", 0, 0, ball.shape, channel=2)
+
+
 def test_touching_labels_are_warned_about(tmp_path):
     """Two touching cells of a label image merge into one surface when every label is object: warned,
     naming the pair; a label selection, separate labels and a binary mask are not."""

@@ -948,6 +948,20 @@ def test_each_channel_is_deconvolved_by_its_own_psf(tmp_path):
     assert proc.returncode != 0 and "datasets.two.psf" in proc.stderr and "not for channel 1" in proc.stderr
 
 
+def test_the_masks_channel_reaches_the_mesh_job(tmp_path):
+    """datasets.NAME.mask_channel: the mesh job reads that channel of the mask (dry run)."""
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "classes.tif", np.zeros((30, 2, 60, 60), np.float32), imagej=True,
+                     metadata={"axes": "ZCYX"})
+    cfg = {"datasets": {"one": {"path": "one.tif", "mask": str(tmp_path / "classes.tif"), "mask_channel": 1,
+                                "synthetic": {"radius": 30, "spacing": [2, 1, 1], "seed": 3}}},
+           "curvature": None, "alignment": [], "report": {"summary": False, "frames": False}}
+    proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    mesh = [line for line in proc.stdout.splitlines() if " mesh " in line and "--mask " in line]
+    assert mesh and all("--mask-channel 1" in line for line in mesh), proc.stdout[-3000:]
+
+
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
     """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
     mesh and both peels use that one deconvolution (their provenance records the same run),

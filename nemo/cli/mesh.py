@@ -94,6 +94,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mask-threshold", type=number, metavar="P",
                         help="object where the --mask value exceeds P (default 0.5 for a floating-point "
                              "probability map, else nonzero)")
+    parser.add_argument("--mask-channel", type=int, metavar="C",
+                        help="the --mask's channel to use (a probability map with a channel per class: the "
+                             "object's class; default: --c when the mask has channels)")
     parser.add_argument("--from-mesh", metavar="SURFACE",
                         help="use this surface (PLY, OBJ or STL made in MeshLab, Blender, ilastik ...) instead "
                              "of meshing the image: it is checked against the image (unit, extent, manifold) "
@@ -159,10 +162,10 @@ def run(args) -> int:
     volume, info = read_stack(args.image, args.t, args.c, spacing=args.spacing)
     logger.info("read %s t=%d c=%d: %s %s, spacing %s %s", args.image, args.t, args.c,
                 "x".join(map(str, volume.shape)), volume.dtype, tuple(info.spacing), info.unit)
-    if (args.mask_labels or args.mask_threshold is not None) and not args.mask:
-        raise NemoError("--mask-labels and --mask-threshold select from a --mask: give the mask file")
+    if (args.mask_labels or args.mask_threshold is not None or args.mask_channel is not None) and not args.mask:
+        raise NemoError("--mask-labels, --mask-threshold and --mask-channel select from a --mask: give the mask file")
     mask = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
-                     threshold=args.mask_threshold) if args.mask else None
+                     threshold=args.mask_threshold, channel=args.mask_channel) if args.mask else None
     if args.from_mesh:
         if mask is not None or args.deconvolved:
             raise NemoError(f"--from-mesh replaces the meshing of the image: drop "

@@ -326,6 +326,7 @@ def _datasets():
             "mask": d["mask"],
             "mask_labels": d["mask_labels"],
             "mask_threshold": d["mask_threshold"],
+            "mask_channel": d["mask_channel"],
             "surface_mesh": d["surface_mesh"],
             "mesh_unit": d["mesh_unit"],
             "synthetic": d["synthetic"],
@@ -625,6 +626,8 @@ def mesh_source_opts(wc, input):
         out.append("--mask-labels " + " ".join(str(int(v)) for v in d["mask_labels"]))
     if d["mask_threshold"] is not None:
         out.append(f"--mask-threshold {float(d['mask_threshold'])!r}")
+    if d["mask_channel"] is not None:
+        out.append(f"--mask-channel {int(d['mask_channel'])}")
     if d["surface_mesh"] and d["mesh_unit"]:
         out.append(f"--mesh-unit {shlex.quote(d['mesh_unit'])}")
     return " ".join(o for o in out if o)
