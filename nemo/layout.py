@@ -281,6 +281,17 @@ def _has_mesh(d: Path) -> bool:
     return any(p.suffix.lower() in (".ply", ".obj") for p in d.iterdir() if p.is_file())
 
 
+def _run_frame(folder: Path) -> tuple[int, int]:
+    """(t, c) of a ``nemo run`` folder, from its ``summary.json`` ((0, 0) without one)."""
+    import json
+
+    try:
+        summary = json.loads((folder / SUMMARY_JSON).read_text())
+        return int(summary.get("t") or 0), int(summary.get("c") or 0)
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 0, 0
+
+
 def find_frames(path: str | os.PathLike, dataset: str | None = None) -> ResultsTree:
     """Find the frames under a results folder.
 
@@ -311,7 +322,7 @@ def find_frames(path: str | os.PathLike, dataset: str | None = None) -> ResultsT
     if _has_mesh(root):
         c = _int_from(_CHANNEL_DIR, root.name)
         t = _int_from(_FRAME_DIR, root.parent.name)
-        key = (t or 0, c or 0)
+        key = (t or 0, c or 0) if c is not None and t is not None else _run_frame(root)
         summary = root.parent.parent / "summary" if c is not None and t is not None else None
         return ResultsTree(root, None, {key: root},
                            summary if summary is not None and summary.is_dir() else None)

@@ -53,6 +53,11 @@ def test_find_frames_from_the_root_a_dataset_or_a_frame(tmp_path):
     assert layout.find_frames(tmp_path / "other").frames == {(5, 2): tmp_path / "other" / "t5" / "c2"}
     single = layout.find_frames(tmp_path / "demo" / "t1" / "c0")
     assert list(single.frames) == [(1, 0)] and single.summary == tmp_path / "demo" / "summary"
+    run = tmp_path / "run"  # a nemo run folder: its frame from summary.json (it titled c=0 for --c 1)
+    _touch(run / "mesh.ply")
+    assert list(layout.find_frames(run).frames) == [(0, 0)]  # no summary: (0, 0)
+    (run / "summary.json").write_text('{"t": 3, "c": 1}')
+    assert list(layout.find_frames(run).frames) == [(3, 1)]
     with pytest.raises(NemoError, match="dataset 'nope' not found"):
         layout.find_frames(tmp_path, dataset="nope")
     (tmp_path / "empty").mkdir()
