@@ -60,6 +60,30 @@ def layer_file(kind: str, layer: str) -> str:
     return f"{kind}_{layer}.parquet"
 
 
+def frame_record(sections: dict, t: int, c: int, layer: str, morphology_dir: str, layer_dir: str | None = None,
+                 surface: str | None = None) -> dict:
+    """The files of one frame and layer that :func:`nemo.summary.frame_summary` reads.
+
+    ``sections`` is the analysis (:func:`nemo.config.analysis`); ``morphology_dir`` the folder of
+    the segmented channel's meshes, measures, curvature and thickness, ``layer_dir`` that of the
+    layer's tables. ``layer`` "" is a morphology-only record of ``surface``. The workflow's
+    aggregation rules and ``nemo run`` build their records here, so they summarise alike.
+    """
+    if layer:
+        surface = sections["layers"][layer]["surface"]
+    thick = sections["thickness"] is not None and sections["thickness"]["from"] == surface
+    record = {"t": t, "c": c, "layer": layer, "surface": surface,
+              "measure": f"{morphology_dir}/{measure_file(surface)}",
+              "curvature": (f"{morphology_dir}/{curvature_file(surface)}" if sections["curvature"] is not None
+                            else None),
+              "thickness": f"{morphology_dir}/{THICKNESS}" if thick else None}
+    if layer:
+        imported = bool(sections["layers"][layer].get("directors_from"))  # no layer table
+        record.update({"layer_table" if k == "layer" else k: f"{layer_dir}/{layer_file(k, layer)}"
+                       for k in LAYER_KINDS if k != "layer" or not imported})
+    return record
+
+
 def refined_file(layer: str) -> str:
     """The refinement directors measured near each defect of a layer."""
     return f"refined_{layer}.parquet"

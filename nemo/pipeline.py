@@ -235,18 +235,9 @@ def _quality(out: Path, sections: dict, layers: dict, t: int, c: int, seg: int) 
     (:func:`nemo.summary.frame_summary` on the files just written)."""
     from nemo.summary import frame_summary
 
-    def morphology(surface: str) -> dict:
-        thick = sections["thickness"] is not None and sections["thickness"]["from"] == surface
-        return {"measure": out / layout.measure_file(surface),
-                "curvature": out / layout.curvature_file(surface) if sections["curvature"] is not None else None,
-                "thickness": out / layout.THICKNESS if thick else None}
-
-    records = [{"t": t, "c": c, "layer": name, "surface": layer["surface"], **morphology(layer["surface"]),
-                **{"layer_table" if k == "layer" else k: out / layout.layer_file(k, name) for k in layout.LAYER_KINDS
-                   if k != "layer" or not layer.get("directors_from")}}
-               for name, layer in layers.items()]
+    records = [layout.frame_record(sections, t, c, name, str(out), str(out)) for name in layers]
     if not sections["layers"]:
-        records = [{"t": t, "c": seg, "layer": "", "surface": surface, **morphology(surface)}
+        records = [layout.frame_record(sections, t, seg, "", str(out), surface=surface)
                    for surface in sections["surfaces"]]
     rows = frame_summary(records)
     return [{"layer": r.layer, "surface": r.surface, "object": int(r.object), "qc_pass": bool(r.qc_pass),

@@ -150,7 +150,8 @@ def mesh(
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit,
                         border=p["border"], refine=bool(p["refine"]), refine_sigma=p["refine_sigma"],
                         refine_to=p["refine_to"])
-    whole, p["turned_out"] = turn_out_dark_objects(whole)
+    found = find_objects(whole)  # once: the turn-out check and the choice of objects both need it
+    whole, p["turned_out"] = turn_out_dark_objects(whole, found)
     if p["turned_out"]:
         warnings.warn(f"{p['turned_out']} object(s) are dark regions enclosed by a foreground that fills the stack "
                       "around them (a dark object in a bright surround, or a mask's background class): their normals "
@@ -172,11 +173,10 @@ def mesh(
                       NemoWarning, stacklevel=2)
     _check_object_size(whole, spacing, unit)
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
-        found = find_objects(whole)
         meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)
         p["n_objects"] = len(found)
     else:  # several objects: the largest, and a warning
-        whole = one_object(whole, p["split"] != "none", p["keep"])
+        whole = one_object(whole, p["split"] != "none", p["keep"], objects=found)
         meshes = _walls(whole, p, centre)
         p["n_objects"] = int(whole.metadata["n_objects"])
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])

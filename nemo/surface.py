@@ -283,7 +283,7 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
              "centre": centre[c] / max(comp_area[c], 1e-300)} for c in big[~nested]]
 
 
-def turn_out_dark_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -> tuple[trimesh.Trimesh, int]:
+def turn_out_dark_objects(mesh: trimesh.Trimesh, objects: list[dict] | None = None) -> tuple[trimesh.Trimesh, int]:
     """Turn out the objects whose closed surface encloses the dark side of the image.
 
     Marching cubes winds a surface with its normals towards the darker side. An object
@@ -292,6 +292,9 @@ def turn_out_dark_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MI
     border's caps removed, ``border: open``): a vesicle in a stained medium, or a mask whose
     background class was given. Its faces, and those of every surface nested in it, are turned
     so that the normals point out of the enclosed region, as for a bright object.
+
+    ``objects`` is :func:`find_objects` of ``mesh`` when already made (turning faces changes
+    neither the components, their areas nor their nesting, so it still holds after).
 
     Returns
     -------
@@ -306,7 +309,7 @@ def turn_out_dark_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MI
     components, first_face = np.unique(labels, return_index=True)
     turn = np.zeros(len(faces), dtype=bool)
     n_turned = 0
-    for obj in find_objects(mesh, min_fraction):  # a loop over the few objects
+    for obj in find_objects(mesh) if objects is None else objects:  # a loop over the few objects
         own = labels == obj["component"]
         tri = vertices[faces[own]]
         volume = np.einsum("ij,ij->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
@@ -467,7 +470,7 @@ def image_noise(volume: np.ndarray, level: float) -> dict:
 
 
 def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all"] = "largest",
-               min_fraction: float = OBJECT_MIN_AREA) -> trimesh.Trimesh:
+               min_fraction: float = OBJECT_MIN_AREA, objects: list[dict] | None = None) -> trimesh.Trimesh:
     """Check that a reconstructed surface holds one object (:func:`find_objects`) before analysis.
 
     Parameters
@@ -482,6 +485,8 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
         everything; several objects with ``split`` are an error (their walls would be mixed).
     min_fraction : float
         Relative area below which a component is noise, not an object.
+    objects : list of dict, optional
+        :func:`find_objects` of ``mesh`` at ``min_fraction``, when already made.
 
     Returns
     -------
@@ -494,7 +499,7 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
     NemoError
         ``split`` with ``keep="all"`` and several objects.
     """
-    objects = find_objects(mesh, min_fraction)
+    objects = find_objects(mesh, min_fraction) if objects is None else objects
     mesh.metadata["n_objects"] = len(objects)  # carried to the result (quality control)
     unit = getattr(mesh, "units", None) or "um"
     if len(objects) < 2 or keep == "all":

@@ -713,54 +713,22 @@ def frame_records(name):
     """One record per (t, c, layer); a dataset without layers: one per (t, surface)."""
     d = DATA[name]
     s = SECTIONS[name]
-    records = []
 
-    def morphology(t, surface):
-        seg = layout.frame_dir(RESULTS, name, t, d["seg"])
-        thickness = s["thickness"] is not None and s["thickness"]["from"] == surface
-        return {
-            "measure": f"{seg}/{layout.measure_file(surface)}",
-            "curvature": (
-                f"{seg}/{layout.curvature_file(surface)}"
-                if s["curvature"] is not None
-                else None
-            ),
-            "thickness": f"{seg}/{layout.THICKNESS}" if thickness else None,
-        }
+    def seg(t):
+        return layout.frame_dir(RESULTS, name, t, d["seg"])
 
-    for t, c, layer in layer_frames(name):
-        frame = layout.frame_dir(RESULTS, name, t, c)
-        surface = s["layers"][layer]["surface"]
-        tables = {
-            (
-                k if k != "layer" else "layer_table"
-            ): f"{frame}/{layout.layer_file(k, layer)}"
-            for k in layout.LAYER_KINDS
-            if k != "layer" or not imported(name, layer)
-        }
-        records.append(
-            {
-                "t": t,
-                "c": c,
-                "layer": layer,
-                "surface": surface,
-                **morphology(t, surface),
-                **tables,
-            }
-        )
     if not s["layers"]:
-        records = [
-            {
-                "t": t,
-                "c": d["seg"],
-                "layer": "",
-                "surface": surface,
-                **morphology(t, surface),
-            }
+        return [
+            layout.frame_record(s, t, d["seg"], "", seg(t), surface=surface)
             for t in d["t"]
             for surface in s["surfaces"]
         ]
-    return records
+    return [
+        layout.frame_record(
+            s, t, c, layer, seg(t), layout.frame_dir(RESULTS, name, t, c)
+        )
+        for t, c, layer in layer_frames(name)
+    ]
 
 
 def defect_records(name):
