@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -62,6 +63,11 @@ def make_folder(folder: str | os.PathLike) -> Path:
             from None
     if not os.access(folder, os.W_OK):
         raise NemoError(f"the folder {folder} is not writable; choose a writable output path")
+    try:  # root passes os.access on /proc or a read-only mount: try a file, before any work is done
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError as exc:
+        raise NemoError(f"cannot write in the folder {folder} ({exc.strerror}); choose a writable output path") \
+            from None
     return folder
 
 
