@@ -17,9 +17,11 @@ so that normals point **out of the bright object** (the solid). Steps:
    (blurred-image gradient below a quarter of the edge's) peaks on its upper flank, that peak is
    the plateau (:func:`_flat_plateau`). That is where a
    blurred step edge really lies: Yen's own level sits on the dim tail of the edge and would
-   shift the surface by about 2σ of the total blur. Without such a peak (a wall smeared by
-   texture and noise), the plateau is the median of the voxels above the threshold, and the
-   level never goes below the threshold (a blob keeps the threshold itself).
+   shift the surface by about 2σ of the total blur. Without such a peak, the plateau is the
+   median of the object's flat core where it has one (a small noisy object:
+   :func:`_interior_plateau`), else (a wall smeared by texture and noise) the median of the
+   voxels above the threshold, and the level never goes below the threshold (a blob keeps the
+   threshold itself).
    A numeric threshold is used as the iso-level as given; a mask is blurred by σ and cut at 0.5.
 3. The blurred volume is sampled every ``step`` voxels (the grid scikit-image's marching cubes
    would use with ``step_size=step``) and padded by one sample of its minimum, so that
@@ -100,9 +102,19 @@ __all__ = [
 ]
 
 _MAX_THRESHOLD_SAMPLES = 4_000_000
+#: Fewest samples along each axis of a stack that :func:`reconstruct` meshes.
+MIN_PLANES = 3
 #: Flat voxels of the plateau (:func:`_flat_plateau`): blurred-image gradient below this
 #: fraction of the median gradient at the edge.
 FLAT_GRADIENT = 0.25
+#: The flat core of a small object (:func:`_interior_plateau`): its interior lies deeper than this
+#: many measured edge widths inside the threshold surface (an erf edge is within 0.003 % of its
+#: plateau at 4 σ), the core one width deeper; the core needs this many samples, and the
+#: interior's spread and the core's step over the interior at most this fraction of the contrast.
+INTERIOR_EDGE_WIDTHS = 4.0
+INTERIOR_MIN_SAMPLES = 20
+INTERIOR_MAX_SPREAD = 0.15
+_MAX_INTERIOR_SAMPLES = 500_000
 #: A separate surface counts as an object when its area is at least this fraction of the largest
 #: one's (smaller ones are noise specks or debris, dropped by ``keep="largest"``).
 OBJECT_MIN_AREA = 0.1
@@ -801,7 +813,8 @@ def auto_sigma(
         return cache[sigma]
 
     def level_of(b):  # thresholded like reconstruct (edge "half")
-        return _iso_level(b, float(b.min()), float(b.max()), False, threshold, "half", scale)[0]
+        return _iso_level(b, float(b.min()), float(b.max()), False, threshold, "half", scale,
+                          (dz * k, dy * k, dx * k))[0]
 
     b0 = blurred(floor)
     level = level_of(b0)
@@ -855,7 +868,9 @@ def iso_level(volume: np.ndarray, spacing, sigma: float, step: int = 1, threshol
     (dz, dy, dx), step, sigma = _check_reconstruct_args(spacing, sigma, "all", edge, step, 0, 0.1)
     source, _, scale, _ = _source(volume, None)
     field = _blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), step)
-    return float(_iso_level(field, float(field.min()), float(field.max()), False, threshold, edge, scale)[0]) * scale
+    level = _iso_level(field, float(field.min()), float(field.max()), False, threshold, edge, scale,
+                       (dz * step, dy * step, dx * step))[0]
+    return float(level) * scale
 
 
 def parse_threshold(threshold) -> str | float:
@@ -883,13 +898,17 @@ def parse_threshold(threshold) -> str | float:
     return value
 
 
-def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float, float | None]:
+def _auto_level(field: np.ndarray, method: str, edge: str,
+                spacing=(1.0, 1.0, 1.0)) -> tuple[float, float, float | None]:
     """(classification threshold, iso-level, background) of an automatic threshold on a blurred volume.
 
     The background is the mode of the class below the threshold (None when every or no sample
     lies below it); the plateau the most populated histogram peak above it, moved up to the
     peak of the flat voxels' histogram where that lies on its upper flank
-    (:func:`_flat_plateau`); the iso-level is half-way between them.
+    (:func:`_flat_plateau`); without such a peak the median of the object's flat interior
+    (:func:`_interior_plateau`) or of the whole object. The iso-level is half-way between the
+    background and the plateau. ``spacing`` (dz, dy, dx) is the physical spacing of ``field``'s
+    samples.
     """
     from skimage import filters
 
@@ -921,16 +940,74 @@ def _auto_level(field: np.ndarray, method: str, edge: str) -> tuple[float, float
     # ... and by more than the counts' own noise (3 Poisson std): no blips of the sparse tail
     ok = (counts[peaks] >= (4.0 / 3.0) * valley[peaks - b0]) & (rise >= 3.0 * np.sqrt(counts[peaks]))
     if not ok.any():  # no plateau peak (a blob, or a wall smeared by texture and noise)
-        # half-way to the object's median instead, never below the threshold: a textured noisy
-        # wall gets its half-maximum level, a blob (median near the threshold) the threshold
+        # half-way to the flat interior's median (a small object's plateau: too few voxels for a
+        # histogram peak), else to the object's median, never below the threshold: a textured
+        # noisy wall gets its half-maximum level, a blob (median near the threshold) the threshold
         above = sample[sample > thr]
-        level = max(thr, 0.5 * (background + float(np.median(above)))) if above.size else thr
+        if not above.size:
+            return thr, thr, background
+        median = float(np.median(above))
+        interior = _interior_plateau(sub, thr, background, median, np.asarray(spacing, float) * k)
+        level = max(thr, 0.5 * (background + (median if interior is None else interior)))
         logger.info("no object plateau in the intensity histogram: surface %s",
-                    f"at the {method} threshold" if level == thr else "half-way to the object's median")
+                    f"at the {method} threshold" if level == thr else
+                    "half-way to the object's median" if interior is None else
+                    "half-way to the median of its flat interior")
         return thr, level, background
     top = peaks[ok][np.argmax(counts[peaks[ok]])]
     plateau = _flat_plateau(sub, background, edges, counts, top)
     return thr, 0.5 * (background + plateau), background
+
+
+def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: float,
+                      spacing: np.ndarray) -> float | None:
+    """The plateau of an object's flat core, or None when it has none.
+
+    A small object (a droplet or a nucleus a few voxels across) has too few voxels for a plateau
+    peak in the histogram once noise spreads them, and most of its voxels lie on the blurred
+    edge, so its median is well below the plateau (a noisy ball of radius 6 voxels: level 719 for
+    900, volume +13 %). Its core is the plateau. Depths are counted in edge widths σ inside the
+    threshold surface (Euclidean distance, physical), σ measured as
+    ``(median − background) / (√(2π) g)``, g the median gradient magnitude within 10 % of the
+    contrast of the provisional half level (an erf edge of contrast C and width σ is steepest at
+    C / (√(2π) σ)). The interior lies deeper than :data:`INTERIOR_EDGE_WIDTHS` σ, its core one σ
+    deeper still; the plateau is the core's median. Accepted only for a flat interior: at least
+    :data:`INTERIOR_MIN_SAMPLES` samples in the core (twice that in the interior), and both the
+    interior's spread (interquartile range / 1.349) and the core's step over the interior's
+    first σ at most :data:`INTERIOR_MAX_SPREAD` of the contrast. A wall's texture fails it: a
+    bright sheet in a wall fills a thin interior with no core, fibres make a step or a spread.
+
+    Parameters
+    ----------
+    sub : ndarray, shape (Z, Y, X)
+        The (strided) blurred volume.
+    thr : float
+        The classification threshold.
+    background, median : float
+        The background and the median of the samples above ``thr``.
+    spacing : ndarray, shape (3,)
+        Physical spacing of ``sub``'s samples (dz, dy, dx).
+    """
+    if min(sub.shape) < 3 or median <= background:
+        return None
+    m = max(1, int(np.ceil((sub.size / _MAX_INTERIOR_SAMPLES) ** (1 / 3))))  # the EDT costs 0.6 s at 1.6 M
+    sub, spacing = sub[::m, ::m, ::m], spacing * m
+    half = 0.5 * (background + median)
+    band = np.abs(sub - half) < 0.1 * (median - background)
+    if not band.any():
+        return None
+    grad = np.sqrt(sum((g / d) ** 2 for g, d in zip(np.gradient(sub.astype(np.float32, copy=False)), spacing)))
+    width = (median - background) / (np.sqrt(2.0 * np.pi) * max(float(np.median(grad[band])), 1e-300))
+    depth = ndi.distance_transform_edt(sub > thr, sampling=spacing) / width
+    inside = sub[depth > INTERIOR_EDGE_WIDTHS]
+    core = sub[depth > INTERIOR_EDGE_WIDTHS + 1.0]
+    if inside.size < 2 * INTERIOR_MIN_SAMPLES or core.size < INTERIOR_MIN_SAMPLES:
+        return None
+    q25, q75 = np.percentile(inside, [25, 75])
+    first = (depth > INTERIOR_EDGE_WIDTHS) & (depth <= INTERIOR_EDGE_WIDTHS + 1.0)  # the interior's first σ
+    plateau, rim = float(np.median(core)), float(np.median(sub[first]))
+    flat = max((q75 - q25) / 1.349, abs(plateau - rim)) <= INTERIOR_MAX_SPREAD * (plateau - background)
+    return plateau if plateau > median and flat else None
 
 
 def _histogram_edges(values: np.ndarray, bins: int = 256) -> np.ndarray:
@@ -1212,9 +1289,7 @@ def reconstruct(
     if border not in ("open", "closed"):
         raise NemoError(f"border must be 'open' or 'closed', got {border!r}")
     source, shape, scale, mask = _source(volume, mask)
-    if min(shape) <= step:
-        raise NemoError(f"step {step} (voxels) leaves fewer than 2 samples along an axis of the stack "
-                        f"(Z, Y, X) = {tuple(shape)}: give a step of at most {max(1, min(shape) - 1)}")
+    _check_stack_depth(shape, step)
 
     sig_vox = (sigma / dz, sigma / dy, sigma / dx)
     with log_step(f"blurring {shape[0]}x{shape[1]}x{shape[2]} voxels (sigma {sigma:g} {unit})"):
@@ -1226,7 +1301,8 @@ def reconstruct(
     del field
     inner = padded[_PAD:-_PAD, _PAD:-_PAD, _PAD:-_PAD]
     vmin, vmax = float(inner.min()), float(inner.max())
-    level, thr, how, background = _iso_level(inner, vmin, vmax, mask is not None, threshold, edge, scale)
+    level, thr, how, background = _iso_level(inner, vmin, vmax, mask is not None, threshold, edge, scale,
+                                             (dz * step, dy * step, dx * step))
     logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
     del inner
 
@@ -1387,6 +1463,23 @@ def _apply_border(mesh: trimesh.Trimesh, border: str, box: np.ndarray) -> tuple[
     return mesh, {"cap_faces": n_cap, "rim_vertices": info["n_vertices"], "rim_loops": info["n_loops"]}
 
 
+def _check_stack_depth(shape: tuple[int, int, int], step: int) -> None:
+    """Refuse a stack with fewer than :data:`MIN_PLANES` samples (at ``step``) along an axis.
+
+    Two planes mesh to a band one sample tall whose every vertex lies on its rim; the error then
+    came from the curvature fit, naming a triangle soup.
+    """
+    thin = [(name, n) for name, n in zip("ZYX", shape) if n < MIN_PLANES]
+    if thin:
+        name, n = thin[0]
+        raise NemoError(f"the stack (Z, Y, X) = {tuple(shape)} has {n} sample(s) along {name}: a surface needs "
+                        f"at least {MIN_PLANES} planes along every axis; check the file's axes (`nemo info FILE`: "
+                        "channels or time points read as Z?) or give a 3-D stack")
+    if -(-min(shape) // step) < MIN_PLANES:
+        raise NemoError(f"step {step} (voxels) leaves fewer than {MIN_PLANES} samples along an axis of the stack "
+                        f"(Z, Y, X) = {tuple(shape)}: give a step of at most {max(1, (min(shape) - 1) // 2)}")
+
+
 def _check_reconstruct_args(spacing, sigma, keep, edge, step, smooth_iter, pass_band):
     """Checked spacing ``(dz, dy, dx)``, step (int) and σ (default :func:`default_sigma`)."""
     dz, dy, dx = check_spacing(spacing)
@@ -1467,7 +1560,7 @@ def _pad_with_minimum(field: np.ndarray) -> np.ndarray:
 
 
 def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, threshold, edge: str,
-               scale: float) -> tuple[float, float, str | float, float | None]:
+               scale: float, spacing=(1.0, 1.0, 1.0)) -> tuple[float, float, str | float, float | None]:
     """Iso-level of the blurred (scaled) field, the threshold it came from, how it was found and
     the background (:func:`_auto_level`; None for a mask or a given level).
 
@@ -1488,7 +1581,7 @@ def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, thr
         )
     background = None
     if isinstance(how, str):
-        thr, level, background = _auto_level(inner, how, edge)
+        thr, level, background = _auto_level(inner, how, edge, spacing)
     else:
         thr = level = how / scale  # the volume was divided by scale (_float32_safe)
     rng = f"blurred intensities {vmin * scale:.4g} to {vmax * scale:.4g}"
