@@ -31,7 +31,6 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 from __future__ import annotations
 
 import os
-import types
 import warnings
 
 import numpy as np
@@ -738,9 +737,8 @@ def defects(
         if p["contour_radius"] is not None:
             raise  # the user's own radius: theirs to change
         # a radius derived from the data (the averaging radius): the morphology of a small object is still wanted
-        whole = types.SimpleNamespace(label=None, mesh=mesh)
-        return _no_defects(whole, params, f"the object is too small for the lengths derived from the data: "
-                                          f"{exc.reason}")
+        return _no_defects(mesh, None, params, f"the object is too small for the lengths derived from the data: "
+                                               f"{exc.reason}")
 
 
 def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, intensity, director_params):
@@ -793,7 +791,7 @@ def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvat
                                    objects.pick(director_params, k))
         except ObjectTooSmallError as exc:  # e.g. an object smaller than its averaging radius: the others go on
             errors.append(exc)
-            df, extra, p = _no_defects(part, params, str(exc))
+            df, extra, p = _no_defects(part.mesh, part.label, params, str(exc))
         found.append(df)
         extras.append(extra)
         resolved.append(p)
@@ -816,18 +814,19 @@ def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvat
     return out, extra, objects.combine_params(resolved, split)
 
 
-def _no_defects(part, params: dict | None, reason: str) -> tuple[pd.DataFrame, None, dict]:
-    """The empty result of an object whose defect search cannot run, with a warning naming why."""
+def _no_defects(mesh: trimesh.Trimesh, label, params: dict | None, reason: str) -> tuple[pd.DataFrame, None, dict]:
+    """The empty result of an object (``label``; None for the only one) whose defect search cannot
+    run, with a warning naming why."""
     import warnings
 
     from nemo.defects import COLUMNS
     from nemo.errors import NemoWarning
 
-    what = "" if part.label is None else f"object {part.label}: "
+    what = "" if label is None else f"object {label}: "
     warnings.warn(f"{what}no defect search ({reason})", NemoWarning, stacklevel=3)
     df = pd.DataFrame(columns=list(COLUMNS))
-    df.attrs["euler_check"] = {"sum_charge": 0.0, "sum_charge_rounded": 0.0, "closed": bool(part.mesh.is_watertight),
-                               "euler_characteristic": int(part.mesh.euler_number), "matches": False,
+    df.attrs["euler_check"] = {"sum_charge": 0.0, "sum_charge_rounded": 0.0, "closed": bool(mesh.is_watertight),
+                               "euler_characteristic": int(mesh.euler_number), "matches": False,
                                "skipped": reason}
     df.attrs["parameters"] = {"skipped": reason}
     return df, None, {**nconfig.section("defects", params), "skipped": reason}
