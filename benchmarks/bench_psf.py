@@ -45,14 +45,12 @@ def cost(shape: tuple[int, int, int], spacing=(2.5, 1.0, 1.0), psf=(2.5, 1.0, 1.
 def run_frame(folder: Path, noise: float, seed: int, psf: bool) -> dict:
     """One frame synthesised (once) and analysed; its score, thickness and time."""
     import pandas as pd
+    from bench_defect_weights import synth_vesicle  # the same frames (run from benchmarks/ as a script)
 
     nemo = [sys.executable, "-m", "nemo"]
     folder.mkdir(parents=True, exist_ok=True)
     image = folder / "v.tif"
-    if not image.exists():
-        subprocess.run([*nemo, "synth", str(image), "--radius", "80", "--spacing", "2.5", "1", "1", "--blur", "2.5",
-                        "1", "1", "--photons", "70", "--noise", f"{noise:g}", "--rotate-random", str(seed),
-                        "--seed", str(seed)], check=True, capture_output=True)
+    synth_vesicle(image, noise, seed)
     out = folder / ("psf" if psf else "plain")
     start = time.perf_counter()
     subprocess.run([*nemo, "run", str(image), "-o", str(out), *(["--psf", "2.5", "1", "1"] if psf else [])],
