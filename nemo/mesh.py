@@ -9,7 +9,8 @@ it the container the rest of NEMO uses:
 * ``mesh.metadata["spacing"]`` -- ``(dz, dy, dx)`` of the image the mesh was reconstructed
   from (a PLY header comment), so later steps can check they read the same image;
 * ``mesh.vertex_attributes`` -- per-vertex fields (``(N,)`` float arrays), written as extra
-  PLY vertex properties and read back.
+  PLY vertex properties and read back; a name starting with ``_`` is private to a run (e.g.
+  :data:`nemo.surface.CLOSED_SURFACE_FIELD`) and not written.
 
 Meshes edited elsewhere (MeshLab, Blender) come back through :func:`load_mesh`.
 """
@@ -204,7 +205,7 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
         out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
         for name, values in mesh.vertex_attributes.items():
             values = np.asarray(values)
-            if values.ndim == 1 and len(values) == len(mesh.vertices):
+            if values.ndim == 1 and len(values) == len(mesh.vertices) and not name.startswith("_"):  # _: private
                 out.vertex_attributes[name] = values.astype(np.float64)
         data = out.export(file_type="ply", encoding="binary")
         unit = getattr(mesh, "units", None) or "um"

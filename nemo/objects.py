@@ -181,7 +181,7 @@ def object_meshes(whole: trimesh.Trimesh, found: Sequence[dict]) -> list[trimesh
     """Each object of ``found`` (:func:`nemo.surface.find_objects`) with the surfaces nested in it."""
     from nemo.surface import _object_with_nested  # the same nesting test as find_objects
 
-    return [_object_with_nested(whole, o["component"]) for o in found]
+    return [_object_with_nested(whole, o["components"]) for o in found]
 
 
 def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis,

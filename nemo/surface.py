@@ -250,7 +250,10 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
     by the image border, ``border="open"``) is first closed by a fan over each rim loop
     (:func:`nemo.geometry.close_rim`): for a rim on a border plane that is the flat cap the
     open surface lost, so a cut shell's inner wall is still nested in its outer wall and two
-    cut objects side by side stay two objects.
+    cut objects side by side stay two objects. A rim running over several border planes gets no
+    flat cap from a fan, so the pieces that the cut took from one closed surface (recorded by
+    :func:`reconstruct` in :data:`CLOSED_SURFACE_FIELD`: the two faces of a sheet cut on every
+    side) are one object whatever their nesting: only the largest of them is a candidate.
 
     Parameters
     ----------
@@ -261,7 +264,8 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
     Returns
     -------
     list of dict
-        Largest first: ``component`` (label of :func:`face_components`), ``area``, ``radius``
+        Largest first: ``component`` (label of :func:`face_components`), ``components`` (it and
+        the other pieces of its closed surface, largest first), ``area``, ``radius``
         (of the sphere of the same area, ``sqrt(area / 4π)``) and ``centre`` (area-weighted
         centroid, x, y, z) of each object's outermost surface.
     """
@@ -272,7 +276,11 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
     n = int(labels.max()) + 1
     _, areas = face_normals_areas(vertices, faces)
     comp_area = np.bincount(labels, weights=areas, minlength=n)
-    big = np.flatnonzero(comp_area >= min_fraction * comp_area.max())
+    group = _closed_surface_groups(mesh, faces, labels, n)
+    # a piece is a candidate when it is the largest of its group (the pieces the image border cut apart)
+    largest = np.lexsort((-comp_area, group))
+    lead = largest[np.r_[True, group[largest][1:] != group[largest][:-1]]]
+    big = lead[comp_area[lead] >= min_fraction * comp_area.max()]
     big = big[np.argsort(-comp_area[big], kind="stable")]
     # bounding box of every component (vertices sorted by component label, rim vertices last)
     vlab = np.full(len(vertices), -1, dtype=np.int64)
@@ -291,8 +299,22 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
             nested[cand] |= np.abs(_winding_numbers(probe[big[cand]], *close_rim(vertices, faces[labels == cj]))) > 0.5
     centroids = vertices[faces].mean(axis=1) * areas[:, None]
     centre = np.stack([np.bincount(labels, weights=centroids[:, k], minlength=n) for k in range(3)], 1)
-    return [{"component": int(c), "area": float(comp_area[c]), "radius": float(np.sqrt(comp_area[c] / (4 * np.pi))),
+    return [{"component": int(c), "components": [int(c), *sorted((int(k) for k in np.flatnonzero(group == group[c])
+                                                                   if k != c), key=lambda k: -comp_area[k])],
+             "area": float(comp_area[c]), "radius": float(np.sqrt(comp_area[c] / (4 * np.pi))),
              "centre": centre[c] / max(comp_area[c], 1e-300)} for c in big[~nested]]
+
+
+def _closed_surface_groups(mesh: trimesh.Trimesh, faces: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """Group of each of the ``n`` components: those cut from one closed surface by ``border="open"``
+    (:data:`CLOSED_SURFACE_FIELD`) share one; without that field every component is its own."""
+    closed = mesh.vertex_attributes.get(CLOSED_SURFACE_FIELD)
+    if closed is None or len(closed) != len(mesh.vertices):
+        return np.arange(n)
+    first_face = np.unique(labels, return_index=True)[1]
+    key = np.asarray(closed, dtype=np.float64)[faces[first_face, 0]]
+    key = np.where(key >= 0, key, -1.0 - np.arange(n))  # no record: a group of its own
+    return np.unique(key, return_inverse=True)[1]
 
 
 def turn_out_dark_objects(mesh: trimesh.Trimesh, objects: list[dict] | None = None) -> tuple[trimesh.Trimesh, int]:
@@ -533,20 +555,21 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
         "mask_labels), or crop the image",
         NemoWarning, stacklevel=3)
     if split:  # the largest object with its own inner walls (components nested in it)
-        return _with_metadata(_object_with_nested(mesh, objects[0]["component"]), mesh)
+        return _with_metadata(_object_with_nested(mesh, objects[0]["components"]), mesh)
     return _with_metadata(keep_components(mesh, keep), mesh)
 
 
-def _object_with_nested(mesh: trimesh.Trimesh, component: int) -> trimesh.Trimesh:
-    """Component ``component`` of ``mesh`` and every component lying inside it (winding number)."""
+def _object_with_nested(mesh: trimesh.Trimesh, components: list[int]) -> trimesh.Trimesh:
+    """An object's ``components`` of ``mesh`` (:func:`find_objects`: its largest piece first) and
+    every component lying inside the largest (winding number)."""
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
     labels = face_components(faces, len(vertices))
     first_face = np.unique(labels, return_index=True)[1]
     off_rim = ~rim(faces, len(vertices))["vertices"][faces]  # (F, 3)
     # one vertex of every component, off the rim where its first face has one
     probes = vertices[faces[first_face, np.argmax(off_rim[first_face], axis=1)]]
-    inside = np.abs(_winding_numbers(probes, *close_rim(vertices, faces[labels == component]))) > 0.5
-    inside[component] = True
+    inside = np.abs(_winding_numbers(probes, *close_rim(vertices, faces[labels == components[0]]))) > 0.5
+    inside[components] = True
     return submesh(mesh, inside[labels])
 
 
@@ -1427,6 +1450,9 @@ def _vertex_normals(mesh: trimesh.Trimesh) -> np.ndarray:
 _PAD = 1
 #: Temporary vertex field of :func:`reconstruct`: the border planes a vertex lies on (:func:`_border_code`).
 _CODE = "_nemo_border"
+#: Vertex field (private: not written to files) of an opened surface (``border="open"``): the label
+#: of the closed surface, caps included, that each vertex came from (:func:`find_objects`).
+CLOSED_SURFACE_FIELD = "_nemo_closed_surface"
 
 
 def _apply_border(mesh: trimesh.Trimesh, border: str, box: np.ndarray) -> tuple[trimesh.Trimesh, dict]:
@@ -1452,6 +1478,11 @@ def _apply_border(mesh: trimesh.Trimesh, border: str, box: np.ndarray) -> tuple[
         if cap.all():
             raise NemoError("the surface lies entirely on the image border (only cap faces): nothing is left "
                             "of it with `border` open; use `border` closed or check the threshold")
+        # the closed surface each vertex belongs to, caps included: the pieces of one object that the cut
+        # separates (the two faces of a sheet cut on every side) stay one object (find_objects)
+        closed = np.full(len(mesh.vertices), -1.0)
+        closed[np.asarray(mesh.faces).ravel()] = np.repeat(face_components(mesh.faces, len(mesh.vertices)), 3)
+        mesh.vertex_attributes[CLOSED_SURFACE_FIELD] = closed
         verts = np.array(mesh.vertices, dtype=np.float64)
         for k in range(3):  # the rim back onto its border plane
             verts[(code >> (2 * k)) & 1 == 1, k] = 0.0
