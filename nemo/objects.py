@@ -184,8 +184,8 @@ def object_meshes(whole: trimesh.Trimesh, found: Sequence[dict]) -> list[trimesh
     return [_object_with_nested(whole, o["components"]) for o in found]
 
 
-def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis,
-                  walls: Sequence[int] | None = None) -> dict[str, trimesh.Trimesh]:
+def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis, walls: Sequence[int] | None = None,
+                  centres: Sequence[np.ndarray | None] | None = None) -> dict[str, trimesh.Trimesh]:
     """``whole``, ``inner`` and ``outer`` meshes of several objects, each split about its own centre.
 
     Parameters
@@ -197,6 +197,8 @@ def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis,
     walls : sequence of int, optional
         Each object's walls as found by ``split: auto`` (:func:`nemo.surface.count_walls`): an
         object with one is not split, its ``inner`` and ``outer`` are its whole surface.
+    centres : sequence of (3,) arrays or None, optional
+        Each object's split centre for ``by="centre"`` (None: its centroid).
 
     Returns
     -------
@@ -224,7 +226,7 @@ def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis,
             labels.append(k)
             continue
         try:
-            i, o = split_mesh(piece, by=by, axis=axis, keep="largest")
+            i, o = split_mesh(piece, by=by, axis=axis, keep="largest", centre=None if centres is None else centres[k])
         except NemoError as exc:
             warnings.warn(f"object {k} is not split into walls ({exc}); it is left out of the inner and outer "
                           "surfaces", NemoWarning, stacklevel=2)

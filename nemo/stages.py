@@ -245,8 +245,9 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
         return {"whole": objects.concatenate(pieces, range(len(pieces)))}
     if p["split"] == "auto":  # each object: split if it has two walls (a loop over objects)
         decided = [_auto_walls(piece, f"object {k}") for k, piece in enumerate(pieces)]
-        p["walls"] = [walls for walls, _ in decided]
-        return objects.split_objects([piece for _, piece in decided], "centre", None, walls=p["walls"])
+        p["walls"] = [walls for walls, _, _ in decided]
+        return objects.split_objects([piece for _, piece, _ in decided], "centre", None, walls=p["walls"],
+                                     centres=[centre for _, _, centre in decided])
     meshes = objects.split_objects(pieces, p["split"], p["axis"])
     split = set(objects.vertex_labels(meshes["inner"]).tolist())  # an object of one wall is left out
     p["walls"] = [2 if k in split else 1 for k in range(len(pieces))]
@@ -265,7 +266,7 @@ def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[s
     meshes = {"whole": whole}
     p["walls"] = 1 if p["split"] == "none" else 2
     if p["split"] == "auto":
-        p["walls"], whole = _auto_walls(whole, "the object", centre)
+        p["walls"], whole, centre = _auto_walls(whole, "the object", centre)
         if p["walls"] == 1:
             return {"whole": whole, "inner": whole.copy(), "outer": whole.copy()}
     if p["split"] != "none":
@@ -281,16 +282,28 @@ def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[s
     return meshes
 
 
-def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = None) -> tuple[int, trimesh.Trimesh]:
-    """(walls, surface) of one object under ``split: auto`` (:func:`nemo.surface.count_walls`);
-    with one wall, its largest piece (a speck or a small cavity inside it dropped)."""
+def _auto_walls(whole: trimesh.Trimesh, what: str,
+                centre: np.ndarray | None = None) -> tuple[int, trimesh.Trimesh, np.ndarray | None]:
+    """(walls, surface, split centre) of one object under ``split: auto`` (:func:`nemo.surface.count_walls`);
+    with one wall, its largest piece (a speck or a small cavity inside it dropped).
+
+    The centre is ``centre`` (None: the surface's centroid), or for an open object whose pieces
+    do not face its centroid, its centre of curvature (:func:`_curvature_centre`): the two faces of
+    a gently curved sheet cut by the field of view both face away from a centroid between them.
+    """
     from nemo.surface import OBJECT_MIN_AREA, _with_metadata, count_walls, keep_components
 
     walls, inner, mixed = count_walls(whole, centre)
+    if walls == 1 and centre is None:
+        curvature_centre = _curvature_centre(whole)
+        if curvature_centre is not None and count_walls(whole, curvature_centre)[0] == 2:
+            walls, inner, _ = count_walls(whole, curvature_centre)
+            centre = curvature_centre
     if walls == 2:
-        logger.info("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its centre",
-                    what, 100 * inner)
-        return 2, whole
+        logger.info("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its %s",
+                    what, 100 * inner, "centre" if centre is None else
+                    "centre ({:.4g}, {:.4g}, {:.4g})".format(*centre))
+        return 2, whole, centre
     why = (f"its largest surface facing the centre has {100 * inner:.1f} % of the outer's area, below "
            f"{100 * OBJECT_MIN_AREA:.0f} %" if inner else "no separate surface faces its centre")
     if mixed >= OBJECT_MIN_AREA:
@@ -300,7 +313,30 @@ def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = N
                       "centre for that", NemoWarning, stacklevel=3)
     logger.info("split auto: %s has one wall (%s): its inner and outer surfaces are the whole surface, and there is "
                 "no thickness", what, why)
-    return 1, _with_metadata(keep_components(whole, "largest"), whole)
+    return 1, _with_metadata(keep_components(whole, "largest"), whole), None
+
+
+def _curvature_centre(whole: trimesh.Trimesh) -> np.ndarray | None:
+    """Centre of the sphere fitted to the largest piece of an open surface of several pieces
+    (:func:`nemo.surface.fit_sphere`; one face of a sheet: a sphere fitted to both faces of a flat
+    slab sits inside it), or, when that is not finite (a plane), a point 10⁶ sizes away against
+    that piece's mean normal; None for a closed surface or a single piece."""
+    from nemo.geometry import rim
+    from nemo.mesh import vertex_normals
+    from nemo.surface import face_components, fit_sphere, keep_components
+
+    faces = np.asarray(whole.faces)
+    if not len(faces) or not rim(faces, len(whole.vertices))["n_loops"]:
+        return None
+    if face_components(faces, len(whole.vertices)).max() < 1:
+        return None
+    piece = keep_components(whole, "largest")
+    centre, _ = fit_sphere(piece)
+    if np.all(np.isfinite(centre)):
+        return centre
+    normal = vertex_normals(piece).mean(axis=0)
+    size = float(np.ptp(np.asarray(piece.vertices), axis=0).max())
+    return piece.centroid - 1e6 * size * normal / max(float(np.linalg.norm(normal)), 1e-300)
 
 
 #: Mesh units (besides those of :mod:`nemo.io`) a user mesh may be in: voxel indices.

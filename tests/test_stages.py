@@ -717,25 +717,29 @@ def test_mesh_with_a_psf_refuses_missing_voxels_before_deconvolving():
         stages.mesh(ball, (1.0, 1.0, 1.0), {"split": "none"}, psf=(2.5, 1, 1))
 
 
-def test_a_sheet_cut_on_every_side_is_one_object_with_two_walls(tmp_path):
-    """A curved epithelium cut by the stack on its four sides (a cap of a shell r 60–68 µm whose
-    centre lies below the stack): with the border open, its two faces are separate pieces whose
-    rims run over four border planes, so no fan closes one around the other. It read as two
-    objects (a QC flag), ``keep: largest`` kept one face and there was no thickness. The two
-    faces come from one closed surface (caps included): one object, inner wall on r 60, outer
-    on r 68, thickness 8 µm, and the private record of it is not written to the PLY."""
+@pytest.mark.parametrize("r_in, apex, planes", [(60.0, 40.0, 36), (300.0, 20.0, 30), (3000.0, 20.0, 30)])
+def test_a_sheet_cut_on_every_side_is_one_object_with_two_walls(r_in, apex, planes, tmp_path):
+    """A curved epithelium cut by the stack on its four sides (a cap of a shell r_in to r_in + 8 µm
+    whose centre lies below the stack): with the border open, its two faces are separate pieces
+    whose rims run over four border planes, so no fan closes one around the other. It read as two
+    objects (a QC flag), ``keep: largest`` kept one face and there was no thickness. The two faces
+    come from one closed surface (caps included): one object. A flatter sheet's faces both face
+    away from its centroid (between them): it is split about the centre of curvature of its
+    largest face. The inner wall lies on r_in, the outer on r_in + 8, the thickness is 8 µm, and
+    the private record of the closed surfaces is not written to the PLY."""
     from scipy.special import erf
 
     from nemo.mesh import load_mesh, save_mesh
 
-    spacing, centre, r_in, r_out = (1.5, 1.0, 1.0), np.array([35.0, 35.0, -20.0]), 60.0, 68.0
-    z, y, x = np.meshgrid(*(np.arange(n) * d for n, d in zip((36, 71, 71), spacing)), indexing="ij", sparse=True)
+    spacing, r_out = (1.5, 1.0, 1.0), r_in + 8.0
+    centre = np.array([35.0, 35.0, apex - r_in])
+    z, y, x = np.meshgrid(*(np.arange(n) * d for n, d in zip((planes, 71, 71), spacing)), indexing="ij", sparse=True)
     r = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2)
     edge = lambda d: 0.5 * (1 + erf(d / (np.sqrt(2) * 0.8)))  # noqa: E731
     rng = np.random.default_rng(3)
     volume = (20 + 200 * edge(r - r_in) * edge(r_out - r) + 10 * rng.standard_normal(r.shape)).astype(np.float32)
     meshes, p = stages.mesh(volume, spacing)
-    assert p["n_objects"] == 1 and p["walls"] == 2 and p["rim_loops"] == 2
+    assert p["n_objects"] == 1 and p["walls"] == 2 and p["rim_loops"] >= 2
     radius = {wall: np.linalg.norm(np.asarray(meshes[wall].vertices) - centre, axis=1) for wall in ("inner", "outer")}
     assert abs(np.median(radius["inner"]) - r_in) < 0.3 and abs(np.median(radius["outer"]) - r_out) < 0.3
     thickness, _ = stages.thickness(meshes["inner"], meshes["outer"])
