@@ -579,6 +579,11 @@ def peel(
                     n_samples=int(p["samples"]), reduce=p["reduce"], interp=p["interp"], shift=offset,
                     return_profile=return_profile)
     intensity = result[0] if return_profile else result
+    seen = np.asarray(intensity)[np.isfinite(intensity)]
+    if seen.size and seen.min() == seen.max():  # directors and order would fail later, naming their own steps
+        raise NemoError(f"the layer's intensity is {seen[0]:g} at every vertex: the image holds nothing there (an "
+                        "empty or all-zero channel, or a mesh off the object). Check the layer's channel and the "
+                        "file (`nemo info FILE`), or leave the channel out; check that the mesh lies on the object")
     _check_texture_depth(volume, spacing, mesh, normals, dmin, dmax, p)
     df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity}), mesh)
     return (df, p, result[1], result[2]) if return_profile else (df, p)
@@ -652,11 +657,32 @@ def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
         empty = next(r for r in results if not isinstance(r, str))[0].iloc[:0]
         return _combined([(empty, {"skipped": r}) if isinstance(r, str) else r for r in results], split)
     p = directors_defaults(mesh, params)
+    if not params or (params.get("patch_radius") is None and params.get("patch_k") is None):
+        _check_default_patch(mesh, float(p["patch_radius"]))
     settings = {"patch_radius": p["patch_radius"], "patch_k": p["patch_k"], "pixel": float(p["pixel"]),
                 "sigma": p["sigma"], "frames": p["frames"]}
     df = measure_directors(mesh, intensity, n_patches=int(p["n_patches"]), rng=int(p["seed"]), **settings)
     p["coherency_noise"] = noise_coherency(mesh, rng=int(p["seed"]), **settings)  # the QC's texture floor
     return df, p
+
+
+def _check_default_patch(mesh: trimesh.Trimesh, patch_radius: float) -> None:
+    """Refuse an object smaller than the default patch, naming what set it (the object's size or its
+    mesh's edges) and the likely cause; :func:`nemo.directors.check_patch_size` advises on a given one."""
+    from nemo.directors import PATCH_MIN_EDGES, PATCH_PER_RADIUS
+    from nemo.mesh import mean_edge_length, object_radius
+
+    size = object_radius(mesh)
+    if patch_radius <= size:
+        return
+    raise ObjectTooSmallError(
+        f"the object (radius {size:.4g} from its area) is smaller than the directors' default patch (radius "
+        f"{patch_radius:.4g}: the larger of {PATCH_PER_RADIUS:g} × the object's radius and {PATCH_MIN_EDGES:g} mean "
+        f"edges of {mean_edge_length(mesh):.3g}): a surface a few edges across has no texture to orient. An empty "
+        "frame, or one whose object left the field, meshes noise specks (its SNR is low): check the time point "
+        "and the segmented channel, or leave the frame out; a small object needs a finer mesh (mesh.step 1, a "
+        "smaller mesh.sigma)",
+        reason=f"the object (radius {size:.3g}) is smaller than the default directors' patch ({patch_radius:.3g})")
 
 
 def import_directors(mesh: trimesh.Trimesh, points: pd.DataFrame, params: dict | None = None,
