@@ -347,19 +347,23 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
     return row
 
 
-def collect_defects(records: Iterable[Mapping]) -> pd.DataFrame:
+def collect_defects(records: Iterable[Mapping], frames: pd.DataFrame | None = None) -> pd.DataFrame:
     """The defects of all frames in one table with ``t``, ``c``, ``layer`` first.
 
     Parameters
     ----------
     records : iterable of mapping
         Each with keys ``t``, ``c``, ``layer`` and ``defects`` (path of a defects table).
+    frames : DataFrame, optional
+        :func:`frame_summary` of the same frames: each defect then gets its frame's (object's)
+        ``qc_pass`` and ``qc_flags``, so a defect of a frame that failed the quality control
+        can be told apart (a layer without texture, a missed defect).
 
     Returns
     -------
     DataFrame
-        Columns :data:`DEFECT_COLUMNS` (then any further columns of the inputs), sorted by
-        t, c, layer, then the input order.
+        Columns :data:`DEFECT_COLUMNS` (then any further columns of the inputs, then ``qc_pass``
+        and ``qc_flags`` with ``frames``), sorted by t, c, layer, then the input order.
     """
     parts = []
     from nemo.tables import read_provenance
@@ -379,12 +383,26 @@ def collect_defects(records: Iterable[Mapping]) -> pd.DataFrame:
         df.insert(0, "t", int(r["t"]))
         parts.append(df)
     if not parts or all(p.empty for p in parts):
-        return pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else "float64")
-                             for c in DEFECT_COLUMNS}).astype({"t": "int64", "c": "int64"})
+        empty = pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else "float64")
+                              for c in DEFECT_COLUMNS}).astype({"t": "int64", "c": "int64"})
+        return empty if frames is None else empty.assign(qc_pass=pd.Series(dtype=bool),
+                                                         qc_flags=pd.Series(dtype=object))
     out = pd.concat([p for p in parts if not p.empty], ignore_index=True)
     extra = [c for c in out.columns if c not in DEFECT_COLUMNS]
     out = out[list(DEFECT_COLUMNS) + extra]
-    return out.sort_values(["t", "c", "layer"], kind="stable").reset_index(drop=True)
+    out = out.sort_values(["t", "c", "layer"], kind="stable").reset_index(drop=True)
+    return out if frames is None else _with_frame_qc(out, frames)
+
+
+def _with_frame_qc(defects: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
+    """``defects`` with the ``qc_pass`` and ``qc_flags`` of their frame's row (t, c, layer, object)."""
+    keys = ["t", "c", "layer", "object"]
+    qc = frames[[*keys, "qc_pass", "qc_flags"]].drop_duplicates(keys)
+    out = defects.astype({"object": "int64"}).merge(qc.astype({"object": "int64"}), on=keys, how="left",
+                                                     validate="many_to_one")
+    out["qc_pass"] = out["qc_pass"].fillna(False).astype(bool)  # a defect of no summarised frame: not vouched for
+    out["qc_flags"] = out["qc_flags"].fillna("no frame summary").astype(str)
+    return out
 
 
 def alignment_summary(records: Iterable[Mapping]) -> pd.DataFrame:

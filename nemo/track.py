@@ -142,7 +142,9 @@ def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
         ``charge_rounded``, ``first_t``, ``last_t``, ``length`` (number of detections),
         ``span`` (``last_t - first_t + 1``), ``path_length`` (µm, sum of the steps between
         successive detections), ``mean_speed`` (µm per unit of t: path length /
-        (last_t - first_t); NaN for a single detection), ``mean_S``.
+        (last_t - first_t); NaN for a single detection), ``mean_S``; with a ``qc_pass``
+        column in ``linked`` (the workflow's defects, from their frames' quality control) also
+        ``n_flagged`` (detections in frames that failed it) and ``qc_pass`` (none did).
     """
     if "track_id" not in linked.columns:
         raise NemoError("table has no 'track_id' column: link the defects first (nemo track)")
@@ -172,6 +174,11 @@ def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
         path_length=("_step", "sum"),
         mean_S=("S", "mean"),
     ).reset_index()
+    if "qc_pass" in df.columns:
+        flagged = (~df["qc_pass"].astype(bool)).groupby(df["track_id"], sort=True).sum()
+        agg["n_flagged"] = flagged.to_numpy(dtype=np.int64)
+        agg["qc_pass"] = agg["n_flagged"] == 0
+        cols += ["n_flagged", "qc_pass"]
     agg["span"] = agg["last_t"] - agg["first_t"] + 1
     dt = (agg["last_t"] - agg["first_t"]).to_numpy(dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):

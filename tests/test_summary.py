@@ -262,6 +262,25 @@ def test_collect_defects_of_empty_tables_has_the_columns(tmp_path):
     assert out["t"].dtype == np.int64 and out["layer"].dtype == object
 
 
+def test_collect_defects_carries_each_frames_quality_control(tmp_path):
+    """A time-lapse review's tracks ran through the defects of frames that failed the QC (a channel
+    without texture, a frame that missed a defect) with nothing to tell them apart: each defect
+    now carries its frame's (object's) qc_pass and qc_flags; one of no summarised frame is not
+    vouched for."""
+    write_table(_defects([0.5, 0.5], [0.5, 0.5]), tmp_path / "a.parquet", parameters={"min_distance": 5.0})
+    write_table(_defects([0.5], [0.5]), tmp_path / "b.parquet", parameters={"min_distance": 5.0})
+    records = [{"t": 0, "c": 0, "layer": "fibres", "defects": tmp_path / "a.parquet"},
+               {"t": 1, "c": 0, "layer": "fibres", "defects": tmp_path / "b.parquet"},
+               {"t": 2, "c": 0, "layer": "fibres", "defects": tmp_path / "b.parquet"}]
+    frames = pd.DataFrame({"t": [0, 1], "c": [0, 0], "layer": ["fibres", "fibres"], "object": [0, 0],
+                           "qc_pass": [True, False], "qc_flags": ["", "low SNR"]})
+    out = collect_defects(records, frames)
+    assert list(out["qc_pass"]) == [True, True, False, False]
+    assert list(out["qc_flags"]) == ["", "", "low SNR", "no frame summary"]
+    assert list(collect_defects([], frames).columns)[-2:] == ["qc_pass", "qc_flags"]
+    assert "qc_pass" not in collect_defects(records).columns
+
+
 # ----------------------------------------------------------------------------- alignment_summary
 def test_alignment_summary_statistics(tmp_path):
     write_table(pd.DataFrame({"vertex": range(5), "c": [1.0, -1.0, 0.0, 0.8, NAN]}), tmp_path / "a.parquet")

@@ -165,3 +165,15 @@ def test_cli_track(tmp_path, run_cli):
     code, out, err = run_cli("track", tmp_path / "tracks.parquet", "-o", tmp_path / "x.parquet",
                              "--max-distance", "15")
     assert code == 2 and "lacks column" in err and "\n" not in err.strip()
+
+
+def test_tracks_count_their_detections_in_flagged_frames():
+    """With the workflow's defects (each with its frame's qc_pass), a track says how many of its
+    detections come from frames that failed the quality control."""
+    df = _series(n_frames=4, omega=0.05, noise=0.0, rng=1)
+    df["qc_pass"] = df["t"] != 2
+    tracks = summarise_tracks(link_defects(df, max_distance=15.0, gap_frames=1))
+    assert len(tracks) == 4 and (tracks["n_flagged"] == 1).all() and not tracks["qc_pass"].any()
+    df["qc_pass"] = True
+    assert summarise_tracks(link_defects(df, max_distance=15.0, gap_frames=1))["qc_pass"].all()
+    assert "n_flagged" not in summarise_tracks(link_defects(df.drop(columns="qc_pass"), 15.0, 1)).columns

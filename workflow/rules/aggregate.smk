@@ -41,6 +41,7 @@ rule aggregate_frames:
 rule aggregate_defects:
     input:
         lambda wc: record_files(frame_records(wc.dataset), ("defects",)),
+        frames=summary_path("frames.parquet"),
     output:
         summary_path("defects_untracked.parquet"),
     log:

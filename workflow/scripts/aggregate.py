@@ -5,6 +5,8 @@ Called with ``script:``; ``snakemake.params.records`` lists the frames (see nemo
 
 import sys
 
+import pandas as pd
+
 from nemo.summary import alignment_summary, collect_defects, frame_summary
 from nemo.tables import write_table
 
@@ -14,7 +16,10 @@ KINDS = {"frames": frame_summary, "defects": collect_defects, "alignment": align
 with open(sm.log[0], "w") as log:
     sys.stderr = log
     kind = sm.params.kind
-    table = KINDS[kind](sm.params.records)
+    if kind == "defects":  # each defect with its frame's quality control
+        table = collect_defects(sm.params.records, pd.read_parquet(sm.input.frames))
+    else:
+        table = KINDS[kind](sm.params.records)
     write_table(table, sm.output[0], command=f"workflow aggregate {kind}", dataset=sm.wildcards.dataset,
                 inputs=[str(p) for p in sm.input])
     print(f"{kind}: {len(table)} rows -> {sm.output[0]}", file=log)
