@@ -240,6 +240,7 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
     logger.info("keeping all %d objects: %s", len(found), "; ".join(
         f"object {k}: area {o['area']:.4g} {unit}², centre ({o['centre'][0]:.4g}, {o['centre'][1]:.4g}, "
         f"{o['centre'][2]:.4g})" for k, o in enumerate(found)))
+    _log_left_out(whole, pieces, unit)
     p["walls"] = 1 if p["split"] == "none" else 2
     if p["split"] == "none":
         return {"whole": objects.concatenate(pieces, range(len(pieces)))}
@@ -252,6 +253,27 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
     split = set(objects.vertex_labels(meshes["inner"]).tolist())  # an object of one wall is left out
     p["walls"] = [2 if k in split else 1 for k in range(len(pieces))]
     return meshes
+
+
+def _log_left_out(whole: trimesh.Trimesh, pieces: list[trimesh.Trimesh], unit: str) -> None:
+    """Say which separate surfaces are in no object (below :data:`nemo.surface.OBJECT_MIN_AREA` of the
+    largest one's area: noise specks, or a small object among large ones), so none is dropped unseen."""
+    from nemo.surface import OBJECT_MIN_AREA, face_components
+
+    used = np.zeros(len(whole.faces), dtype=bool)
+    for piece in pieces:  # a loop over objects
+        used[piece.metadata["parent_faces"]] = True
+    if used.all():
+        return
+    labels = face_components(np.asarray(whole.faces), len(whole.vertices))
+    area = np.bincount(labels[~used], weights=whole.area_faces[~used])
+    left = np.flatnonzero(area)
+    largest = left[np.argmax(area[left])]
+    centre = whole.triangles_center[labels == largest].mean(axis=0)
+    logger.info("left out %d surface(s) below %.0f %% of the largest object's area (noise specks, or small objects "
+                "among large ones): the largest of them has area %.4g %s² (radius of equal area %.3g %s), centre "
+                "(%.4g, %.4g, %.4g)", len(left), 100 * OBJECT_MIN_AREA, area[largest], unit,
+                np.sqrt(area[largest] / (4 * np.pi)), unit, *centre)
 
 
 def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[str, trimesh.Trimesh]:
