@@ -973,6 +973,10 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
     (:func:`_auto_level`; the histogram of ``sub`` and the background's bin ``b0`` when already made).
     ``spacing`` is that of ``sub``'s samples."""
     sample = sub.ravel()
+    above = sample[sample > thr]
+    core = _interior_plateau(sub, thr, background, float(np.median(above)), spacing) if above.size else None
+    if core is not None:  # an object with a flat core: its plateau, whatever the histogram's peaks
+        return max(thr, 0.5 * (background + core))
     if edges is None:
         edges = _histogram_edges(sample)
         counts, _ = _smoothed_histogram(sample, edges)
@@ -990,17 +994,12 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
         # half-way to the flat interior's median (a small object's plateau: too few voxels for a
         # histogram peak), else to the object's median, never below the threshold: a textured
         # noisy wall gets its half-maximum level, a blob (median near the threshold) the threshold
-        above = sample[sample > thr]
         if not above.size:
             return thr
-        median = float(np.median(above))
-        interior = _interior_plateau(sub, thr, background, median, spacing)
-        level = max(thr, 0.5 * (background + (median if interior is None else interior)))
+        level = max(thr, 0.5 * (background + float(np.median(above))))
         if not quiet:
             logger.info("no object plateau in the intensity histogram: surface %s",
-                        f"at the {method} threshold" if level == thr else
-                        "half-way to the object's median" if interior is None else
-                        "half-way to the median of its flat interior")
+                        f"at the {method} threshold" if level == thr else "half-way to the object's median")
         return level
     top = peaks[ok][np.argmax(counts[peaks[ok]])]
     return 0.5 * (background + _flat_plateau(sub, background, edges, counts, top))
@@ -1037,6 +1036,10 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
     """
     if min(sub.shape) < 3 or median <= background:
         return None
+    labels, n = ndi.label(sub > thr)  # the objects' bounding box (no speck of noise), a sample around it
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    box = ndi.find_objects(np.isin(labels, np.flatnonzero(sizes >= 0.01 * sizes.max()) + 1).astype(np.int8))[0]
+    sub = sub[tuple(slice(max(0, b.start - 1), b.stop + 1) for b in box)]
     m = max(1, int(np.ceil((sub.size / _MAX_INTERIOR_SAMPLES) ** (1 / 3))))  # the EDT costs 0.6 s at 1.6 M
     sub, spacing = sub[::m, ::m, ::m], spacing * m
     half = 0.5 * (background + median)
