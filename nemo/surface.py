@@ -17,10 +17,10 @@ so that normals point **out of the bright object** (the solid). Steps:
    (blurred-image gradient below a quarter of the edge's) peaks on its upper flank, that peak is
    the plateau (:func:`_flat_plateau`). That is where a
    blurred step edge really lies: Yen's own level sits on the dim tail of the edge and would
-   shift the surface by about 2σ of the total blur. Without such a peak, the plateau is the
-   median of the object's flat core where it has one (a small noisy object:
-   :func:`_interior_plateau`), else (a wall smeared by texture and noise) the median of the
-   voxels above the threshold, and the level never goes below the threshold (a blob keeps the
+   shift the surface by about 2σ of the total blur. An object with a flat core (deeper than a
+   few edge widths, :func:`_interior_plateau`) takes the core's median as its plateau first: a
+   small object's histogram peaks are its edge voxels. Without a core or a peak (a wall
+   smeared by texture and noise) the plateau is the median of the voxels above the threshold, and the level never goes below the threshold (a blob keeps the
    threshold itself). Separate objects of different brightness (nuclei) each cross their own
    half level (:func:`_object_levels`; not with ``refine``).
    A numeric threshold is used as the iso-level as given; a mask is blurred by σ and cut at 0.5.
