@@ -18,10 +18,11 @@ so that normals point **out of the bright object** (the solid). Steps:
    the plateau (:func:`_flat_plateau`). That is where a
    blurred step edge really lies: Yen's own level sits on the dim tail of the edge and would
    shift the surface by about 2σ of the total blur. An object with a flat core (deeper than a
-   few edge widths, :func:`_interior_plateau`) takes the core's median as its plateau first: a
-   small object's histogram peaks are its edge voxels. Without a core or a peak (a wall
-   smeared by texture and noise) the plateau is the median of the voxels above the threshold, and the level never goes below the threshold (a blob keeps the
-   threshold itself). Separate objects of different brightness (nuclei) each cross their own
+   few edge widths, :func:`_interior_plateau`) whose histogram has no peak within 15 % of the
+   contrast of the core's median takes that median as its plateau: a small object's histogram
+   peaks are its edge voxels. Without a core or a peak (a wall smeared by texture and noise)
+   the plateau is the median of the voxels above the threshold, and the level never goes below
+   the threshold (a blob keeps the threshold itself). Separate objects of different brightness (nuclei) each cross their own
    half level (:func:`_object_levels`; not with ``refine``).
    A numeric threshold is used as the iso-level as given; a mask is blurred by σ and cut at 0.5.
 3. The blurred volume is sampled every ``step`` voxels (the grid scikit-image's marching cubes
@@ -975,8 +976,6 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
     sample = sub.ravel()
     above = sample[sample > thr]
     core = _interior_plateau(sub, thr, background, float(np.median(above)), spacing) if above.size else None
-    if core is not None:  # an object with a flat core: its plateau, whatever the histogram's peaks
-        return max(thr, 0.5 * (background + core))
     if edges is None:
         edges = _histogram_edges(sample)
         counts, _ = _smoothed_histogram(sample, edges)
@@ -990,10 +989,14 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
     rise = counts[peaks] - valley[peaks - b0]
     # ... and by more than the counts' own noise (3 Poisson std): no blips of the sparse tail
     ok = (counts[peaks] >= (4.0 / 3.0) * valley[peaks - b0]) & (rise >= 3.0 * np.sqrt(counts[peaks]))
+    if core is not None and (not ok.any() or abs(_peak_plateau(sub, background, edges, counts, peaks, ok) - core)
+                             > INTERIOR_MAX_SPREAD * (core - background)):
+        # an object with a flat core whose histogram has no peak near it: a small object's peaks are
+        # its edge voxels (a noisy r 6 µm nucleus: 146 for 168)
+        return max(thr, 0.5 * (background + core))
     if not ok.any():  # no plateau peak (a blob, or a wall smeared by texture and noise)
-        # half-way to the flat interior's median (a small object's plateau: too few voxels for a
-        # histogram peak), else to the object's median, never below the threshold: a textured
-        # noisy wall gets its half-maximum level, a blob (median near the threshold) the threshold
+        # half-way to the object's median, never below the threshold: a textured noisy wall gets
+        # its half-maximum level, a blob (median near the threshold) the threshold
         if not above.size:
             return thr
         level = max(thr, 0.5 * (background + float(np.median(above))))
@@ -1001,8 +1004,13 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
             logger.info("no object plateau in the intensity histogram: surface %s",
                         f"at the {method} threshold" if level == thr else "half-way to the object's median")
         return level
-    top = peaks[ok][np.argmax(counts[peaks[ok]])]
-    return 0.5 * (background + _flat_plateau(sub, background, edges, counts, top))
+    return 0.5 * (background + _peak_plateau(sub, background, edges, counts, peaks, ok))
+
+
+def _peak_plateau(sub: np.ndarray, background: float, edges: np.ndarray, counts: np.ndarray, peaks: np.ndarray,
+                  ok: np.ndarray) -> float:
+    """The plateau of the histogram's most populated accepted peak (:func:`_flat_plateau`)."""
+    return _flat_plateau(sub, background, edges, counts, peaks[ok][np.argmax(counts[peaks[ok]])])
 
 
 def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: float,
