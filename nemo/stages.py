@@ -316,11 +316,11 @@ def _auto_walls(whole: trimesh.Trimesh, what: str,
     from nemo.surface import OBJECT_MIN_AREA, _with_metadata, count_walls, keep_components
 
     walls, inner, mixed = count_walls(whole, centre)
-    if walls == 1 and centre is None:
-        curvature_centre = _curvature_centre(whole)
-        if curvature_centre is not None and count_walls(whole, curvature_centre)[0] == 2:
-            walls, inner, _ = count_walls(whole, curvature_centre)
-            centre = curvature_centre
+    curvature_centre = _curvature_centre(whole) if walls == 1 and centre is None else None
+    if curvature_centre is not None:
+        again = count_walls(whole, curvature_centre)
+        if again[0] == 2:
+            (walls, inner, _), centre = again, curvature_centre
     if walls == 2:
         logger.info("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its %s",
                     what, 100 * inner, "centre" if centre is None else

@@ -1045,6 +1045,8 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
     if min(sub.shape) < 3 or median <= background:
         return None
     labels, n = ndi.label(sub > thr)  # the objects' bounding box (no speck of noise), a sample around it
+    if not n:
+        return None
     sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
     box = ndi.find_objects(np.isin(labels, np.flatnonzero(sizes >= 0.01 * sizes.max()) + 1).astype(np.int8))[0]
     sub = sub[tuple(slice(max(0, b.start - 1), b.stop + 1) for b in box)]
