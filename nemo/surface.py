@@ -22,8 +22,8 @@ so that normals point **out of the bright object** (the solid). Steps:
    contrast of the core's median takes that median as its plateau: a small object's histogram
    peaks are its edge voxels. Without a core or a peak (a wall smeared by texture and noise)
    the plateau is the median of the voxels above the threshold, and the level never goes below
-   the threshold (a blob keeps the threshold itself). Separate objects of different brightness (nuclei) each cross their own
-   half level (:func:`_object_levels`; not with ``refine``).
+   the threshold (a blob keeps the threshold itself). Separate objects of different brightness
+   (nuclei) each cross their own half level (:func:`_object_levels`; not with ``refine``).
    A numeric threshold is used as the iso-level as given; a mask is blurred by σ and cut at 0.5.
 3. The blurred volume is sampled every ``step`` voxels (the grid scikit-image's marching cubes
    would use with ``step_size=step``) and padded by one sample of its minimum, so that
@@ -939,10 +939,10 @@ def _auto_level(field: np.ndarray, method: str, edge: str,
     The background is the mode of the class below the threshold (None when every or no sample
     lies below it); the plateau the most populated histogram peak above it, moved up to the
     peak of the flat voxels' histogram where that lies on its upper flank
-    (:func:`_flat_plateau`); without such a peak the median of the object's flat interior
-    (:func:`_interior_plateau`) or of the whole object. The iso-level is half-way between the
-    background and the plateau. ``spacing`` (dz, dy, dx) is the physical spacing of ``field``'s
-    samples.
+    (:func:`_flat_plateau`); the median of the object's flat core (:func:`_interior_plateau`)
+    where no such peak lies near it; without either, the median of the samples above the
+    threshold (:func:`_half_level`). The iso-level is half-way between the background and the
+    plateau. ``spacing`` (dz, dy, dx) is the physical spacing of ``field``'s samples.
     """
     from skimage import filters
 
