@@ -216,6 +216,11 @@ def _pair_sums(tpos: np.ndarray, pos: np.ndarray, q6: np.ndarray, w: np.ndarray 
     return qsum, count, (count if w is None else wsum)
 
 
+#: The order table's columns and their types (:func:`order`).
+COLUMNS = {"vertex": np.int64, "S": np.float64, "nx": np.float64, "ny": np.float64, "nz": np.float64,
+           "x": np.float64, "y": np.float64, "z": np.float64, "count": np.int64}
+
+
 def order(
     mesh: trimesh.Trimesh,
     directors_df: pd.DataFrame,
@@ -364,6 +369,10 @@ def alignment(
                 f"normals_a must have one (x, y, z) normal per director of A: shape "
                 f"({len(dir_a)}, 3), got {normals_a.shape}"
             )
+    if not len(dir_a) or not len(dir_b):  # a layer whose directors were skipped (an empty frame or channel)
+        warnings.warn("a layer has no directors (see its directors step): no alignment", NemoWarning, stacklevel=2)
+        return pd.DataFrame({"vertex": np.zeros(0, np.int64), **{k: np.zeros(0) for k in ("c", "x", "y", "z",
+                                                                                       "distance")}})
     pos_a, n_a, nrm_mesh, ok_a = _director_arrays(mesh_a, dir_a, "directors A")
     pos_b, n_b, _, ok_b = _director_arrays(None, dir_b, "directors B")
     pos_b, n_b = pos_b[ok_b], n_b[ok_b]

@@ -432,9 +432,11 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
     if dsec["refine_directors"] > 0:
         save("refined", extra if extra is not None else ddf.iloc[:0], parameters=dp)
     s = odf["S"].to_numpy()
+    s = s[np.isfinite(s)]  # a layer without directors has no S anywhere (None in the JSON)
     return {"surface": surface, "vertices": n, "mean_edge": mean_edge_length(mesh),
             "peel": lp, "directors": dp, "order": op, "defects_parameters": fp,
-            "n_directors": int(len(ddf)), "S": {"mean": float(np.nanmean(s)), "median": float(np.nanmedian(s))},
+            "n_directors": int(len(ddf)), "S": {"mean": float(s.mean()) if s.size else None,
+                                          "median": float(np.median(s)) if s.size else None},
             "defects": fdf[["x", "y", "z", "charge", "charge_rounded", "S"]].to_dict(orient="records"),
             "euler_check": fdf.attrs["euler_check"]}
 

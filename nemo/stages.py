@@ -44,6 +44,7 @@ from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
 from nemo.psf import deconvolve
 from nemo.summary import QC_MIN_SNR
+from nemo.tables import SCHEMAS
 
 __all__ = ["object_radius", "mesh", "measure", "curvature", "curvature_defaults", "thickness", "peel", "directors",
            "directors_defaults", "import_directors", "order", "defects", "tracking_distance"]
@@ -601,11 +602,9 @@ def peel(
                     n_samples=int(p["samples"]), reduce=p["reduce"], interp=p["interp"], shift=offset,
                     return_profile=return_profile)
     intensity = result[0] if return_profile else result
-    seen = np.asarray(intensity)[np.isfinite(intensity)]
-    if seen.size and seen.min() == seen.max():  # directors and order would fail later, naming their own steps
-        raise NemoError(f"the layer's intensity is {seen[0]:g} at every vertex: the image holds nothing there (an "
-                        "empty or all-zero channel, or a mesh off the object). Check the layer's channel and the "
-                        "file (`nemo info FILE`), or leave the channel out; check that the mesh lies on the object")
+    constant = _constant_layer(intensity)
+    if constant:  # kept, so the frame's other steps and summaries go on; directors skip it, the QC flags it
+        warnings.warn(f"{constant}; its directors will be skipped", NemoWarning, stacklevel=2)
     _check_texture_depth(volume, spacing, mesh, normals, dmin, dmax, p)
     df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity}), mesh)
     return (df, p, result[1], result[2]) if return_profile else (df, p)
@@ -667,14 +666,49 @@ def directors_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
 def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
               params: dict | None = None) -> tuple[pd.DataFrame, dict]:
     """Tangential directors at random patch centres (method note §5); the resolved parameters
-    also hold ``coherency_noise`` (:func:`nemo.directors.noise_coherency`, the QC's texture floor)."""
+    also hold ``coherency_noise`` (:func:`nemo.directors.noise_coherency`, the QC's texture floor).
+
+    A layer with one value at every vertex (an empty or all-zero channel), or an object smaller
+    than the patch derived from the data (an empty frame's noise specks), has no directors: the
+    table is empty and the parameters say why (``skipped``), with a warning, so the frame's later
+    steps and the dataset's summaries go on and the quality control flags it. A patch the user
+    gave that does not fit the object is an error.
+    """
+    reason = _constant_layer(intensity)
+    if reason is None:
+        try:
+            return _directors(mesh, intensity, params)
+        except ObjectTooSmallError as exc:
+            if params and (params.get("patch_radius") is not None or params.get("patch_k") is not None):
+                raise  # the user's own patch: theirs to change
+            reason = exc.reason
+            warnings.warn(f"no directors: {exc}", NemoWarning, stacklevel=2)
+    else:
+        warnings.warn(f"no directors: {reason}", NemoWarning, stacklevel=2)
+    empty = pd.DataFrame({c: np.zeros(0, np.int64 if c == "vertex" else np.float64) for c in SCHEMAS["directors"]})
+    return _labelled(empty, mesh), {**directors_defaults(mesh, params), "skipped": reason}
+
+
+def _constant_layer(intensity: np.ndarray) -> str | None:
+    """Why a layer has nothing to orient (one value at every vertex that has one), or None."""
+    seen = np.asarray(intensity, dtype=np.float64)
+    seen = seen[np.isfinite(seen)]
+    if seen.size and seen.min() == seen.max():
+        return (f"the layer's intensity is {seen[0]:g} at every vertex (an empty or all-zero channel, or a mesh "
+                "off the object: check the channel with `nemo info FILE`, or leave it out)")
+    return None
+
+
+def _directors(mesh: trimesh.Trimesh, intensity: np.ndarray, params: dict | None) -> tuple[pd.DataFrame, dict]:
+    """:func:`directors` of a layer that has texture; raises :class:`ObjectTooSmallError` when no
+    object fits the patch."""
     from nemo.directors import directors as measure_directors
     from nemo.directors import noise_coherency
 
     split = objects.parts(mesh)
     if split:  # patches never reach across objects; an object smaller than its patch gets none
         intensity = np.asarray(intensity)
-        results = _each_object(split, lambda k, part: directors(part.mesh, intensity[part.vertices], params),
+        results = _each_object(split, lambda k, part: _directors(part.mesh, intensity[part.vertices], params),
                                "directors")
         empty = next(r for r in results if not isinstance(r, str))[0].iloc[:0]
         return _combined([(empty, {"skipped": r}) if isinstance(r, str) else r for r in results], split)
@@ -755,14 +789,17 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
     from nemo.order import order as q_average
 
     split = objects.parts(mesh)
+    if not len(directors_df):  # no directors (``directors``' skipped frames): no order anywhere
+        from nemo.order import COLUMNS
+
+        example = pd.DataFrame({c: np.zeros(0, dtype) for c, dtype in COLUMNS.items()})
+        return _labelled(_nan_table(example, mesh), mesh), {**nconfig.section("order", params), "skipped": NO_DIRECTORS}
     if split:  # each object's directors averaged on it alone; patch_radius: one or one per object
         local = [objects.local_table(directors_df, part) for part in split]
         results = [None if not len(d) else order(part.mesh, d, params, objects.value_for(patch_radius, k))
                    for k, (part, d) in enumerate(zip(split, local))]
-        if all(r is None for r in results):
-            raise NemoError("no object of the surface has a director: nothing to average")
         example = next(r for r in results if r is not None)[0]
-        return _combined([r if r is not None else (_nan_table(example, part), {"skipped": NO_DIRECTORS})
+        return _combined([r if r is not None else (_nan_table(example, part.mesh), {"skipped": NO_DIRECTORS})
                           for r, part in zip(results, split)], split)
     p = nconfig.section("order", params)
     if p["radius"] is None:
@@ -810,14 +847,18 @@ def defects(
         closest to χ kept; ``passes`` and ``relaxed_s_threshold`` (None: the first pass) say
         what happened. A frame that still misses χ is flagged by the summary's quality control.
     """
+    p = nconfig.section("defects", params)
+    if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
+        raise NemoError("defects.curvature_source is 'table' but no curvature table was given")
     split = objects.parts(mesh)
+    if not len(directors_df):  # no directors (``directors``' skipped frames): nothing to search
+        return _no_defects(mesh, None, params, NO_DIRECTORS)
     if split:
         return _defects_by_object(split, order_df, directors_df, params, avg_radius, curvature, intensity,
                                   director_params)
     try:
         return _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, intensity, director_params)
     except ObjectTooSmallError as exc:
-        p = nconfig.section("defects", params)
         if p["contour_radius"] is not None:
             raise  # the user's own radius: theirs to change
         # a radius derived from the data (the averaging radius): the morphology of a small object is still wanted
@@ -828,8 +869,6 @@ def defects(
 def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, intensity, director_params):
     """:func:`defects` on a mesh of one object."""
     p = nconfig.section("defects", params)
-    if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
-        raise NemoError("defects.curvature_source is 'table' but no curvature table was given")
     source = p["curvature_source"]
     if source == "table" and curvature is None:  # no K term at all (curvature_correction off)
         source = "angle-defects"
@@ -928,7 +967,7 @@ def _labelled(df: pd.DataFrame, mesh: trimesh.Trimesh) -> pd.DataFrame:
 
 
 #: Why an object of a labelled mesh has no order value and no defect search.
-NO_DIRECTORS = "no director on this object (it is smaller than the director patch)"
+NO_DIRECTORS = "no director on this object (smaller than the director patch, or a layer without texture)"
 
 
 def _each_object(split: list, run_one, what: str) -> list:
@@ -953,11 +992,11 @@ def _each_object(split: list, run_one, what: str) -> list:
     return out
 
 
-def _nan_table(example: pd.DataFrame, part) -> pd.DataFrame:
-    """A per-vertex table like ``example`` for every vertex of ``part``: positions x, y, z, counts 0,
+def _nan_table(example: pd.DataFrame, mesh: trimesh.Trimesh) -> pd.DataFrame:
+    """A per-vertex table like ``example`` for every vertex of ``mesh``: positions x, y, z, counts 0,
     the rest NaN (an object without directors has no order value)."""
-    n = len(part.vertices)
-    xyz = dict(zip("xyz", np.asarray(part.mesh.vertices, dtype=np.float64).T))
+    n = len(mesh.vertices)
+    xyz = dict(zip("xyz", np.asarray(mesh.vertices, dtype=np.float64).T))
     return pd.DataFrame({c: np.arange(n, dtype=np.int64) if c == "vertex" else xyz[c] if c in xyz
                          else np.zeros(n, dtype=dt) if np.issubdtype(dt, np.integer) else np.full(n, np.nan)
                          for c, dt in example.dtypes.items()})

@@ -137,12 +137,12 @@ def _layer_texture(r: Mapping) -> dict:
     return (read_provenance(r["layer_table"]).get("parameters") or {}).get("texture") or {}
 
 
-def _coherency_noise(r: Mapping, label: int) -> float:
-    """The directors step's texture floor for object ``label`` (NaN: imported directors, older tables)."""
+def _directors_params(r: Mapping, label: int) -> dict:
+    """The directors step's resolved parameters for object ``label``."""
     params = read_provenance(r["directors"]).get("parameters") or {}
     if params.get("objects"):
         params = next((o for o in params["objects"] if int(o.get("object", -1)) == label), {})
-    return _num(params.get("coherency_noise"))
+    return params
 
 
 def _layer_columns(tables: Mapping[str, pd.DataFrame]) -> dict:
@@ -173,7 +173,9 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     row : mapping
         The row's columns so far (``euler_characteristic``, ``charge_sum``, ``n_defects``,
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
-        ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed; ``texture``,
+        ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed;
+        ``directors_skipped``, why the directors step gave none (a layer without directors gets that
+        one flag, not the order and charge flags that follow from it); ``texture``,
         the peel's check of where the texture peaks, :func:`nemo.peel.texture_profile`).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
@@ -218,9 +220,9 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
 
 def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
     """The layer's part of :func:`quality_flags` (directors, order, defects)."""
+    if not row["n_directors"] or not np.isfinite(row["S_mean"]):  # no order and no defects follow from it
+        return [f"no directors: {row['directors_skipped']}" if row.get("directors_skipped") else "no directors"]
     flags = []
-    if not row["n_directors"] or not np.isfinite(row["S_mean"]):
-        flags.append("no directors")
     for key, what in (("peel_nan_fraction", "no layer intensity (samples outside the image?)"),
                       ("order_nan_fraction", "no order value (no tangent plane or director in reach)")):
         value = row.get(key, math.nan)
@@ -339,9 +341,12 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
-        row["coherency_noise"] = _coherency_noise(r, label)
+        directors = _directors_params(r, label)
+        row["coherency_noise"] = _num(directors.get("coherency_noise"))  # NaN: imported directors, older tables
+        row["directors_skipped"] = directors.get("skipped")
         row["texture"] = _layer_texture(r)
-    flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped else [])
+    no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why
+    flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped and not no_directors else [])
     row["qc_pass"] = not flags
     row["qc_flags"] = "; ".join(flags)
     return row

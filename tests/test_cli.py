@@ -745,6 +745,27 @@ def test_peel_warns_when_its_mesh_was_made_with_another_psf(corpus, tmp_path, ca
     assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0
 
 
+def test_the_step_commands_go_through_an_all_zero_channel(corpus, tmp_path, capsys):
+    """An all-zero channel peeled on a good mesh: the workflow's step commands each write their table
+    (no directors, NaN order, no defect search, no alignment) and say why, so one bad channel or
+    frame does not stop the dataset (`nemo peel` refused it; `nemo defects` then crashed on its print)."""
+    from nemo.tables import read_provenance, read_table
+
+    mesh, f = str(corpus["mesh.inner"]), {k: str(tmp_path / f"{k}.parquet") for k in ("l", "d", "o", "x", "a")}
+    steps = {"peel": ["peel", str(corpus["img.zero"]), mesh, "-o", f["l"], "--range", "0", "2"],
+             "directors": ["directors", mesh, f["l"], "-o", f["d"]], "order": ["order", mesh, f["d"], "-o", f["o"]],
+             "defects": ["defects", mesh, f["o"], f["d"], "-o", f["x"]], "align": ["align", f["d"], f["d"], "-o", f["a"]]}
+    said = {}
+    for name, argv in steps.items():
+        code, out, err = invoke(argv, capsys, name)
+        assert code == 0, (name, err)
+        said[name] = out + err
+    assert "intensity is 0 at every vertex" in said["peel"] and "no directors" in said["directors"]
+    assert "no defect search" in said["defects"] and "no alignment" in said["align"]
+    assert len(read_table(f["d"], "directors")) == 0 and read_table(f["o"], "order")["S"].isna().all()
+    assert len(read_table(f["x"], "defects")) == 0 and read_provenance(f["x"])["euler_check"]["skipped"]
+
+
 def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():
     """A mesh of channel 0 deconvolved by channel 0's PSF, peeled on channel 1 with channel 1's
     PSF (datasets.NAME.psf per channel): no warning; on channel 0 with another PSF: the warning."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ import trimesh
 from nemo import stages
 from nemo.errors import NemoError, NemoWarning
 from nemo.mesh import make_mesh, mean_edge_length
+from nemo.tables import SCHEMAS
 
 
 def sphere(radius: float, subdivisions: int = 4) -> trimesh.Trimesh:
@@ -752,30 +754,61 @@ def test_an_object_smaller_than_the_default_patch_is_named_with_what_set_the_pat
     """An empty frame meshes a noise speck (an independent review: radius 2.1 µm at 1 µm edges): its
     default patch is the floor of 8 mean edges, 8.7 µm, and the error advised "a patch_radius well
     below 2.107 (the default is 0.1 × that, 0.211)", which is not what the default was nor the
-    fix. It now names the floor and the likely causes; a radius the user gave keeps its advice."""
+    fix. The warning names the floor and the likely causes, and the frame has no directors (so a
+    time-lapse's other frames are summarised); a radius the user gave is still an error with its advice."""
     from nemo.errors import ObjectTooSmallError
 
     speck = sphere(2.0, subdivisions=2)
-    intensity = np.ones(len(speck.vertices))
-    with pytest.raises(ObjectTooSmallError, match=r"smaller than the directors' default patch \(radius [0-9.]+: "
-                                                   r"the larger of 0.1 × the object's radius and 8 mean edges.*"
-                                                   r"empty frame"):
-        stages.directors(speck, intensity)
+    intensity = np.random.default_rng(0).random(len(speck.vertices))
+    with pytest.warns(NemoWarning, match=r"smaller than the directors' default patch \(radius [0-9.]+: "
+                                         r"the larger of 0.1 × the object's radius and 8 mean edges.*"
+                                         r"empty frame"):
+        df, p = stages.directors(speck, intensity)
+    assert len(df) == 0 and list(df.columns) == list(SCHEMAS["directors"])
+    assert "smaller than the default directors' patch" in p["skipped"]
     with pytest.raises(ObjectTooSmallError, match=r"patch_radius.*well below"):
         stages.directors(speck, intensity, {"patch_radius": 3.0})
 
 
-def test_peeling_an_all_zero_channel_is_refused_by_name():
-    """An all-zero channel peeled on a good mesh gave a layer of zeros without a word; the directors
-    then found none and the order step failed with "rerun nemo directors" (an independent review)."""
-    ball = sphere(10.0, subdivisions=3)
+def test_an_all_zero_channel_goes_through_every_step_without_directors_and_is_flagged(tmp_path):
+    """An all-zero channel (or an empty frame) stopped the dataset: peel refused the layer, so the
+    workflow's summaries of every other frame were lost (an independent review's hostile stack).
+    The layer is now kept with a warning; directors, order, defects and alignment give empty or NaN
+    tables that say why, and the frame summary flags the row with that reason."""
+    from nemo.order import alignment
+    from nemo.summary import frame_summary
+    from nemo.tables import write_table
+
+    ball = sphere(10.0, subdivisions=4)
     ball.vertices = np.asarray(ball.vertices) + 15.0
-    with pytest.raises(NemoError, match=r"intensity is 0 at every vertex.*all-zero channel"):
-        stages.peel(np.zeros((30, 30, 30), np.float32), (1.0, 1.0, 1.0), ball, {"range": [0, 2]})
+    with pytest.warns(NemoWarning, match=r"intensity is 0 at every vertex.*all-zero channel.*skipped"):
+        layer, _ = stages.peel(np.zeros((30, 30, 30), np.float32), (1.0, 1.0, 1.0), ball, {"range": [0, 2]})
+    with pytest.warns(NemoWarning, match="no directors: the layer's intensity is 0"):
+        d, dp = stages.directors(ball, layer["intensity"].to_numpy())
+    assert len(d) == 0 and "intensity is 0" in dp["skipped"] and dp["nominal_radius"] > 0
+    o, op = stages.order(ball, d, None, patch_radius=dp["nominal_radius"])
+    assert len(o) == len(ball.vertices) and o["S"].isna().all() and (o["count"] == 0).all() and op["skipped"]
+    with pytest.warns(NemoWarning, match="no defect search"):
+        f, extra, fp = stages.defects(ball, o, d)
+    assert len(f) == 0 and extra is None and fp["skipped"]
+    with pytest.warns(NemoWarning, match="no alignment"):
+        assert len(alignment(d, d, mesh_a=ball)) == 0
+    paths = {}
+    for key, df, p in (("layer_table", layer, {}), ("directors", d, dp), ("order", o, op), ("defects", f, fp)):
+        paths[key] = tmp_path / f"{key}.parquet"
+        write_table(df, paths[key], parameters=p, **({"euler_check": f.attrs["euler_check"]} if key == "defects"
+                                                     else {}))
+    (tmp_path / "m.json").write_text(json.dumps({"area": float(ball.area), "volume": float(ball.volume),
+                                                 "euler_characteristic": 2, "n_objects": 1, "snr": 20.0}))
+    row = frame_summary([{"t": 0, "c": 1, "layer": "fibres", "surface": "inner", "measure": tmp_path / "m.json",
+                          **paths}]).iloc[0]
+    assert not row["qc_pass"] and row["qc_flags"].startswith("no directors: the layer's intensity is 0"), row
+    assert "Σ charge" not in row["qc_flags"] and "no defect search" not in row["qc_flags"]  # they follow from it
     image = np.zeros((30, 30, 30), np.float32)
-    image[12:18] = 1.0  # a slab: a layer that varies is peeled
+    image[12:18] = 1.0  # a slab: a layer that varies is peeled and oriented
     df, _ = stages.peel(image, (1.0, 1.0, 1.0), ball, {"range": [0, 2]})
     assert df["intensity"].max() > df["intensity"].min()
+    assert len(stages.directors(ball, df["intensity"].to_numpy())[0]) > 0
 
 
 def test_keep_all_says_which_surfaces_it_leaves_out(caplog):

@@ -57,6 +57,9 @@ def run(args) -> int:
     write_table(df, out, command="align", directors_a=str(args.directors_a),
                 directors_b=str(args.directors_b), mesh=args.mesh, n_vertices=n_vertices,
                 max_distance=args.max_distance)
+    if not len(df):  # a layer without directors (its directors step said why)
+        print(f"no alignment: a table has no directors -> {out}")
+        return 0
     c = df["c"].to_numpy()
     d = df["distance"].to_numpy()
     n_far = int(np.isnan(c).sum())

@@ -143,6 +143,9 @@ def run(args) -> int:
         cols = ["x", "y", "z", "S", "charge", "charge_winding", "charge_curvature", "charge_rounded"]
         print(df[cols].to_string(float_format=lambda v: f"{v:.3f}", index=False))
     p = df.attrs["parameters"]
+    if p.get("skipped"):  # a frame without directors, or an object too small for the derived lengths
+        print(f"no defect search ({p['skipped']}) -> {out}")
+        return 0
     print(f"{len(df)} defect(s) (S < {p['s_threshold']:.3g}, contour {p['contour_radius']:.3g} {unit}, "
           f"K term: {p['curvature_source'] if p['curvature_correction'] else 'off'}; "
           f"{resolved['n_refine_directors']} refinement directors) -> {out}")

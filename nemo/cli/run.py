@@ -60,8 +60,9 @@ def run(args) -> int:
     print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels{psf_note}")
     for name, res in summary["layers"].items():
         chk = res["euler_check"]
+        order = f"mean S {res['S']['mean']:.3f}" if res["n_directors"] else "no order (see the warnings)"
         print(f"layer {name} ({res['surface']} surface, {res['vertices']} vertices): {res['n_directors']} "
-              f"directors, mean S {res['S']['mean']:.3f}")
+              f"directors, {order}")
         for d in res["defects"]:
             print(f"  defect at ({d['x']:.2f}, {d['y']:.2f}, {d['z']:.2f}) charge {d['charge']:+.3f} "
                   f"(~{d['charge_rounded']:+g}), S {d['S']:.3f}")
