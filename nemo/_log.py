@@ -39,6 +39,14 @@ def configure(verbosity: int = 0) -> None:
     logger.propagate = False
 
 
+def listed(items: Iterable[str], most: int = 10, sep: str = "; ") -> str:
+    """The first ``most`` of ``items`` joined by ``sep``, and how many more: a message about
+    hundreds of objects (a tissue's nuclei) stays one readable line."""
+    items = list(items)
+    more = len(items) - most
+    return sep.join(items[:most]) + (f"{sep}… and {more} more" if more > 0 else "")
+
+
 @contextmanager
 def step(message: str) -> Iterator[None]:
     """Log the start and the duration of a long step."""

@@ -179,9 +179,9 @@ def concatenate(meshes: Sequence[trimesh.Trimesh], labels: Sequence[int]) -> tri
 
 def object_meshes(whole: trimesh.Trimesh, found: Sequence[dict]) -> list[trimesh.Trimesh]:
     """Each object of ``found`` (:func:`nemo.surface.find_objects`) with the surfaces nested in it."""
-    from nemo.surface import _object_with_nested  # the same nesting test as find_objects
+    from nemo.surface import objects_with_nested  # the same nesting test as find_objects
 
-    return [_object_with_nested(whole, o["components"]) for o in found]
+    return objects_with_nested(whole, [o["components"] for o in found])
 
 
 def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis, walls: Sequence[int] | None = None,
@@ -237,7 +237,8 @@ def split_objects(pieces: Sequence[trimesh.Trimesh], by: str, axis, walls: Seque
     if not labels:
         raise NemoError("no object of the image has an inner and an outer wall: set `split` auto or none "
                         "(config mesh.split) to analyse each object's surface")
-    logger.info("split %d objects into inner and outer walls, each about its own centre",
-                len(labels) if walls is None else sum(w == 2 for w in walls))
+    two = len(labels) if walls is None else sum(w == 2 for w in walls)
+    logger.info("split %d of %d objects into inner and outer walls, each about its own centre%s", two, len(pieces),
+                "" if walls is None else f" ({len(pieces) - two} of one wall: inner and outer are its whole surface)")
     return {"whole": concatenate(pieces, range(len(pieces))), "inner": concatenate(inner, labels),
             "outer": concatenate(outer, labels)}

@@ -39,7 +39,7 @@ import trimesh
 
 from nemo import config as nconfig
 from nemo import objects
-from nemo._log import logger
+from nemo._log import listed, logger
 from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
 from nemo.psf import deconvolve
@@ -238,7 +238,7 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
     """Every object of ``whole`` (``keep: all``), labelled (:mod:`nemo.objects`), split if configured."""
     pieces = objects.object_meshes(whole, found)
     unit = getattr(whole, "units", None) or "um"
-    logger.info("keeping all %d objects: %s", len(found), "; ".join(
+    logger.info("keeping all %d objects: %s", len(found), listed(
         f"object {k}: area {o['area']:.4g} {unit}², centre ({o['centre'][0]:.4g}, {o['centre'][1]:.4g}, "
         f"{o['centre'][2]:.4g})" for k, o in enumerate(found)))
     _log_left_out(whole, pieces, unit)
@@ -246,7 +246,7 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
     if p["split"] == "none":
         return {"whole": objects.concatenate(pieces, range(len(pieces)))}
     if p["split"] == "auto":  # each object: split if it has two walls (a loop over objects)
-        decided = [_auto_walls(piece, f"object {k}") for k, piece in enumerate(pieces)]
+        decided = [_auto_walls(piece, f"object {k}", quiet=len(pieces) > 1) for k, piece in enumerate(pieces)]
         p["walls"] = [walls for walls, _, _ in decided]
         return objects.split_objects([piece for _, piece, _ in decided], "centre", None, walls=p["walls"],
                                      centres=[centre for _, _, centre in decided])
@@ -305,10 +305,11 @@ def _walls(whole: trimesh.Trimesh, p: dict, centre: np.ndarray | None) -> dict[s
     return meshes
 
 
-def _auto_walls(whole: trimesh.Trimesh, what: str,
-                centre: np.ndarray | None = None) -> tuple[int, trimesh.Trimesh, np.ndarray | None]:
+def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = None,
+                quiet: bool = False) -> tuple[int, trimesh.Trimesh, np.ndarray | None]:
     """(walls, surface, split centre) of one object under ``split: auto`` (:func:`nemo.surface.count_walls`);
-    with one wall, its largest piece (a speck or a small cavity inside it dropped).
+    with one wall, its largest piece (a speck or a small cavity inside it dropped). ``quiet``: its
+    verdict in the debug log (one of several objects; :func:`nemo.objects.split_objects` sums them up).
 
     The centre is ``centre`` (None: the surface's centroid), or for an open object whose pieces
     do not face its centroid, its centre of curvature (:func:`_curvature_centre`): the two faces of
@@ -322,8 +323,9 @@ def _auto_walls(whole: trimesh.Trimesh, what: str,
         again = count_walls(whole, curvature_centre)
         if again[0] == 2:
             (walls, inner, _), centre = again, curvature_centre
+    say = logger.debug if quiet else logger.info
     if walls == 2:
-        logger.info("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its %s",
+        say("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its %s",
                     what, 100 * inner, "centre" if centre is None else
                     "centre ({:.4g}, {:.4g}, {:.4g})".format(*centre))
         return 2, whole, centre
@@ -334,8 +336,8 @@ def _auto_walls(whole: trimesh.Trimesh, what: str,
                       "pieces that turn partly towards its centre: a torus or a curved cell has one wall, but a sheet "
                       "whose two sides meet at a rim (an epithelium cut by the image border) has two; set split: "
                       "centre for that", NemoWarning, stacklevel=3)
-    logger.info("split auto: %s has one wall (%s): its inner and outer surfaces are the whole surface, and there is "
-                "no thickness", what, why)
+    say("split auto: %s has one wall (%s): its inner and outer surfaces are the whole surface, and there is "
+        "no thickness", what, why)
     return 1, _with_metadata(keep_components(whole, "largest"), whole), None
 
 
@@ -468,10 +470,10 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
     result = measure_surface(mesh, curvature_df)
     result["centre"] = surface_centre(mesh).tolist()
     split = objects.parts(mesh)
-    if split:
-        result["objects"] = [dict(measure(part.mesh, None if curvature_df is None
-                                          else objects.local_table(curvature_df, part)), object=part.label)
-                             for part in split]
+    if split:  # the frame's `walls` (one per object) only in the frame's record: not repeated per object
+        result["objects"] = [{**{k: v for k, v in measure(part.mesh, None if curvature_df is None else
+                                                          objects.local_table(curvature_df, part)).items()
+                                 if k != "walls"}, "object": part.label} for part in split]
     return result
 
 

@@ -72,7 +72,7 @@ from scipy import ndimage as ndi
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from nemo._log import logger
+from nemo._log import listed, logger
 from nemo._log import step as log_step
 from nemo.errors import NemoError, NemoWarning
 from nemo.geometry import close_rim, rim
@@ -117,6 +117,13 @@ INTERIOR_EDGE_WIDTHS = 4.0
 INTERIOR_MIN_SAMPLES = 20
 INTERIOR_MAX_SPREAD = 0.15
 _MAX_INTERIOR_SAMPLES = 500_000
+#: A region without a flat core whose greatest depth reaches this fraction of the radius of a
+#: ball of its volume is a compact object (a ball: 1; a 4 µm wall of a 30 µm shell: 0.1), meshed
+#: half-way to its deep samples' median (:func:`_deep_plateau`).
+BLOB_MIN_DEPTH = 0.5
+#: ... and whose greatest depth reaches this many edge widths (its top then within a few % of its
+#: plateau: 0.97 of it at the centre of a ball of radius 3 σ).
+BLOB_MIN_WIDTHS = 3.0
 #: Separate objects meshed at their own half levels (:func:`_object_levels`): regions above the
 #: threshold (and cores above the level) of at least this many samples and this fraction of the
 #: largest region's samples, shifted where their level differs from the stack's by more than this
@@ -374,7 +381,7 @@ def turn_out_dark_objects(mesh: trimesh.Trimesh, objects: list[dict] | None = No
 
 
 def _describe_objects(objects: list[dict], unit: str) -> str:
-    return "; ".join(
+    return listed(
         f"area {o['area']:.4g} {unit}² (radius of equal area {o['radius']:.4g} {unit}) centred at "
         f"({o['centre'][0]:.4g}, {o['centre'][1]:.4g}, {o['centre'][2]:.4g})" for o in objects)
 
@@ -573,15 +580,36 @@ def one_object(mesh: trimesh.Trimesh, split: bool, keep: Literal["largest", "all
 def _object_with_nested(mesh: trimesh.Trimesh, components: list[int]) -> trimesh.Trimesh:
     """An object's ``components`` of ``mesh`` (:func:`find_objects`: its largest piece first) and
     every component lying inside the largest (winding number)."""
+    return objects_with_nested(mesh, [components])[0]
+
+
+def objects_with_nested(mesh: trimesh.Trimesh, objects: list[list[int]]) -> list[trimesh.Trimesh]:
+    """:func:`_object_with_nested` of every object (a list of its components each), with the
+    components, their probes and bounding boxes found once; only the components whose probe lies in
+    the bounding box of an object's largest piece are tested (300 nuclei: 32 s → under 2 s)."""
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
     labels = face_components(faces, len(vertices))
+    n = int(labels.max()) + 1 if labels.size else 0
     first_face = np.unique(labels, return_index=True)[1]
     off_rim = ~rim(faces, len(vertices))["vertices"][faces]  # (F, 3)
     # one vertex of every component, off the rim where its first face has one
     probes = vertices[faces[first_face, np.argmax(off_rim[first_face], axis=1)]]
-    inside = np.abs(_winding_numbers(probes, *close_rim(vertices, faces[labels == components[0]]))) > 0.5
-    inside[components] = True
-    return submesh(mesh, inside[labels])
+    corners, owner = vertices[faces.ravel()], np.repeat(labels, 3)
+    low, high = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
+    np.minimum.at(low, owner, corners)
+    np.maximum.at(high, owner, corners)
+    order = np.argsort(labels, kind="stable")
+    starts = np.searchsorted(labels[order], np.arange(n + 1))
+    out = []
+    for components in objects:  # a loop over objects
+        largest = components[0]
+        inside = np.zeros(n, dtype=bool)
+        near = np.flatnonzero(np.all((probes >= low[largest]) & (probes <= high[largest]), axis=1))
+        shell = close_rim(vertices, faces[order[starts[largest]:starts[largest + 1]]])
+        inside[near] = np.abs(_winding_numbers(probes[near], *shell)) > 0.5
+        inside[components] = True
+        out.append(submesh(mesh, inside[labels]))
+    return out
 
 
 def _with_metadata(out: trimesh.Trimesh, mesh: trimesh.Trimesh) -> trimesh.Trimesh:
@@ -848,7 +876,7 @@ def auto_sigma(
 
     def level_of(b):  # thresholded like reconstruct (edge "half")
         return _iso_level(b, float(b.min()), float(b.max()), False, threshold, "half", scale,
-                          (dz * k, dy * k, dx * k))[0]
+                          (dz * k, dy * k, dx * k), quiet=True)[0]  # the mesh's own level says how it was found
 
     b0 = blurred(floor)
     level = level_of(b0)
@@ -933,8 +961,8 @@ def parse_threshold(threshold) -> str | float:
     return value
 
 
-def _auto_level(field: np.ndarray, method: str, edge: str,
-                spacing=(1.0, 1.0, 1.0)) -> tuple[float, float, float | None]:
+def _auto_level(field: np.ndarray, method: str, edge: str, spacing=(1.0, 1.0, 1.0),
+                quiet: bool = False) -> tuple[float, float, float | None]:
     """(classification threshold, iso-level, background) of an automatic threshold on a blurred volume.
 
     The background is the mode of the class below the threshold (None when every or no sample
@@ -965,7 +993,8 @@ def _auto_level(field: np.ndarray, method: str, edge: str,
     background = float(centres[b0])
     if edge == "threshold":
         return thr, thr, background
-    return thr, _half_level(sub, thr, background, method, np.asarray(spacing, float) * k, edges, counts, b0), background
+    level = _half_level(sub, thr, background, method, np.asarray(spacing, float) * k, edges, counts, b0, quiet)
+    return thr, level, background
 
 
 def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spacing: np.ndarray,
@@ -1053,12 +1082,9 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
     sub = sub[tuple(slice(max(0, b.start - 1), b.stop + 1) for b in box)]
     m = max(1, int(np.ceil((sub.size / _MAX_INTERIOR_SAMPLES) ** (1 / 3))))  # the EDT costs 0.6 s at 1.6 M
     sub, spacing = sub[::m, ::m, ::m], spacing * m
-    half = 0.5 * (background + median)
-    band = np.abs(sub - half) < 0.1 * (median - background)
-    if not band.any():
+    width = _edge_width(sub, background, median, spacing)
+    if width is None:
         return None
-    grad = np.sqrt(sum((g / d) ** 2 for g, d in zip(np.gradient(sub.astype(np.float32, copy=False)), spacing)))
-    width = (median - background) / (np.sqrt(2.0 * np.pi) * max(float(np.median(grad[band])), 1e-300))
     depth = ndi.distance_transform_edt(sub > thr, sampling=spacing) / width
     inside = sub[depth > INTERIOR_EDGE_WIDTHS]
     core = sub[depth > INTERIOR_EDGE_WIDTHS + 1.0]
@@ -1069,6 +1095,18 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
     plateau, rim = float(np.median(core)), float(np.median(sub[first]))
     flat = max((q75 - q25) / 1.349, abs(plateau - rim)) <= INTERIOR_MAX_SPREAD * (plateau - background)
     return plateau if plateau > median and flat else None
+
+
+def _edge_width(sub: np.ndarray, background: float, median: float, spacing: np.ndarray) -> float | None:
+    """The width σ of an object's blurred edge, ``(median − background) / (√(2π) g)`` with g the
+    median gradient magnitude within 10 % of the contrast of the provisional half level (an erf edge
+    of contrast C and width σ is steepest at C / (√(2π) σ)); None without samples there."""
+    half = 0.5 * (background + median)
+    band = np.abs(sub - half) < 0.1 * (median - background)
+    if not band.any():
+        return None
+    grad = np.sqrt(sum((g / d) ** 2 for g, d in zip(np.gradient(sub.astype(np.float32, copy=False)), spacing)))
+    return (median - background) / (np.sqrt(2.0 * np.pi) * max(float(np.median(grad[band])), 1e-300))
 
 
 def _object_levels(field: np.ndarray, thr: float, background: float | None, level: float, method: str,
@@ -1141,17 +1179,55 @@ def _leaves(part: np.ndarray, crop: np.ndarray, rungs: np.ndarray, least: float)
 def _own_level(region: np.ndarray, own: np.ndarray, thr: float, background: float, level: float, method: str,
                spacing: np.ndarray) -> float:
     """An object's own half level: half-way to its flat core (:func:`_interior_plateau`); without one,
-    its half level (:func:`_half_level`) if it lies wholly below the stack's ``level`` (it would be
-    lost), else ``level``: a thin wall never reaches its plateau, and its own histogram reads low
-    (a 4-voxel shell beside a ball of the same brightness came out 0.3 voxel thicker)."""
+    half-way to a compact object's top (:func:`_deep_plateau`); else its half level
+    (:func:`_half_level`) if it lies wholly below the stack's ``level`` (it would be lost), else
+    ``level``: a thin wall never reaches its plateau, and its own histogram reads low (a 4-voxel
+    shell beside a ball of the same brightness came out 0.3 voxel thicker)."""
     values = region[own]
     median = float(np.median(values[values > thr])) if np.any(values > thr) else thr
     core = _interior_plateau(region, thr, background, median, spacing)
     if core is not None:
         return max(thr, 0.5 * (background + core))
+    top = _deep_plateau(region, own, thr, background, median, spacing)
+    if top is not None:  # a small compact object: half-way to its top
+        return max(thr, 0.5 * (background + top))
     if float(values.max()) <= level:
         return max(thr, _half_level(region, thr, background, method, spacing, quiet=True))
     return level
+
+
+def _deep_plateau(region: np.ndarray, own: np.ndarray, thr: float, background: float, median: float,
+                  spacing: np.ndarray) -> float | None:
+    """The plateau of a compact object without a flat core: the median of its samples at least
+    half its greatest depth inside (a blob's top). None for a wall or sheet (greatest depth below
+    :data:`BLOB_MIN_DEPTH` × the radius of a ball of its volume: it is thin, and its own top reads
+    low, so it keeps the stack's level) and for an object whose greatest depth is below
+    :data:`BLOB_MIN_WIDTHS` edge widths (:func:`_edge_width`): blurred that much, its top is well
+    below its plateau (a ball of radius 2 σ: level 47 for 100, volume +50 %).
+
+    Small nuclei (radius 3–4 µm at 2 µm planes) have no interior deeper than a few edge widths, so
+    no flat core (:func:`_interior_plateau`); they kept the stack's level, far below theirs in a
+    tissue of nuclei of 0.5–1 × the brightest (an independent review: 79 of 200 nuclei, volume
+    +18 % median, up to +50 %). Depths are physical (``spacing``), inside the object's half-maximum
+    (half-way from the background to its 99th percentile; a low ``thr`` reaches far into the blur).
+    """
+    inside = own & (region > thr)
+    if inside.sum() < INTERIOR_MIN_SAMPLES:
+        return None
+    depth = ndi.distance_transform_edt(inside, sampling=spacing)
+    peak = float(np.median(region[inside & (depth >= 0.5 * float(depth.max()))]))  # the top, roughly
+    inside = own & (region > max(thr, 0.5 * (background + peak)))
+    n = int(inside.sum())
+    if n < INTERIOR_MIN_SAMPLES:
+        return None
+    depth = ndi.distance_transform_edt(inside, sampling=spacing)
+    deepest = float(depth.max())
+    if deepest < BLOB_MIN_DEPTH * (3.0 * n * float(np.prod(spacing)) / (4.0 * np.pi)) ** (1 / 3):
+        return None
+    width = _edge_width(region, background, median, spacing)
+    if width is None or deepest < BLOB_MIN_WIDTHS * width:
+        return None
+    return float(np.median(region[inside & (depth >= 0.5 * deepest)]))
 
 
 def _object_regions(field: np.ndarray, thr: float, level: float) -> list[tuple[tuple, np.ndarray, np.ndarray]]:
@@ -1503,8 +1579,8 @@ def reconstruct(
     if isinstance(how, str) and edge == "half" and not refine:  # refine crosses the stack's one level
         object_levels = _object_levels(inner, thr, background, level, how, np.array([dz, dy, dx]) * step)
         if object_levels:
-            logger.info("separate objects at their own half levels: %s (the stack's %.4g)",
-                        ", ".join(f"{lev * scale:.4g}" for lev in object_levels), level * scale)
+            logger.info("%d separate objects at their own half levels: %s (the stack's %.4g)", len(object_levels),
+                        listed((f"{lev * scale:.4g}" for lev in object_levels), sep=", "), level * scale)
     del inner
 
     box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
@@ -1770,7 +1846,7 @@ def _pad_with_minimum(field: np.ndarray) -> np.ndarray:
 
 
 def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, threshold, edge: str,
-               scale: float, spacing=(1.0, 1.0, 1.0)) -> tuple[float, float, str | float, float | None]:
+               scale: float, spacing=(1.0, 1.0, 1.0), quiet: bool = False) -> tuple[float, float, str | float, float | None]:
     """Iso-level of the blurred (scaled) field, the threshold it came from, how it was found and
     the background (:func:`_auto_level`; None for a mask or a given level).
 
@@ -1791,7 +1867,7 @@ def _iso_level(inner: np.ndarray, vmin: float, vmax: float, from_mask: bool, thr
         )
     background = None
     if isinstance(how, str):
-        thr, level, background = _auto_level(inner, how, edge, spacing)
+        thr, level, background = _auto_level(inner, how, edge, spacing, quiet)
     else:
         thr = level = how / scale  # the volume was divided by scale (_float32_safe)
     rng = f"blurred intensities {vmin * scale:.4g} to {vmax * scale:.4g}"

@@ -809,6 +809,31 @@ def test_objects_of_different_brightness_are_meshed_at_their_own_half_levels():
     np.testing.assert_allclose(levels, [190.0, 220.0, 300.0], atol=4.0)
 
 
+def test_small_dim_nuclei_without_a_flat_core_are_meshed_at_their_own_half_levels():
+    """Nuclei of radius 3.5 µm at 2 µm planes have no interior a few edge widths deep (no flat core):
+    they kept the stack's level, far below their own half level, beside bright large nuclei (an
+    independent review's tissue: 79 of 200 nuclei, volume +18 % median, up to +50 %; here, without
+    the change, −29 … −70 % or merged into one surface). A compact object now gets half-way to its
+    deep samples' median: every volume within −10 … +8 % (measured −1.1 … +4.5 %, seeds 3–5), while
+    the large ones keep their cores' levels."""
+    from nemo.objects import object_meshes
+
+    spacing = (2.0, 0.5, 0.5)
+    balls = [((14.0, 14.0, 15.0), 8.0, 1.0), ((38.0, 14.0, 15.0), 8.0, 0.9), ((14.0, 36.0, 15.0), 3.5, 0.5),
+             ((30.0, 34.0, 13.0), 3.5, 0.45), ((42.0, 36.0, 17.0), 4.0, 0.55)]
+    volume = np.full((16, 100, 110), 100.0, np.float32)
+    for centre, radius, brightness in balls:
+        volume += ball_volume(volume.shape, spacing, centre, radius, width=0.8, amp=1000.0 * brightness)
+    volume += 60.0 * np.random.default_rng(3).standard_normal(volume.shape).astype(np.float32)
+    mesh = reconstruct(volume, spacing, keep="all")
+    pieces = object_meshes(mesh, find_objects(mesh))
+    assert len(pieces) == len(balls)
+    for centre, radius, _ in balls:
+        piece = min(pieces, key=lambda m: np.linalg.norm(np.asarray(m.vertices).mean(axis=0) - centre))
+        error = piece.volume / (4 / 3 * np.pi * radius**3) - 1
+        assert -0.10 < error < 0.08, (centre, radius, error)
+
+
 def test_auto_level_ignores_blips_in_the_sparse_bright_tail():
     """An object with no intensity plateau (values spread evenly from the background up to 0.7, as
     a noisy blurred wall with texture) and a handful of bright voxels at 0.95: the lone bright
