@@ -47,6 +47,27 @@ def listed(items: Iterable[str], most: int = 10, sep: str = "; ") -> str:
     return sep.join(items[:most]) + (f"{sep}… and {more} more" if more > 0 else "")
 
 
+#: Most objects whose steps log their own progress lines (more: the debug log, ``-vv``).
+OBJECTS_LOGGED = 3
+
+
+@contextmanager
+def quiet_objects(n_objects: int, what: str) -> Iterator[None]:
+    """A step's loop over ``n_objects`` objects: with more than :data:`OBJECTS_LOGGED` (a tissue's
+    nuclei), each object's progress lines go to the debug log and one line says so; warnings
+    still show."""
+    if n_objects <= OBJECTS_LOGGED or logger.getEffectiveLevel() <= logging.DEBUG:
+        yield
+        return
+    logger.info("%s: %d objects, each on its own (their progress: -vv)", what, n_objects)
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 @contextmanager
 def step(message: str) -> Iterator[None]:
     """Log the start and the duration of a long step."""

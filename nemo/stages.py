@@ -39,7 +39,7 @@ import trimesh
 
 from nemo import config as nconfig
 from nemo import objects
-from nemo._log import listed, logger
+from nemo._log import listed, logger, quiet_objects
 from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
 from nemo.psf import deconvolve
@@ -471,9 +471,10 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
     result["centre"] = surface_centre(mesh).tolist()
     split = objects.parts(mesh)
     if split:  # the frame's `walls` (one per object) only in the frame's record: not repeated per object
-        result["objects"] = [{**{k: v for k, v in measure(part.mesh, None if curvature_df is None else
-                                                          objects.local_table(curvature_df, part)).items()
-                                 if k != "walls"}, "object": part.label} for part in split]
+        with quiet_objects(len(split), "measure"):
+            result["objects"] = [{**{k: v for k, v in measure(part.mesh, None if curvature_df is None else
+                                                              objects.local_table(curvature_df, part)).items()
+                                     if k != "walls"}, "object": part.label} for part in split]
     return result
 
 
@@ -490,7 +491,8 @@ def curvature_defaults(mesh: trimesh.Trimesh, params: dict | None = None) -> dic
 
     split = objects.parts(mesh)
     if split:  # each object its own radius
-        return objects.combine_params([curvature_defaults(part.mesh, params) for part in split], split)
+        with quiet_objects(len(split), "curvature radius"):
+            return objects.combine_params([curvature_defaults(part.mesh, params) for part in split], split)
     p = nconfig.section("curvature", params)
     if p["radius"] is None:
         p["radius"], info = default_radius(mesh, fit=p["fit"], rng=int(p["seed"]))
@@ -505,7 +507,8 @@ def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.Dat
 
     split = objects.parts(mesh)
     if split:  # each object on its own: no fit reaches across objects
-        return _combined([curvature(part.mesh, params) for part in split], split)
+        with quiet_objects(len(split), "curvature"):
+            return _combined([curvature(part.mesh, params) for part in split], split)
     p = curvature_defaults(mesh, params)
     df = fit_curvature(mesh, float(p["radius"]), n_samples=p["samples"], fraction=p["fraction"],
                        k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"], smooth=float(p["smooth"]),
@@ -710,8 +713,9 @@ def _directors(mesh: trimesh.Trimesh, intensity: np.ndarray, params: dict | None
     split = objects.parts(mesh)
     if split:  # patches never reach across objects; an object smaller than its patch gets none
         intensity = np.asarray(intensity)
-        results = _each_object(split, lambda k, part: _directors(part.mesh, intensity[part.vertices], params),
-                               "directors")
+        with quiet_objects(len(split), "directors"):
+            results = _each_object(split, lambda k, part: _directors(part.mesh, intensity[part.vertices], params),
+                                   "directors")
         empty = next(r for r in results if not isinstance(r, str))[0].iloc[:0]
         return _combined([(empty, {"skipped": r}) if isinstance(r, str) else r for r in results], split)
     p = directors_defaults(mesh, params)
@@ -798,8 +802,9 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
         return _labelled(_nan_table(example, mesh), mesh), {**nconfig.section("order", params), "skipped": NO_DIRECTORS}
     if split:  # each object's directors averaged on it alone; patch_radius: one or one per object
         local = [objects.local_table(directors_df, part) for part in split]
-        results = [None if not len(d) else order(part.mesh, d, params, objects.value_for(patch_radius, k))
-                   for k, (part, d) in enumerate(zip(split, local))]
+        with quiet_objects(len(split), "order"):
+            results = [None if not len(d) else order(part.mesh, d, params, objects.value_for(patch_radius, k))
+                       for k, (part, d) in enumerate(zip(split, local))]
         example = next(r for r in results if r is not None)[0]
         return _combined([r if r is not None else (_nan_table(example, part.mesh), {"skipped": NO_DIRECTORS})
                           for r, part in zip(results, split)], split)
@@ -904,22 +909,23 @@ def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, in
 def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvature, intensity, director_params):
     """:func:`defects` on each object of a labelled mesh; one table, Euler checks per object and summed."""
     found, extras, resolved, errors = [], [], [], []
-    for k, part in enumerate(split):  # a loop over objects
-        v = part.vertices
-        local = objects.local_table(directors_df, part)
-        try:
-            if not len(local):
-                raise ObjectTooSmallError(NO_DIRECTORS)
-            df, extra, p = defects(part.mesh, objects.local_table(order_df, part), local, params,
-                                   objects.value_for(avg_radius, k), None if curvature is None else curvature[v],
-                                   None if intensity is None else np.asarray(intensity)[v],
-                                   objects.pick(director_params, k))
-        except ObjectTooSmallError as exc:  # e.g. an object smaller than its averaging radius: the others go on
-            errors.append(exc)
-            df, extra, p = _no_defects(part.mesh, part.label, params, str(exc))
-        found.append(df)
-        extras.append(extra)
-        resolved.append(p)
+    with quiet_objects(len(split), "defects"):
+        for k, part in enumerate(split):  # a loop over objects
+            v = part.vertices
+            local = objects.local_table(directors_df, part)
+            try:
+                if not len(local):
+                    raise ObjectTooSmallError(NO_DIRECTORS)
+                df, extra, p = defects(part.mesh, objects.local_table(order_df, part), local, params,
+                                       objects.value_for(avg_radius, k), None if curvature is None else curvature[v],
+                                       None if intensity is None else np.asarray(intensity)[v],
+                                       objects.pick(director_params, k))
+            except ObjectTooSmallError as exc:  # e.g. an object smaller than its averaging radius: the others go on
+                errors.append(exc)
+                df, extra, p = _no_defects(part.mesh, part.label, params, str(exc))
+            found.append(df)
+            extras.append(extra)
+            resolved.append(p)
     if len(errors) == len(split):  # no object could be searched: as for a single object, an error
         raise errors[0]
     out = objects.combine_tables(found, split, sort=False)
@@ -987,7 +993,7 @@ def _each_object(split: list, run_one, what: str) -> list:
             out.append(run_one(k, part))
         except ObjectTooSmallError as exc:
             warnings.warn(f"object {part.label}: no {what} ({exc})", NemoWarning, stacklevel=3)
-            out.append(str(exc))
+            out.append(exc.reason)  # the short reason, for the object's quality flag
             errors.append(exc)
     if len(errors) == len(split):
         raise errors[0]

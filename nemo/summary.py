@@ -175,7 +175,8 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
         ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed;
         ``directors_skipped``, why the directors step gave none (a layer without directors gets that
-        one flag, not the order and charge flags that follow from it); ``texture``,
+        one flag, not the order and charge flags that follow from it); ``defects_skipped``, why the
+        defect search did not run (no charge sum to check); ``texture``,
         the peel's check of where the texture peaks, :func:`nemo.peel.texture_profile`).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
@@ -239,7 +240,8 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
         flags.append(f"the image's texture peaks at depth {texture['peak_depth']:.3g}, outside the layer's range "
                      "(set layers.NAME.range to include it)")
     charge = row["charge_sum"]
-    if closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
+    searched = not row.get("defects_skipped")  # a skipped search has its own flag; no sum to check
+    if searched and closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
         flags.append(f"Σ charge {charge:.2f} ≠ χ {chi:.0f} ({row['n_defects']} defects)")
     return flags
 
@@ -346,6 +348,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["directors_skipped"] = directors.get("skipped")
         row["texture"] = _layer_texture(r)
     no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why
+    row["defects_skipped"] = skipped
     flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped and not no_directors else [])
     row["qc_pass"] = not flags
     row["qc_flags"] = "; ".join(flags)

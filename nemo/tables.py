@@ -51,7 +51,11 @@ def write_table(df: pd.DataFrame, path: str | os.PathLike, **provenance) -> None
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    table = pa.Table.from_pandas(df, preserve_index=False)
+    attrs, df.attrs = df.attrs, {}  # in-memory extras (a defects table's candidates: 96 KB for 254 objects) are
+    try:  # not written: pandas would store them beside the provenance, and copy them at every slice on reading
+        table = pa.Table.from_pandas(df, preserve_index=False)
+    finally:
+        df.attrs = attrs
     meta = dict(table.schema.metadata or {})
     meta[b"nemo"] = json.dumps({"version": __version__, **provenance}, default=_json_default).encode()
     table = table.replace_schema_metadata(meta)

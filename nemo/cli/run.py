@@ -68,10 +68,29 @@ def run(args) -> int:
                   f"(~{d['charge_rounded']:+g}), S {d['S']:.3f}")
         print(f"  {len(res['defects'])} defect(s), sum of charges {chk['sum_charge']:.3f} vs chi = "
               f"{chk['euler_characteristic']}{'' if chk['closed'] else ' (open surface)'}")
-    for q in summary["qc"]:
-        what = " ".join(x for x in (q["layer"] and f"layer {q['layer']}", q["surface"],
-                                    len(summary["qc"]) > 1 and f"object {q['object']}") if x)
-        verdict = "pass" if q["qc_pass"] else f"FAIL: {q['qc_flags']}"
-        print(f"quality control ({what}): {verdict}")
+    _print_qc(summary["qc"])
     print(f"done in {summary['total_s']:.1f} s, peak memory {summary['peak_rss_mb']:.0f} MB -> {args.output}")
     return 0
+
+
+#: Most quality-control rows printed one by one (more: counted per layer, the rows in summary.json).
+QC_ROWS_PRINTED = 10
+
+
+def _print_qc(rows: list[dict]) -> None:
+    """The frame's quality control, a line per layer and object; with many objects (a tissue's
+    nuclei) a line per layer with the passes and the commonest flags."""
+    from collections import Counter
+
+    if len(rows) <= QC_ROWS_PRINTED:
+        for q in rows:
+            what = " ".join(x for x in (q["layer"] and f"layer {q['layer']}", q["surface"],
+                                        len(rows) > 1 and f"object {q['object']}") if x)
+            print(f"quality control ({what}): {'pass' if q['qc_pass'] else 'FAIL: ' + q['qc_flags']}")
+        return
+    for layer in dict.fromkeys(q["layer"] for q in rows):
+        mine = [q for q in rows if q["layer"] == layer]
+        flags = Counter(f.split(":")[0] for q in mine for f in q["qc_flags"].split("; ") if f)
+        common = ", ".join(f"{flag} ({n})" for flag, n in flags.most_common(3))
+        print(f"quality control (layer {layer}): {sum(q['qc_pass'] for q in mine)} of {len(mine)} objects pass"
+              + (f"; commonest flags: {common}" if common else "") + " (each object: summary.json's qc)")
