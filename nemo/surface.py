@@ -1139,11 +1139,13 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
         levels.append(_own_level(region, own, thr, background, level, method, spacing))
     if max(abs(lev - level) for lev in levels) <= OBJECT_LEVEL_TOLERANCE * (level - background):
         return []
-    own_level = np.full(field.shape, np.nan, dtype=np.float32)
+    own_level = np.full(field.shape, np.float32(level), dtype=np.float32)  # the one full-size temporary
     for j in np.argsort(levels, kind="stable"):  # ascending: a higher level wins where zones meet
         sl, own, _ = regions[j]
         own_level[sl][ndi.binary_dilation(own, iterations=2)] = levels[j]
-    field -= np.nan_to_num(own_level - np.float32(level), nan=0.0)
+    slab = max(1, _SLAB_VOXELS // max(1, field[0].size))
+    for z in range(0, len(field), slab):  # a loop over slabs of planes: no more full-size temporaries
+        field[z:z + slab] -= own_level[z:z + slab] - np.float32(level)
     return [float(lev) for lev in levels]
 
 
