@@ -162,6 +162,23 @@ def test_compressed_tiffs_are_read(tmp_path, rng):
         assert info.spacing == (1.0, 0.5, 0.5)
 
 
+def test_a_compressed_tiff_without_its_codec_is_named_not_called_corrupt(tmp_path, rng, monkeypatch):
+    """Without imagecodecs, tifffile cannot decode LZW or Zstd and says which package it needs; the
+    file is fine, so the error names the codec and the fix, not a truncated file."""
+    from tifffile.tifffile import COMPRESSION, CompressionCodec
+
+    path = tmp_path / "zstd.tif"
+    tifffile.imwrite(path, _data((4, 6, 7), rng), imagej=True, compression="zstd", resolution=(2.0, 2.0),
+                     metadata={"axes": "ZYX", "unit": "um", "spacing": 1.0})
+
+    def no_codec(self, key):  # what tifffile raises when the package is not installed
+        raise KeyError(f"{COMPRESSION(key)!r} requires the 'imagecodecs' package")
+
+    monkeypatch.setattr(CompressionCodec, "__getitem__", no_codec)
+    with pytest.raises(NemoError, match=r"compressed with a codec that is not installed.*pip install imagecodecs"):
+        read_stack(path)
+
+
 def test_missing_dz_falls_back_to_dx_with_a_warning(tmp_path, rng):
     data = _data((3, 5, 5), rng)
     tifffile.imwrite(tmp_path / "nodz.tif", data, imagej=True, resolution=(2.0, 2.0),
