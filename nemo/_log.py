@@ -54,8 +54,8 @@ OBJECTS_LOGGED = 3
 @contextmanager
 def quiet_objects(n_objects: int, what: str) -> Iterator[None]:
     """A step's loop over ``n_objects`` objects: with more than :data:`OBJECTS_LOGGED` (a tissue's
-    nuclei), each object's progress lines go to the debug log and one line says so; warnings
-    still show."""
+    nuclei), each object's progress lines are left out unless the log shows debug lines (``-vv``),
+    and one line says so; warnings still show."""
     if n_objects <= OBJECTS_LOGGED or logger.getEffectiveLevel() <= logging.DEBUG:
         yield
         return

@@ -39,7 +39,7 @@ import trimesh
 
 from nemo import config as nconfig
 from nemo import objects
-from nemo._log import listed, logger, quiet_objects
+from nemo._log import OBJECTS_LOGGED, listed, logger, quiet_objects
 from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
 from nemo.psf import deconvolve
@@ -246,7 +246,8 @@ def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[st
     if p["split"] == "none":
         return {"whole": objects.concatenate(pieces, range(len(pieces)))}
     if p["split"] == "auto":  # each object: split if it has two walls (a loop over objects)
-        decided = [_auto_walls(piece, f"object {k}", quiet=len(pieces) > 1) for k, piece in enumerate(pieces)]
+        decided = [_auto_walls(piece, f"object {k}", quiet=len(pieces) > OBJECTS_LOGGED)
+                   for k, piece in enumerate(pieces)]
         p["walls"] = [walls for walls, _, _ in decided]
         return objects.split_objects([piece for _, piece, _ in decided], "centre", None, walls=p["walls"],
                                      centres=[centre for _, _, centre in decided])
@@ -690,8 +691,17 @@ def directors(mesh: trimesh.Trimesh, intensity: np.ndarray,
             warnings.warn(f"no directors: {exc}", NemoWarning, stacklevel=2)
     else:
         warnings.warn(f"no directors: {reason}", NemoWarning, stacklevel=2)
+    return _no_directors(mesh, params, reason)
+
+
+def _no_directors(mesh: trimesh.Trimesh, params: dict | None, reason: str) -> tuple[pd.DataFrame, dict]:
+    """The empty directors table of a layer (or object) that has none, its parameters saying why
+    (``skipped``, also in each object's record, which the summary reads)."""
     empty = pd.DataFrame({c: np.zeros(0, np.int64 if c == "vertex" else np.float64) for c in SCHEMAS["directors"]})
-    return _labelled(empty, mesh), {**directors_defaults(mesh, params), "skipped": reason}
+    p = {**directors_defaults(mesh, params), "skipped": reason}
+    if p.get("objects"):
+        p["objects"] = [{**o, "skipped": reason} for o in p["objects"]]
+    return _labelled(empty, mesh), p
 
 
 def _constant_layer(intensity: np.ndarray) -> str | None:
@@ -718,6 +728,9 @@ def _directors(mesh: trimesh.Trimesh, intensity: np.ndarray, params: dict | None
                                    "directors")
         empty = next(r for r in results if not isinstance(r, str))[0].iloc[:0]
         return _combined([(empty, {"skipped": r}) if isinstance(r, str) else r for r in results], split)
+    constant = _constant_layer(intensity)
+    if constant:  # one object of several, on a layer constant there: left out like an object too small
+        raise ObjectTooSmallError(constant, reason=constant)
     p = directors_defaults(mesh, params)
     if not params or (params.get("patch_radius") is None and params.get("patch_k") is None):
         _check_default_patch(mesh, float(p["patch_radius"]))
@@ -960,6 +973,7 @@ def _no_defects(mesh: trimesh.Trimesh, label, params: dict | None, reason: str) 
                                "euler_characteristic": int(mesh.euler_number), "matches": False,
                                "skipped": reason}
     df.attrs["parameters"] = {"skipped": reason}
+    df.attrs["candidates"] = []  # none examined (`nemo defects --candidates` writes an empty table)
     return df, None, {**nconfig.section("defects", params), "skipped": reason}
 
 

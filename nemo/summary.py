@@ -175,7 +175,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
         ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed;
         ``directors_skipped``, why the directors step gave none (a layer without directors gets that
-        one flag, not the order and charge flags that follow from it); ``defects_skipped``, why the
+        flag and the peel's, not the order, coherency and charge flags that follow from it); ``defects_skipped``, why the
         defect search did not run (no charge sum to check); ``texture``,
         the peel's check of where the texture peaks, :func:`nemo.peel.texture_profile`).
     measure : mapping
@@ -220,25 +220,29 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
 
 
 def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
-    """The layer's part of :func:`quality_flags` (directors, order, defects)."""
-    if not row["n_directors"] or not np.isfinite(row["S_mean"]):  # no order and no defects follow from it
-        return [f"no directors: {row['directors_skipped']}" if row.get("directors_skipped") else "no directors"]
+    """The layer's part of :func:`quality_flags` (peel, directors, order, defects). A layer without
+    directors keeps the peel's flags (causes) and drops the order and charge flags (consequences)."""
     flags = []
+    if not row["n_directors"] or not np.isfinite(row["S_mean"]):
+        flags.append(f"no directors: {row['directors_skipped']}" if row.get("directors_skipped") else "no directors")
+    directed = not flags
     for key, what in (("peel_nan_fraction", "no layer intensity (samples outside the image?)"),
                       ("order_nan_fraction", "no order value (no tangent plane or director in reach)")):
         value = row.get(key, math.nan)
-        if np.isfinite(value) and value > QC_MAX_NAN_FRACTION:
+        if np.isfinite(value) and value > QC_MAX_NAN_FRACTION and (directed or key == "peel_nan_fraction"):
             flags.append(f"{100 * value:.0f} % of vertices have {what}")
+    texture = row.get("texture") or {}
+    if texture.get("outside"):
+        flags.append(f"the image's texture peaks at depth {texture['peak_depth']:.3g}, outside the layer's range "
+                     "(set layers.NAME.range to include it)")
+    if not directed:  # no order and no defects follow from it
+        return flags
     coherency, floor = row.get("coherency_median", math.nan), row.get("coherency_noise", math.nan)
     if np.isfinite(coherency) and coherency < QC_MIN_COHERENCY:
         flags.append(f"median director coherency {coherency:.2f}: hardly any orientation")
     elif np.isfinite(coherency) and np.isfinite(floor) and coherency < floor:
         flags.append(f"median director coherency {coherency:.2f}, below white noise's {floor:.2f} with these "
                      "patches: no texture to orient (noise, or no fibres at that depth)")
-    texture = row.get("texture") or {}
-    if texture.get("outside"):
-        flags.append(f"the image's texture peaks at depth {texture['peak_depth']:.3g}, outside the layer's range "
-                     "(set layers.NAME.range to include it)")
     charge = row["charge_sum"]
     searched = not row.get("defects_skipped")  # a skipped search has its own flag; no sum to check
     if searched and closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:

@@ -754,7 +754,8 @@ def test_the_step_commands_go_through_an_all_zero_channel(corpus, tmp_path, caps
     mesh, f = str(corpus["mesh.inner"]), {k: str(tmp_path / f"{k}.parquet") for k in ("l", "d", "o", "x", "a")}
     steps = {"peel": ["peel", str(corpus["img.zero"]), mesh, "-o", f["l"], "--range", "0", "2"],
              "directors": ["directors", mesh, f["l"], "-o", f["d"]], "order": ["order", mesh, f["d"], "-o", f["o"]],
-             "defects": ["defects", mesh, f["o"], f["d"], "-o", f["x"]], "align": ["align", f["d"], f["d"], "-o", f["a"]]}
+             "defects": ["defects", mesh, f["o"], f["d"], "-o", f["x"], "--candidates", str(tmp_path / "c.parquet")],
+             "align": ["align", f["d"], f["d"], "-o", f["a"]]}
     said = {}
     for name, argv in steps.items():
         code, out, err = invoke(argv, capsys, name)
@@ -764,6 +765,7 @@ def test_the_step_commands_go_through_an_all_zero_channel(corpus, tmp_path, caps
     assert "no defect search" in said["defects"] and "no alignment" in said["align"]
     assert len(read_table(f["d"], "directors")) == 0 and read_table(f["o"], "order")["S"].isna().all()
     assert len(read_table(f["x"], "defects")) == 0 and read_provenance(f["x"])["euler_check"]["skipped"]
+    assert len(read_table(tmp_path / "c.parquet")) == 0  # no candidate examined
 
 
 def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():

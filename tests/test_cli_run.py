@@ -139,19 +139,21 @@ def test_defects_are_the_generators(cli_run):
 
 def test_the_run_report_counts_the_quality_control_of_many_objects(capsys):
     """A tissue's nuclei (`mesh.keep: all`, 255 objects) printed 255 quality-control lines; above
-    10 rows the report gives each layer's passes and its commonest flags (the rows stay in
-    summary.json); up to 10, a line each."""
+    10 rows the report gives each layer's (and surface's) passes and its commonest kinds of flag,
+    their numbers left out (the rows stay in summary.json); up to 10, a line each."""
     from nemo.cli.run import _print_qc
 
     rows = [{"layer": "fibres", "surface": "inner", "object": k, "qc_pass": k % 4 == 0,
-             "qc_flags": "" if k % 4 == 0 else "no directors: too small" + ("; surface has 2 pieces" if k % 2 else "")}
-            for k in range(12)]
+             "qc_flags": "" if k % 4 == 0 else f"Σ charge {k / 2:.2f} ≠ χ 2 ({k} defects)"
+             + ("; no directors: too small" if k % 2 else "")} for k in range(12)]
+    rows += [{**r, "layer": "", "surface": "outer"} for r in rows]  # morphology rows of the other wall
     _print_qc(rows)
     out = capsys.readouterr().out.strip().splitlines()
-    assert out == ["quality control (layer fibres): 3 of 12 objects pass; commonest flags: no directors (9), "
-                   "surface has 2 pieces (6) (each object: summary.json's qc)"]
+    expected = ("3 of 12 objects pass; commonest flags: Σ charge … ≠ χ … (… defects) (9), no directors (6) "
+                "(each object: summary.json's qc)")
+    assert out == [f"quality control (layer fibres inner): {expected}", f"quality control (outer): {expected}"]
     _print_qc(rows[:2])
     out = capsys.readouterr().out.strip().splitlines()
     assert out == ["quality control (layer fibres inner object 0): pass",
-                   "quality control (layer fibres inner object 1): FAIL: no directors: too small; surface has 2 pieces"]
-
+                   "quality control (layer fibres inner object 1): FAIL: Σ charge 0.50 ≠ χ 2 (1 defects); "
+                   "no directors: too small"]

@@ -811,6 +811,23 @@ def test_an_all_zero_channel_goes_through_every_step_without_directors_and_is_fl
     assert len(stages.directors(ball, df["intensity"].to_numpy())[0]) > 0
 
 
+def test_an_object_whose_layer_is_constant_has_no_directors_with_the_reason():
+    """Two objects: a layer of zeros on both gives each object's record the reason (the summary
+    reads it per object); zeros on one only leave that one out, with its label, the other goes on."""
+    from nemo.objects import concatenate
+
+    a, b = sphere(10.0), sphere(10.0)
+    b.vertices = np.asarray(b.vertices) + 40.0
+    mesh = concatenate([a, b], [0, 1])
+    with pytest.warns(NemoWarning, match="no directors"):
+        d, p = stages.directors(mesh, np.zeros(len(mesh.vertices)))
+    assert len(d) == 0 and all("intensity is 0" in o["skipped"] for o in p["objects"])
+    layer = np.r_[np.random.default_rng(0).random(len(a.vertices)), np.zeros(len(b.vertices))]
+    with pytest.warns(NemoWarning, match="object 1: no directors .*intensity is 0"):
+        d, p = stages.directors(mesh, layer)
+    assert set(d["object"]) == {0} and not p["objects"][0].get("skipped") and p["objects"][1]["skipped"]
+
+
 def test_keep_all_says_which_surfaces_it_leaves_out(caplog):
     """A ball of r 3 among balls of r 11 (7 % of their area) is below the objects' 10 %: it was left
     out of ``keep: all`` without a word (an independent review's nuclei). The log names it."""

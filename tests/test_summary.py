@@ -312,3 +312,18 @@ def test_alignment_summary_needs_a_c_column(tmp_path):
     write_table(pd.DataFrame({"vertex": [0]}), tmp_path / "a.parquet")
     with pytest.raises(NemoError, match="lacks column"):
         alignment_summary([{"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}])
+
+
+def test_a_layer_without_directors_keeps_the_peels_flags_and_drops_their_consequences():
+    """No directors: the peel's flags (samples outside the image, the texture out of the layer's
+    range) are causes and stay; the order, coherency and charge flags follow from it and go."""
+    from nemo.summary import quality_flags
+
+    row = {"n_directors": 0, "S_mean": math.nan, "peel_nan_fraction": 1.0, "order_nan_fraction": 1.0,
+           "coherency_median": math.nan, "texture": {"peak_depth": 7.0, "outside": True}, "charge_sum": 0.0,
+           "n_defects": 0, "euler_characteristic": 2, "directors_skipped": "the layer's intensity is 0"}
+    flags = quality_flags(row, {"euler_characteristic": 2})
+    assert flags[0] == "no directors: the layer's intensity is 0"
+    assert any("no layer intensity" in f for f in flags) and any("texture peaks at depth 7" in f for f in flags)
+    assert not any("order value" in f or "Σ charge" in f for f in flags), flags
+

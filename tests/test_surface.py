@@ -947,7 +947,7 @@ def test_a_step_wider_than_the_stack_is_named():
         reconstruct(volume[5:7], (1.0, 1.0, 1.0))
 
 
-@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
 @pytest.mark.parametrize("step", [1, 2, 3])
 def test_the_sampled_blur_equals_the_full_blur_sampled(dtype, step, monkeypatch):
     """``_blur_sampled`` filters x slab by slab of planes and samples each axis after its pass (no
@@ -959,7 +959,7 @@ def test_the_sampled_blur_equals_the_full_blur_sampled(dtype, step, monkeypatch)
 
     monkeypatch.setattr(surface, "_SLAB_VOXELS", 3 * 40 * 50)
     image = (np.random.default_rng(step).random((23, 40, 50)) * 200).astype(dtype)
-    for sigma in ((1.2, 0.7, 0.9), (0.8, 0.8, 0.0)):
+    for sigma in ((1.2, 0.7, 0.9), (0.8, 0.8, 0.0), (0.0, 0.9, 0.0)):
         expected = ndi.gaussian_filter(image.astype(np.float64), sigma, truncate=3.0)[::step, ::step, ::step]
         got = surface._blur_sampled(image, sigma, step)
         assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == expected.shape

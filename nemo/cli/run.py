@@ -60,7 +60,7 @@ def run(args) -> int:
     print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels{psf_note}")
     for name, res in summary["layers"].items():
         chk = res["euler_check"]
-        order = f"mean S {res['S']['mean']:.3f}" if res["n_directors"] else "no order (see the warnings)"
+        order = f"mean S {res['S']['mean']:.3f}" if res["S"]["mean"] is not None else "no order (see the warnings)"
         print(f"layer {name} ({res['surface']} surface, {res['vertices']} vertices): {res['n_directors']} "
               f"directors, {order}")
         for d in res["defects"]:
@@ -78,19 +78,24 @@ QC_ROWS_PRINTED = 10
 
 
 def _print_qc(rows: list[dict]) -> None:
-    """The frame's quality control, a line per layer and object; with many objects (a tissue's
-    nuclei) a line per layer with the passes and the commonest flags."""
+    """The frame's quality control, a line per layer (or surface) and object; with many objects (a
+    tissue's nuclei) a line per layer and surface with the passes and the commonest kinds of flag
+    (a flag's numbers left out: "Σ charge … ≠ χ …")."""
+    import re
     from collections import Counter
+
+    def what(q: dict, many: bool) -> str:
+        return " ".join(x for x in (q["layer"] and f"layer {q['layer']}", q["surface"],
+                                    many and f"object {q['object']}") if x)
 
     if len(rows) <= QC_ROWS_PRINTED:
         for q in rows:
-            what = " ".join(x for x in (q["layer"] and f"layer {q['layer']}", q["surface"],
-                                        len(rows) > 1 and f"object {q['object']}") if x)
-            print(f"quality control ({what}): {'pass' if q['qc_pass'] else 'FAIL: ' + q['qc_flags']}")
+            print(f"quality control ({what(q, len(rows) > 1)}): {'pass' if q['qc_pass'] else 'FAIL: ' + q['qc_flags']}")
         return
-    for layer in dict.fromkeys(q["layer"] for q in rows):
-        mine = [q for q in rows if q["layer"] == layer]
-        flags = Counter(f.split(":")[0] for q in mine for f in q["qc_flags"].split("; ") if f)
-        common = ", ".join(f"{flag} ({n})" for flag, n in flags.most_common(3))
-        print(f"quality control (layer {layer}): {sum(q['qc_pass'] for q in mine)} of {len(mine)} objects pass"
-              + (f"; commonest flags: {common}" if common else "") + " (each object: summary.json's qc)")
+    for key in dict.fromkeys((q["layer"], q["surface"]) for q in rows):
+        mine = [q for q in rows if (q["layer"], q["surface"]) == key]
+        kinds = Counter(re.sub(r"-?\d[\d.]*", "…", f.split(": ")[0]) for q in mine
+                        for f in q["qc_flags"].split("; ") if f)
+        common = ", ".join(f"{kind} ({n})" for kind, n in kinds.most_common(3))
+        print(f"quality control ({what(mine[0], False)}): {sum(q['qc_pass'] for q in mine)} of {len(mine)} objects "
+              f"pass" + (f"; commonest flags: {common}" if common else "") + " (each object: summary.json's qc)")
