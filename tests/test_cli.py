@@ -762,6 +762,7 @@ def test_the_step_commands_go_through_an_all_zero_channel(corpus, tmp_path, caps
         assert code == 0, (name, err)
         said[name] = out + err
     assert "intensity is 0 at every vertex" in said["peel"] and "no directors" in said["directors"]
+    assert "no order value: no director" in said["order"] and "Mean of empty slice" not in said["order"]
     assert "no defect search" in said["defects"] and "no alignment" in said["align"]
     assert len(read_table(f["d"], "directors")) == 0 and read_table(f["o"], "order")["S"].isna().all()
     assert len(read_table(f["x"], "defects")) == 0 and read_provenance(f["x"])["euler_check"]["skipped"]

@@ -95,6 +95,25 @@ def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
     assert "Σ charge" not in row["qc_flags"], row["qc_flags"]
 
 
+def test_frame_summary_flags_a_surface_open_where_the_series_is_closed(frame_files, tmp_path):
+    """An object that drifts partly out of the field of view at t = 2 has an open surface (a rim):
+    its area and centre are of the part in view and its Σ charge is not checked, so it passed with
+    wrong numbers (an independent review: area −17 %, defects missed). It is flagged against the
+    series; a series open at every time point (a tissue cut by the field) is not."""
+    measure = json.loads(frame_files["measure"].read_text())
+    records = []
+    for t, loops in enumerate((0, 0, 1, 0)):
+        path = tmp_path / f"measure{t}.json"
+        path.write_text(json.dumps({**measure, "n_boundary_loops": loops, "rim_loops": loops}))
+        records.append({**frame_files, "t": t, "measure": path})
+    out = frame_summary(records)
+    assert out["closed"].tolist() == [True, True, False, True]
+    flagged = out["qc_flags"].str.contains("surface open where most time points are closed").tolist()
+    assert flagged == [False, False, True, False] and not out["qc_pass"][2]
+    cut = frame_summary([{**r, "measure": records[2]["measure"]} for r in records])
+    assert not cut["closed"].any() and not cut["qc_flags"].str.contains("most time points").any()
+
+
 def test_frame_summary_walls_come_from_the_mesh_step(frame_files):
     """The mesh step's walls (1 or 2; one per object with several) reach the row; a frame of one
     wall with its NaN thickness is not flagged for it."""

@@ -51,6 +51,9 @@ def run(args) -> int:
     write_table(df, out, command="order", directors=str(args.directors), **prov, parameters=params,
                 radius=params["radius"])
     s = df["S"].to_numpy()
-    print(f"{len(df)} targets: S mean {np.nanmean(s):.3f}, median {np.nanmedian(s):.3f}, "
-          f"min {np.nanmin(s):.3f} -> {out}")
+    s = s[np.isfinite(s)]
+    if not s.size:  # a layer without directors (their step said why)
+        print(f"{len(df)} targets, no order value: {params.get('skipped') or 'no director in reach'} -> {out}")
+        return 0
+    print(f"{len(df)} targets: S mean {s.mean():.3f}, median {np.median(s):.3f}, min {s.min():.3f} -> {out}")
     return 0
