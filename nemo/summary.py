@@ -369,6 +369,8 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["texture"] = _layer_texture(r)
     no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why
     row["defects_skipped"] = skipped
+    if "directors" in tables and (skipped or no_directors):  # not searched: no count, not "none found"
+        row.update(n_defects=pd.NA, charge_sum=math.nan, charge_rounded_sum=math.nan)
     flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped and not no_directors else [])
     row["qc_pass"] = not flags
     row["qc_flags"] = "; ".join(flags)

@@ -85,7 +85,8 @@ def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
     """A frame of one object whose defect search could not run (nemo.stages.defects: an object
     too small for its derived lengths) fails the QC with the reason, as an object of several does;
     not also with "Σ charge 0 ≠ χ 2", which a search that did not run cannot meet (a review's tissue:
-    33 of 255 nuclei had both)."""
+    33 of 255 nuclei had both); its count and charge sum are missing, not 0 (an end-to-end review:
+    the summary figure plotted the empty frame's 0 defects as a count)."""
     reason = "the object is too small for the lengths derived from the data"
     write_table(_defects([], []), frame_files["defects"],
                 euler_check={"sum_charge": 0.0, "euler_characteristic": 2, "closed": True, "matches": False,
@@ -93,6 +94,7 @@ def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
     row = frame_summary([frame_files]).iloc[0]
     assert not row["qc_pass"] and f"no defect search: {reason}" in row["qc_flags"]
     assert "Σ charge" not in row["qc_flags"], row["qc_flags"]
+    assert row["n_defects"] is pd.NA and np.isnan(row["charge_sum"])  # not searched: not "none found"
 
 
 def test_frame_summary_flags_a_surface_open_where_the_series_is_closed(frame_files, tmp_path):

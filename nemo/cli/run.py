@@ -66,6 +66,9 @@ def run(args) -> int:
         for d in res["defects"]:
             print(f"  defect at ({d['x']:.2f}, {d['y']:.2f}, {d['z']:.2f}) charge {d['charge']:+.3f} "
                   f"(~{d['charge_rounded']:+g}), S {d['S']:.3f}")
+        if chk.get("skipped"):
+            print(f"  no defect search: {chk['skipped']}")
+            continue
         print(f"  {len(res['defects'])} defect(s), sum of charges {chk['sum_charge']:.3f} vs chi = "
               f"{chk['euler_characteristic']}{'' if chk['closed'] else ' (open surface)'}")
     _print_qc(summary["qc"])
