@@ -62,6 +62,9 @@ QC_MIN_COHERENCY = 0.2
 #: Lowest signal-to-noise ratio of the segmented channel that passes (the issue's realistic
 #: range is 3-10; below 3 the surface itself is uncertain).
 QC_MIN_SNR = 3.0
+#: Below this signal-to-noise ratio the segmented channel looks empty (noise alone reads about 1):
+#: the frame gets that one flag, not the mesh's and the series' flags that follow from meshing noise.
+QC_EMPTY_SNR = 1.5
 #: Largest fraction of the object's core voxels at the detector's full scale that passes
 #: (``nemo.surface.saturated_fraction``): above it the plateau reads low and the walls move out
 #: (a shell's thickness +0.9 µm at 11 %, measured; bright fibres clipped in a few % of the core,
@@ -188,6 +191,9 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         Human-readable reasons, e.g. ``"Σ charge 1.50 ≠ χ 2"``. On an open surface the charge
         sum is not checked (the Poincaré–Hopf sum depends on the field at the rim).
     """
+    if _looks_empty(row):
+        return [f"the segmented channel looks empty (SNR {row['snr']:.1f} < {QC_EMPTY_SNR:g}): no object in view, or "
+                "the wrong channel or time point (the frame's numbers are of noise)"]
     flags = []
     chi = row.get("euler_characteristic", math.nan)
     closed = not measure.get("n_boundary_loops")
@@ -217,6 +223,12 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID and row.get("walls") != 1:  # one wall: no thickness
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices")
     return flags + (_layer_flags(row, closed, chi) if "n_directors" in row else [])
+
+
+def _looks_empty(row: Mapping) -> bool:
+    """The row's segmented channel reads an SNR below :data:`QC_EMPTY_SNR`."""
+    snr = row.get("snr", math.nan)
+    return bool(np.isfinite(snr) and snr < QC_EMPTY_SNR)
 
 
 def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
@@ -296,7 +308,7 @@ def _flag_changed_walls(out: pd.DataFrame) -> None:
     labels between frames: a frame whose objects have the series' usual walls among them (the
     same counts, in another order) is not flagged.
     """
-    known = out[out["walls"].notna()]
+    known = out[out["walls"].notna() & ~(out["snr"] < QC_EMPTY_SNR)]  # an empty frame has its own flag
     if known.empty:
         return
     series, frame = ["c", "layer", "surface"], ["t", "c", "layer", "surface"]
@@ -321,7 +333,8 @@ def _flag_cut_objects(out: pd.DataFrame) -> None:
     frame of wrong numbers passed (an independent review: area −17 %, 2 of 3 defects in view)."""
     series = ["c", "layer", "surface", "object"]
     usual = out.groupby(series, dropna=False)["closed"].transform(lambda c: c.mode().max())  # ties: closed
-    for i in out.index[usual.to_numpy(bool) & ~out["closed"].to_numpy(bool)]:  # a loop over the few flagged rows
+    empty = (out["snr"] < QC_EMPTY_SNR).to_numpy(bool)  # its own flag
+    for i in out.index[usual.to_numpy(bool) & ~out["closed"].to_numpy(bool) & ~empty]:  # the few flagged rows
         flag = ("surface open where most time points are closed (the object partly out of the field of view, "
                 "or a torn wall): area, volume, centre and defects are not comparable with the other frames")
         out.at[i, "qc_flags"] = f"{out.at[i, 'qc_flags']}; {flag}" if out.at[i, "qc_flags"] else flag
@@ -371,7 +384,8 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
     row["defects_skipped"] = skipped
     if "directors" in tables and (skipped or no_directors):  # not searched: no count, not "none found"
         row.update(n_defects=pd.NA, charge_sum=math.nan, charge_rounded_sum=math.nan)
-    flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if skipped and not no_directors else [])
+    extra = skipped and not no_directors and not _looks_empty(row)
+    flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if extra else [])
     row["qc_pass"] = not flags
     row["qc_flags"] = "; ".join(flags)
     return row

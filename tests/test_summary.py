@@ -348,3 +348,22 @@ def test_a_layer_without_directors_keeps_the_peels_flags_and_drops_their_consequ
     assert any("no layer intensity" in f for f in flags) and any("texture peaks at depth 7" in f for f in flags)
     assert not any("order value" in f or "Σ charge" in f for f in flags), flags
 
+
+def test_an_empty_frame_gets_one_flag_that_says_so(frame_files, tmp_path):
+    """An empty frame meshes noise specks (an end-to-end review: SNR 0.8–1.2, "109 objects", "turned
+    out … a dark object in a bright surround", "1 wall(s) where most time points have 2 … set
+    split: centre"): advice that does not apply. Below SNR 1.5 the frame gets one flag saying the
+    channel looks empty; the series' flags skip it; a frame at SNR 2 keeps its low-SNR flag."""
+    measure = json.loads(frame_files["measure"].read_text())
+    records = []
+    for t, (snr, walls, loops) in enumerate(((8.0, 2, 0), (8.0, 2, 0), (1.1, 1, 3), (8.0, 2, 0), (2.0, 2, 0))):
+        path = tmp_path / f"measure{t}.json"
+        path.write_text(json.dumps({**measure, "snr": snr, "walls": walls, "n_boundary_loops": loops,
+                                    "n_objects": 109 if snr < 1.5 else 1, "turned_out": int(snr < 1.5)}))
+        records.append({**frame_files, "t": t, "measure": path})
+    out = frame_summary(records)
+    assert out["qc_flags"][2].startswith("the segmented channel looks empty (SNR 1.1 < 1.5)")
+    assert ";" not in out["qc_flags"][2] and not out["qc_pass"][2]
+    assert "low signal-to-noise ratio 2.0" in out["qc_flags"][4] and "looks empty" not in out["qc_flags"][4]
+    assert not out["qc_flags"].str.contains("most time points").any()
+

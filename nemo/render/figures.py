@@ -117,9 +117,7 @@ def _map_image(ax, vertices, values, centre, cmap, clim, label, fig, n_polar=180
 def _cmap_with_nan(name: str):
     import matplotlib
 
-    cm = matplotlib.colormaps[name].copy()
-    cm.set_bad("lightgrey")
-    return cm
+    return matplotlib.colormaps[name].with_extremes(bad="lightgrey")  # a copy (set_bad is being deprecated)
 
 
 def _chart_segments(ax, pos, vec, values, centre, fig, length_deg: float, label="S",
