@@ -1204,16 +1204,18 @@ def _deep_plateau(region: np.ndarray, own: np.ndarray, thr: float, background: f
     half its greatest depth inside (a blob's top). None for a wall or sheet (greatest depth below
     :data:`BLOB_MIN_DEPTH` × the radius of a ball of its volume: it is thin, and its own top reads
     low, so it keeps the stack's level) and for an object whose greatest depth is below
-    :data:`BLOB_MIN_WIDTHS` edge widths (:func:`_edge_width`): blurred that much, its top is well
-    below its plateau (a ball of radius 2 σ: level 47 for 100, volume +50 %).
+    :data:`BLOB_MIN_WIDTHS` edge widths (:func:`_edge_width`): blurred that much, its top would be
+    well below its plateau.
 
     Small nuclei (radius 3–4 µm at 2 µm planes) have no interior deeper than a few edge widths, so
     no flat core (:func:`_interior_plateau`); they kept the stack's level, far below theirs in a
     tissue of nuclei of 0.5–1 × the brightest (an independent review: 79 of 200 nuclei, volume
     +18 % median, up to +50 %). Depths are physical (``spacing``), inside the object's half maximum:
     half-way from the background to a first top (the median of the samples at least half the
-    greatest depth inside ``thr``, which reaches far into the blur). A large region is read on a
-    strided sample (at most :data:`_MAX_INTERIOR_SAMPLES`), as :func:`_interior_plateau` does.
+    greatest depth inside ``thr``, which reaches far into the blur: read there, a ball of radius
+    2 σ beside two larger ones took level 47 for 100, volume +50 %; now 68.5, −17 %, and the
+    stack's 100 gives −63 %). A large region is read on a strided sample (at most
+    :data:`_MAX_INTERIOR_SAMPLES`), as :func:`_interior_plateau` does.
     """
     m = max(1, int(np.ceil((region.size / _MAX_INTERIOR_SAMPLES) ** (1 / 3))))  # a shell of 200³: every third sample
     region, own, spacing = region[::m, ::m, ::m], own[::m, ::m, ::m], spacing * m
