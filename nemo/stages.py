@@ -327,8 +327,7 @@ def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = N
     say = logger.debug if quiet else logger.info
     if walls == 2:
         say("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its %s",
-                    what, 100 * inner, "centre" if centre is None else
-                    "centre ({:.4g}, {:.4g}, {:.4g})".format(*centre))
+            what, 100 * inner, "centre" if centre is None else "centre ({:.4g}, {:.4g}, {:.4g})".format(*centre))
         return 2, whole, centre
     why = (f"its largest surface facing the centre has {100 * inner:.1f} % of the outer's area, below "
            f"{100 * OBJECT_MIN_AREA:.0f} %" if inner else "no separate surface faces its centre")
