@@ -331,10 +331,15 @@ def _flag_cut_objects(out: pd.DataFrame) -> None:
     closed: an object that drifted partly out of the field of view (or a torn wall). Its area,
     volume and centre are of the part in view, and its defects cannot be checked against χ, so a
     frame of wrong numbers passed (an independent review: area −17 %, 2 of 3 defects in view)."""
-    series = ["c", "layer", "surface", "object"]
-    usual = out.groupby(series, dropna=False)["closed"].transform(lambda c: c.mode().max())  # ties: closed
+    series, frame = ["c", "layer", "surface"], ["t", "c", "layer", "surface"]
+    usual = out.groupby([*series, "object"], dropna=False)["closed"].transform(lambda c: c.mode().max())  # ties: closed
+    # several objects (keep: all): labels are area ranks, so an object always cut by the border may take
+    # the label of one mostly closed; flag only frames with more open objects than the series' usual
+    n_open = (~out["closed"]).groupby([out[k] for k in frame], dropna=False).transform("sum")
+    usual_open = n_open.groupby([out[k] for k in series], dropna=False).transform(lambda n: n.mode().min())
+    more = (n_open > usual_open).to_numpy(bool)
     empty = (out["snr"] < QC_EMPTY_SNR).to_numpy(bool)  # its own flag
-    for i in out.index[usual.to_numpy(bool) & ~out["closed"].to_numpy(bool) & ~empty]:  # the few flagged rows
+    for i in out.index[usual.to_numpy(bool) & ~out["closed"].to_numpy(bool) & more & ~empty]:  # the few flagged rows
         flag = ("surface open where most time points are closed (the object partly out of the field of view, "
                 "or a torn wall): area, volume, centre and defects are not comparable with the other frames")
         out.at[i, "qc_flags"] = f"{out.at[i, 'qc_flags']}; {flag}" if out.at[i, "qc_flags"] else flag

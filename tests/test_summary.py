@@ -114,6 +114,15 @@ def test_frame_summary_flags_a_surface_open_where_the_series_is_closed(frame_fil
     assert flagged == [False, False, True, False] and not out["qc_pass"][2]
     cut = frame_summary([{**r, "measure": records[2]["measure"]} for r in records])
     assert not cut["closed"].any() and not cut["qc_flags"].str.contains("most time points").any()
+    # two objects (keep: all) whose area ranks swap: one is always cut by the border, so a frame with
+    # one open object is as usual whichever label it has; a frame where both are open is flagged
+    for t, loops in enumerate(([0, 1], [1, 0], [0, 1], [1, 1])):
+        objects = [{**measure, "object": k, "n_boundary_loops": n, "rim_loops": n} for k, n in enumerate(loops)]
+        records[t]["measure"].write_text(json.dumps({**measure, "n_boundary_loops": 1, "objects": objects}))
+    out = frame_summary(records)
+    flagged = out["qc_flags"].str.contains("surface open where most time points are closed").tolist()
+    assert out["closed"].tolist() == [True, False, False, True, True, False, False, False]
+    assert flagged == [False] * 6 + [True, False], flagged
 
 
 def test_frame_summary_walls_come_from_the_mesh_step(frame_files):
