@@ -178,8 +178,8 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
         ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed;
         ``directors_skipped``, why the directors step gave none (a layer without directors gets that
-        flag and the peel's, not the order, coherency and charge flags that follow from it); ``defects_skipped``, why the
-        defect search did not run (no charge sum to check); ``texture``,
+        flag and the peel's, not the order, coherency and charge flags that follow from it);
+        ``defects_skipped``, why the defect search did not run (no charge sum to check); ``texture``,
         the peel's check of where the texture peaks, :func:`nemo.peel.texture_profile`).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
