@@ -216,11 +216,6 @@ def _pair_sums(tpos: np.ndarray, pos: np.ndarray, q6: np.ndarray, w: np.ndarray 
     return qsum, count, (count if w is None else wsum)
 
 
-#: The order table's columns and their types (:func:`order`).
-COLUMNS = {"vertex": np.int64, "S": np.float64, "nx": np.float64, "ny": np.float64, "nz": np.float64,
-           "x": np.float64, "y": np.float64, "z": np.float64, "count": np.int64}
-
-
 def order(
     mesh: trimesh.Trimesh,
     directors_df: pd.DataFrame,
@@ -287,13 +282,27 @@ def order(
         qmean = qsum / wsum[:, None]
     s, navg = tangential_eig(qmean, normals[target_idx])
     _mark_empty(s, navg, count, wsum, radius)
+    return _order_table(target_idx, s, navg, tpos, count)
+
+
+def _order_table(vertex: np.ndarray, s: np.ndarray, navg: np.ndarray, xyz: np.ndarray,
+                 count: np.ndarray) -> pd.DataFrame:
+    """The order table (:func:`order`): shapes (T,), (T,), (T, 3), (T, 3), (T,)."""
     return pd.DataFrame({
-        "vertex": target_idx.astype(np.int64),
+        "vertex": vertex.astype(np.int64),
         "S": s,
         "nx": navg[:, 0], "ny": navg[:, 1], "nz": navg[:, 2],
-        "x": tpos[:, 0], "y": tpos[:, 1], "z": tpos[:, 2],
+        "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
         "count": count.astype(np.int64),
     })
+
+
+def no_order(vertices: np.ndarray) -> pd.DataFrame:
+    """The order table of a surface without directors: every vertex (N of ``vertices``, shape
+    (N, 3)), S and the director NaN, count 0."""
+    n = len(vertices)
+    return _order_table(np.arange(n), np.full(n, np.nan), np.full((n, 3), np.nan),
+                        np.asarray(vertices, dtype=np.float64), np.zeros(n, np.int64))
 
 
 def _mark_empty(s: np.ndarray, navg: np.ndarray, count: np.ndarray, wsum: np.ndarray, radius: float) -> None:
@@ -371,8 +380,7 @@ def alignment(
             )
     if not len(dir_a) or not len(dir_b):  # a layer whose directors were skipped (an empty frame or channel)
         warnings.warn("a layer has no directors (see its directors step): no alignment", NemoWarning, stacklevel=2)
-        return pd.DataFrame({"vertex": np.zeros(0, np.int64), **{k: np.zeros(0) for k in ("c", "x", "y", "z",
-                                                                                       "distance")}})
+        return _align_table(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0))
     pos_a, n_a, nrm_mesh, ok_a = _director_arrays(mesh_a, dir_a, "directors A")
     pos_b, n_b, _, ok_b = _director_arrays(None, dir_b, "directors B")
     pos_b, n_b = pos_b[ok_b], n_b[ok_b]
@@ -393,7 +401,10 @@ def alignment(
         c[dist > max_distance] = np.nan
     vert = dir_a["vertex"].to_numpy()[ok_a] if "vertex" in dir_a.columns else np.flatnonzero(ok_a)
     pa = pos_a[ok_a]
-    return pd.DataFrame({
-        "vertex": vert.astype(np.int64), "c": c,
-        "x": pa[:, 0], "y": pa[:, 1], "z": pa[:, 2], "distance": dist,
-    })
+    return _align_table(vert, c, pa, dist)
+
+
+def _align_table(vertex: np.ndarray, c: np.ndarray, xyz: np.ndarray, distance: np.ndarray) -> pd.DataFrame:
+    """The alignment table (:func:`alignment`): shapes (A,), (A,), (A, 3), (A,)."""
+    return pd.DataFrame({"vertex": vertex.astype(np.int64), "c": c,
+                         "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "distance": distance})

@@ -470,11 +470,13 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
     result = measure_surface(mesh, curvature_df)
     result["centre"] = surface_centre(mesh).tolist()
     split = objects.parts(mesh)
-    if split:  # the frame's `walls` (one per object) only in the frame's record: not repeated per object
+    if split:
+        result["objects"] = []
         with quiet_objects(len(split), "measure"):
-            result["objects"] = [{**{k: v for k, v in measure(part.mesh, None if curvature_df is None else
-                                                              objects.local_table(curvature_df, part)).items()
-                                     if k != "walls"}, "object": part.label} for part in split]
+            for part in split:  # a loop over objects
+                record = measure(part.mesh, None if curvature_df is None else objects.local_table(curvature_df, part))
+                record.pop("walls", None)  # the frame's list, one per object: in the frame's record only
+                result["objects"].append({**record, "object": part.label})
     return result
 
 
@@ -804,21 +806,18 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
     ``weights`` (``none`` = the paper's plain mean, the default, or ``coherency``) is kept in the resolved
     parameters, so the order table's provenance records it.
     """
+    from nemo.order import no_order
     from nemo.order import order as q_average
 
     split = objects.parts(mesh)
     if not len(directors_df):  # no directors (``directors``' skipped frames): no order anywhere
-        from nemo.order import COLUMNS
-
-        example = pd.DataFrame({c: np.zeros(0, dtype) for c, dtype in COLUMNS.items()})
-        return _labelled(_nan_table(example, mesh), mesh), {**nconfig.section("order", params), "skipped": NO_DIRECTORS}
+        return _labelled(no_order(mesh.vertices), mesh), {**nconfig.section("order", params), "skipped": NO_DIRECTORS}
     if split:  # each object's directors averaged on it alone; patch_radius: one or one per object
         local = [objects.local_table(directors_df, part) for part in split]
         with quiet_objects(len(split), "order"):
             results = [None if not len(d) else order(part.mesh, d, params, objects.value_for(patch_radius, k))
                        for k, (part, d) in enumerate(zip(split, local))]
-        example = next(r for r in results if r is not None)[0]
-        return _combined([r if r is not None else (_nan_table(example, part.mesh), {"skipped": NO_DIRECTORS})
+        return _combined([r if r is not None else (no_order(part.mesh.vertices), {"skipped": NO_DIRECTORS})
                           for r, part in zip(results, split)], split)
     p = nconfig.section("order", params)
     if p["radius"] is None:
@@ -1011,16 +1010,6 @@ def _each_object(split: list, run_one, what: str) -> list:
     if len(errors) == len(split):
         raise errors[0]
     return out
-
-
-def _nan_table(example: pd.DataFrame, mesh: trimesh.Trimesh) -> pd.DataFrame:
-    """A per-vertex table like ``example`` for every vertex of ``mesh``: positions x, y, z, counts 0,
-    the rest NaN (an object without directors has no order value)."""
-    n = len(mesh.vertices)
-    xyz = dict(zip("xyz", np.asarray(mesh.vertices, dtype=np.float64).T))
-    return pd.DataFrame({c: np.arange(n, dtype=np.int64) if c == "vertex" else xyz[c] if c in xyz
-                         else np.zeros(n, dtype=dt) if np.issubdtype(dt, np.integer) else np.full(n, np.nan)
-                         for c, dt in example.dtypes.items()})
 
 
 #: Largest |Σ charge − χ| of a closed surface's defects accepted without a second search (a

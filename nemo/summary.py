@@ -320,10 +320,14 @@ def _flag_changed_walls(out: pd.DataFrame) -> None:
     swapped = (mix["counts"] == mix["usual_counts"]).to_numpy()
     odd = expected.index[(known["walls"] != expected).to_numpy() & ~swapped]
     for i in odd:  # a loop over the few flagged rows
-        flag = (f"{out.at[i, 'walls']} wall(s) where most time points have {expected.at[i]} (mesh.split: auto counts "
-                "them per frame; set split: centre or none to fix them)")
-        out.at[i, "qc_flags"] = f"{out.at[i, 'qc_flags']}; {flag}" if out.at[i, "qc_flags"] else flag
-        out.at[i, "qc_pass"] = False
+        _add_flag(out, i, f"{out.at[i, 'walls']} wall(s) where most time points have {expected.at[i]} (mesh.split: "
+                          "auto counts them per frame; set split: centre or none to fix them)")
+
+
+def _add_flag(out: pd.DataFrame, i, flag: str) -> None:
+    """Fail row ``i`` of ``out`` (in place) with one more reason, after its own."""
+    out.at[i, "qc_flags"] = f"{out.at[i, 'qc_flags']}; {flag}" if out.at[i, "qc_flags"] else flag
+    out.at[i, "qc_pass"] = False
 
 
 def _flag_cut_objects(out: pd.DataFrame) -> None:
@@ -340,10 +344,9 @@ def _flag_cut_objects(out: pd.DataFrame) -> None:
     more = (n_open > usual_open).to_numpy(bool)
     empty = (out["snr"] < QC_EMPTY_SNR).to_numpy(bool)  # its own flag
     for i in out.index[usual.to_numpy(bool) & ~out["closed"].to_numpy(bool) & more & ~empty]:  # the few flagged rows
-        flag = ("surface open where most time points are closed (the object partly out of the field of view, "
-                "or a torn wall): area, volume, centre and defects are not comparable with the other frames")
-        out.at[i, "qc_flags"] = f"{out.at[i, 'qc_flags']}; {flag}" if out.at[i, "qc_flags"] else flag
-        out.at[i, "qc_pass"] = False
+        _add_flag(out, i, "surface open where most time points are closed (the object partly out of the field of "
+                          "view, or a torn wall): area, volume, centre and defects are not comparable with the other "
+                          "frames")
 
 
 def _skipped_searches(r: Mapping) -> dict[int, str]:
