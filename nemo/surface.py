@@ -994,13 +994,15 @@ def _auto_level(field: np.ndarray, method: str, edge: str, spacing=(1.0, 1.0, 1.
 
 def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spacing: np.ndarray,
                 edges: np.ndarray | None = None, counts: np.ndarray | None = None, b0: int | None = None,
-                quiet: bool = False) -> float:
+                quiet: bool = False, core=...) -> float:
     """The level half-way between ``background`` and the plateau of the samples ``sub`` above ``thr``
-    (:func:`_auto_level`; the histogram of ``sub`` and the background's bin ``b0`` when already made).
-    ``spacing`` is that of ``sub``'s samples."""
+    (:func:`_auto_level`; the histogram of ``sub`` and the background's bin ``b0`` when already made;
+    ``core``, :func:`_interior_plateau` of ``sub``, when already found). ``spacing`` is that of
+    ``sub``'s samples."""
     sample = sub.ravel()
     above = sample[sample > thr]
-    core = _interior_plateau(sub, thr, background, float(np.median(above)), spacing) if above.size else None
+    if core is ...:
+        core = _interior_plateau(sub, thr, background, float(np.median(above)), spacing) if above.size else None
     if edges is None:
         edges = _histogram_edges(sample)
         counts, _ = _smoothed_histogram(sample, edges)
@@ -1188,7 +1190,7 @@ def _own_level(region: np.ndarray, own: np.ndarray, thr: float, background: floa
     if top is not None:  # a small compact object: half-way to its top
         return max(thr, 0.5 * (background + top))
     if float(values.max()) <= level:
-        return max(thr, _half_level(region, thr, background, method, spacing, quiet=True))
+        return max(thr, _half_level(region, thr, background, method, spacing, quiet=True, core=None))
     return level
 
 
