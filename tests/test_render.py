@@ -414,6 +414,22 @@ def test_frames_figure_marks_flagged_frames():
                 if not p.get_x() < 1 < p.get_x() + p.get_width()]
 
 
+def test_frames_figure_leaves_out_an_empty_frames_morphology():
+    """A frame whose segmented channel looks empty meshes a noise speck: its area is not the
+    object's, so it is not drawn (nor sets the panel's scale)."""
+    df = _frames_table().assign(snr=8.0)
+    empty = df["t"] == 1
+    df.loc[empty, ["area", "snr", "qc_pass", "qc_flags"]] = [12.5, 0.9, False, "the segmented channel looks empty"]
+    fig = frames_figure(df)
+    ax = _axis(fig, "surface area")
+    drawn = np.concatenate([ln.get_ydata() for ln in ax.get_lines() if ln.get_marker() != "x"])
+    assert ax.get_ylabel().startswith("area [10$^{3}$")  # drawn in 10³ µm²
+    np.testing.assert_allclose(drawn[np.isfinite(drawn)], [125.53538, 125.53118])  # t 0 and 2 only
+    assert ax.get_ylim()[0] > 100  # the speck's 12.5 µm² does not set the scale
+    s_crosses = [ln for ln in _axis(fig, "nematic order").get_lines() if ln.get_marker() == "x"]
+    assert not [x for ln in s_crosses for x in ln.get_xdata()]  # no ✕ at a value not drawn
+
+
 def test_frames_figure_draws_a_line_per_object():
     """frames.parquet of two objects (mesh.keep: all): each object its own line, not a zigzag."""
     one = _frames_table()

@@ -26,6 +26,7 @@ from nemo.render.style import (
     field_label,
     unit_text,
 )
+from nemo.summary import QC_CHARGE_TOLERANCE, QC_EMPTY_SNR
 
 # --------------------------------------------------------------------------------------------
 # defect tracks and the defect map
@@ -233,11 +234,6 @@ def defect_map_figure(defects: pd.DataFrame, layer: str | None = None,
 # --------------------------------------------------------------------------------------------
 # per-frame summary with quality control
 
-#: Largest |Σ charge − χ| that passes when frames.parquet has no ``qc_pass`` column (as in
-#: :mod:`nemo.summary`): a missed or spurious ±½ defect changes the sum by 0.5.
-QC_CHARGE_TOLERANCE = 0.25
-
-
 #: Panels of :func:`frames_figure`: key, title, columns (column, line label), per ``layer`` or
 #: per ``surface``, y label (``{u}`` the length unit) and the y-limits policy.
 FRAME_PANELS: tuple[tuple, ...] = (
@@ -353,6 +349,7 @@ def _plot_panel(ax, spec: tuple, groups: dict, styles: dict, unit: str, qc: pd.D
                 transform=ax.transAxes)
         ax.set_yticks([])
         return False
+    groups = {name: _without_empty_frames(g) for name, g in groups.items()}
     allv = np.concatenate([g[c].to_numpy(float) for g in groups.values() for c, _ in cols if c in g])
     factor, prefix = _scale(allv)
     chi = np.concatenate([np.zeros(0)] + [g["euler_characteristic"].to_numpy(float) for g in groups.values()
@@ -364,10 +361,10 @@ def _plot_panel(ax, spec: tuple, groups: dict, styles: dict, unit: str, qc: pd.D
             if c in g:
                 ax.plot(t, g[c].to_numpy(float) * factor, ls, marker=styles[name][1], ms=4.5,
                         color=styles[name][0])
-        bad = ~qc.loc[g.index, "qc_pass"].to_numpy(bool)
-        if spec[3] == "layer" and bad.any():
-            ax.plot(t[bad], g[cols[0][0]].to_numpy(float)[bad] * factor, "x", color="red", ms=8, mew=1.8,
-                    zorder=6)
+        first = g[cols[0][0]].to_numpy(float) if cols[0][0] in g else np.full(len(g), np.nan)
+        bad = ~qc.loc[g.index, "qc_pass"].to_numpy(bool) & np.isfinite(first)
+        if spec[3] == "layer" and bad.any():  # a surface's row carries its layers' flags, not its own
+            ax.plot(t[bad], first[bad] * factor, "x", color="red", ms=8, mew=1.8, zorder=6)
     if key == "charge" and chi.size:
         _chi_reference(ax, groups)
     lo, hi = _panel_limits(policy, allv * factor, chi)
@@ -383,6 +380,22 @@ def _plot_panel(ax, spec: tuple, groups: dict, styles: dict, unit: str, qc: pd.D
         ax.legend(handles=[Line2D([], [], color="0.3", ls=ls, label=lab) for (_, lab), ls in zip(cols, _STYLES)],
                   fontsize=7, loc="lower right", framealpha=0.7)
     return True
+
+
+def _without_empty_frames(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` with the values of frames whose segmented channel looks empty (``snr`` below
+    :data:`nemo.summary.QC_EMPTY_SNR`) set to NaN: a noise speck's area or H is not the object's,
+    and would set the panel's scale (the frame keeps its row, its flag and its red shading)."""
+    if "snr" not in rows.columns:
+        return rows
+    empty = (rows["snr"] < QC_EMPTY_SNR).to_numpy(bool)
+    if not empty.any():
+        return rows
+    rows = rows.copy()
+    values = [c for c in rows.columns if c not in ("t", "c", "object", "layer", "surface", "snr", "qc_pass", "qc_flags")
+              and pd.api.types.is_numeric_dtype(rows[c])]
+    rows.loc[empty, values] = np.nan
+    return rows
 
 
 def _chi_reference(ax, groups: dict) -> None:
@@ -454,7 +467,9 @@ def frames_figure(frames: pd.DataFrame, unit: str = "um", title: str = ""):
         stated in the label, and each morphology panel spans at least ±5 % of its mean
         (:data:`RELATIVE_SPAN`), so numerical noise of 0.01 % looks flat while a real change
         of a few percent shows. A bottom strip marks each layer's frames as passing or
-        flagged (:func:`frame_qc`) and lists the reasons; flagged t are shaded red everywhere.
+        flagged (:func:`frame_qc`) and lists the reasons; flagged t are shaded red everywhere
+        and the layers' values crossed in red. A frame whose segmented channel looks empty keeps its
+        flag but none of its values is drawn (a noise speck's area is not the object's).
     """
     from matplotlib.figure import Figure as MplFigure
     from matplotlib.ticker import MaxNLocator
