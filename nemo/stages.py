@@ -110,7 +110,10 @@ def mesh(
         ``deconvolution`` (:func:`nemo.psf.deconvolve`'s record),
         ``n_objects`` (:func:`nemo.surface.find_objects`), ``turned_out`` (objects enclosing the
         dark side, turned out: :func:`nemo.surface.turn_out_dark_objects`), ``walls`` (1 or 2; a list per
-        object with ``keep: all`` and several objects), ``cap_faces`` (faces where the object
+        object with ``keep: all`` and several objects), ``regions`` (per analysed object, the
+        image's separate bright regions its surface holds, :func:`nemo.surface.regions_per_object`;
+        more than 1: objects meshed as one; None when the image has fewer than two regions),
+        ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
 
@@ -128,6 +131,7 @@ def mesh(
         image_noise,
         one_object,
         reconstruct,
+        regions_per_object,
         turn_out_dark_objects,
     )
 
@@ -172,13 +176,18 @@ def mesh(
                       f"frame below {QC_MIN_SNR:g} is flagged in the summary); check the channel and the time point",
                       NemoWarning, stacklevel=2)
     _check_object_size(whole, spacing, unit)
+    regions = regions_per_object(whole, found, surface.get("region_peaks") or [])
+    _warn_joined_regions(regions, p["keep"])
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
         meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)
         p["n_objects"] = len(found)
+        p["regions"] = regions if len(found) > 1 else regions[:1]
     else:  # several objects: the largest, and a warning
         whole = one_object(whole, p["split"] != "none", p["keep"], objects=found)
         meshes = _walls(whole, p, centre)
         p["n_objects"] = int(whole.metadata["n_objects"])
+        p["regions"] = regions[:1]
+    p["regions"] = [int(n) for n in p["regions"]] if any(p["regions"]) else None
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
     info = rim(meshes["whole"].faces, len(meshes["whole"].vertices))  # of the analysed surface
     p["rim_vertices"], p["rim_loops"] = info["n_vertices"], info["n_loops"]
@@ -218,6 +227,16 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
     level = iso_level(volume, spacing, sigma, p["step"], threshold, p["edge"])
     p["deconvolution"].update(level=level, level_sigma=sigma)
     return sharp, level
+
+
+def _warn_joined_regions(regions: list[int], keep: str) -> None:
+    """Warn about objects whose surface holds several of the image's separate bright regions."""
+    joined = [(k, n) for k, n in enumerate(regions) if n > 1]
+    if joined and (keep == "all" or joined[0][0] == 0):
+        warnings.warn("one surface holds several separate bright regions of the image (object: regions "
+                      + ", ".join(f"{k}: {n}" for k, n in joined[:10]) + "): touching objects, or objects closer than "
+                      "the blur, meshed as one; its area and volume are theirs together (flagged in the summary). "
+                      "Give a mask that labels them apart (e.g. Cellpose or StarDist labels)", NemoWarning, stacklevel=3)
 
 
 def _check_object_size(whole: trimesh.Trimesh, spacing: tuple[float, float, float], unit: str) -> None:

@@ -31,7 +31,8 @@ from nemo.tables import read_provenance, read_table
 
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
-    "t", "c", "layer", "object", "surface", "n_objects", "walls", "centre_x", "centre_y", "centre_z", "snr", "saturated", "area",
+    "t", "c", "layer", "object", "surface", "n_objects", "walls", "regions", "centre_x", "centre_y", "centre_z", "snr",
+    "saturated", "area",
     "volume", "euler_characteristic", "closed", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median", "coherency_noise",
@@ -199,6 +200,10 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     closed = not measure.get("n_boundary_loops")
     if (measure.get("n_objects") or 1) > 1:
         flags.append(f"{measure['n_objects']} objects in the image (see the mesh step's warning)")
+    regions = row.get("regions")
+    if regions is not None and not pd.isna(regions) and regions > 1:
+        flags.append(f"the surface holds {regions} separate bright regions of the image: touching objects meshed "
+                     "as one, their area and volume together (a mask that labels them apart separates them)")
     snr = row.get("snr", math.nan)
     if np.isfinite(snr) and snr < QC_MIN_SNR:
         flags.append(f"low signal-to-noise ratio {snr:.1f} in the segmented channel")
@@ -292,7 +297,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             row["object"] = label
             rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
-    out = out.astype({"t": "int64", "c": "int64", "object": "int64", "walls": "Int64", "n_directors": "Int64",
+    out = out.astype({"t": "int64", "c": "int64", "object": "int64", "walls": "Int64", "regions": "Int64", "n_directors": "Int64",
                       "n_defects": "Int64", "qc_pass": "bool", "qc_flags": "str", "closed": "bool"})
     _flag_changed_walls(out)
     _flag_cut_objects(out)
@@ -368,7 +373,8 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
            "volume": _num(mo.get("volume")),
            "euler_characteristic": _num(mo.get("euler_characteristic")),
            "closed": not mo.get("n_boundary_loops"),
-           "n_objects": m.get("n_objects"), "walls": value_for(m.get("walls"), label), "snr": _num(m.get("snr")),
+           "n_objects": m.get("n_objects"), "walls": value_for(m.get("walls"), label),
+           "regions": value_for(m.get("regions"), label), "snr": _num(m.get("snr")),
            "saturated": _num(m.get("saturated")),
            "centre_x": _num(centre[0]), "centre_y": _num(centre[1]), "centre_z": _num(centre[2]),
            "H_mean": _num(mo.get("mean_H")), "K_mean": _num(mo.get("mean_K"))}

@@ -323,6 +323,35 @@ def find_objects(mesh: trimesh.Trimesh, min_fraction: float = OBJECT_MIN_AREA) -
              "centre": centre[c] / max(comp_area[c], 1e-300)} for c in big[~nested]]
 
 
+def regions_per_object(mesh: trimesh.Trimesh, found: list[dict], points: np.ndarray) -> list[int]:
+    """How many of ``points`` (x, y, z; the brightest samples of the image's separate bright regions,
+    ``metadata["nemo_surface"]["region_peaks"]``) lie inside each object of :func:`find_objects`.
+
+    Two regions the image keeps apart (their component tree parts them; :func:`_object_levels`)
+    can still be one iso-surface: nuclei that touch, or lie closer than the blur along z. Such an
+    object holds two or more points, and its area and volume are theirs together.
+
+    Returns
+    -------
+    list of int
+        Per object of ``found`` (its outermost surface closed over its rim by
+        :func:`nemo.geometry.close_rim`, so a cut object counts too); 0 each without points.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(points):
+        return [0] * len(found)
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    labels = face_components(faces, len(vertices))
+    counts = []
+    for obj in found:  # a loop over the few objects
+        own = faces[labels == obj["component"]]
+        lo, hi = vertices[own].min(axis=(0, 1)), vertices[own].max(axis=(0, 1))
+        near = points[((points >= lo) & (points <= hi)).all(axis=1)]
+        inside = np.abs(_winding_numbers(near, *close_rim(vertices, own))) > 0.5 if len(near) else []
+        counts.append(int(np.sum(inside)))
+    return counts
+
+
 def _closed_surface_groups(mesh: trimesh.Trimesh, faces: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
     """Group of each of the ``n`` components: those cut from one closed surface by ``border="open"``
     (:data:`CLOSED_SURFACE_FIELD`) share one; without that field every component is its own."""
@@ -1121,20 +1150,29 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
 
     Returns
     -------
-    list of float
+    levels : list of float
         The objects' levels (largest region first) when the field was shifted, else empty.
+    peaks : list of [x, y, z]
+        The brightest sample of each compact region (:func:`_compact`; physical units,
+        ``spacing`` the samples' spacing) when there are at least two regions, else empty:
+        :func:`regions_per_object` counts them per object, so that blobs the mesh joined into
+        one surface are told (the parts of a textured wall that the component tree parts are
+        not compact).
     """
     if background is None or level < thr or level <= background:
-        return []
+        return [], []
     regions = _object_regions(field, thr, level)
     if len(regions) < 2:
-        return []
-    levels = []
+        return [], []
+    levels, peaks = [], []
     for sl, own, others in regions:  # a loop over the few objects
         region = np.where(others, np.float32(background), field[sl])
         levels.append(_own_level(region, own, thr, background, level, method, spacing))
+        if _compact(region, own, thr, spacing):  # a nucleus, not a piece of a textured wall
+            peak = np.unravel_index(int(np.argmax(np.where(own, region, -np.inf))), own.shape)
+            peaks.append([float((b.start + i) * d) for b, i, d in zip(sl, peak, spacing)][::-1])  # x, y, z
     if max(abs(lev - level) for lev in levels) <= OBJECT_LEVEL_TOLERANCE * (level - background):
-        return []
+        return [], peaks
     own_level = np.full(field.shape, np.float32(level), dtype=np.float32)  # the one full-size temporary
     for j in np.argsort(levels, kind="stable"):  # ascending: a higher level wins where zones meet
         sl, own, _ = regions[j]
@@ -1142,7 +1180,7 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
     slab = max(1, _SLAB_VOXELS // max(1, field[0].size))
     for z in range(0, len(field), slab):  # a loop over slabs of planes: no more full-size temporaries
         field[z:z + slab] -= own_level[z:z + slab] - np.float32(level)
-    return [float(lev) for lev in levels]
+    return [float(lev) for lev in levels], peaks
 
 
 def _cores(own: np.ndarray, crop: np.ndarray, thr: float, least: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1200,6 +1238,19 @@ def _interior_sample(arrays: list[np.ndarray], spacing: np.ndarray) -> tuple[lis
     0.6 s at 1.6 M samples (a shell of 200³ is read every third sample)."""
     m = max(1, int(np.ceil((arrays[0].size / _MAX_INTERIOR_SAMPLES) ** (1 / 3))))
     return [a[::m, ::m, ::m] for a in arrays], spacing * m
+
+
+def _compact(region: np.ndarray, own: np.ndarray, thr: float, spacing: np.ndarray) -> bool:
+    """Whether a region is a blob: its greatest depth inside ``thr`` is at least
+    :data:`BLOB_MIN_DEPTH` × the radius of a ball of its volume (a wall or a sheet is not), read
+    on a strided sample as :func:`_deep_plateau` does."""
+    (region, own), spacing = _interior_sample([region, own], spacing)
+    inside = own & (region > thr)
+    n = int(inside.sum())
+    if n < INTERIOR_MIN_SAMPLES:
+        return False
+    deepest = float(ndi.distance_transform_edt(inside, sampling=spacing).max())
+    return deepest >= BLOB_MIN_DEPTH * (3.0 * n * float(np.prod(spacing)) / (4.0 * np.pi)) ** (1 / 3)
 
 
 def _deep_plateau(region: np.ndarray, own: np.ndarray, thr: float, background: float, median: float,
@@ -1586,9 +1637,10 @@ def reconstruct(
     level, thr, how, background = _iso_level(inner, vmin, vmax, mask is not None, threshold, edge, scale,
                                              (dz * step, dy * step, dx * step))
     logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
-    object_levels = []
+    object_levels, region_peaks = [], []
     if isinstance(how, str) and edge == "half" and not refine:  # refine crosses the stack's one level
-        object_levels = _object_levels(inner, thr, background, level, how, np.array([dz, dy, dx]) * step)
+        object_levels, region_peaks = _object_levels(inner, thr, background, level, how,
+                                                     np.array([dz, dy, dx]) * step)
         if object_levels:
             logger.info("%d separate objects at their own half levels: %s (the stack's %.4g)", len(object_levels),
                         listed((f"{lev * scale:.4g}" for lev in object_levels), sep=", "), level * scale)
@@ -1614,7 +1666,7 @@ def reconstruct(
         "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
         "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
         "spacing": [dz, dy, dx], "border": border, **snap_info, **rim_info, **ref_info,
-        "object_levels": [lev * scale for lev in object_levels],
+        "object_levels": [lev * scale for lev in object_levels], "region_peaks": region_peaks,
     }
     mesh.metadata.pop("parent_faces", None)
     mesh.metadata.pop("parent_vertices", None)

@@ -230,6 +230,11 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({}, {**CLOSED, "saturated": 0.10}, []),
     ({}, {**CLOSED, "saturated": None}, []),
     ({}, {**CLOSED, "n_objects": 3}, ["3 objects in the image (see the mesh step's warning)"]),
+    ({"regions": 2}, CLOSED, ["the surface holds 2 separate bright regions of the image: touching objects meshed as "
+                              "one, their area and volume together (a mask that labels them apart separates them)"]),
+    ({"regions": 1}, CLOSED, []),
+    ({"regions": None}, CLOSED, []),
+    ({"regions": pd.NA}, CLOSED, []),
 ])
 def test_quality_flags_name_each_reason(change, measure, expected):
     assert quality_flags({**GOOD, **change}, measure) == expected
