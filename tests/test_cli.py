@@ -976,3 +976,22 @@ def test_option_values_never_crash(command, corpus, forker, tmp_path_factory):
              phases=(Phase.explicit, Phase.generate), suppress_health_check=list(HealthCheck))(
         given(data=st.data())(check))()
 
+
+
+def test_the_defect_step_takes_each_objects_averaging_radius_as_nemo_run_does(tmp_path):
+    """An order table of three objects, one without a radius (a cap too small for directors): the
+    others keep theirs, as nemo.pipeline passes them per object (the step command had estimated
+    every object's radius from S, so the workflow's defects differed from nemo run's)."""
+    from nemo.cli.defects import _averaging_radius
+    from nemo.order import no_order
+    from nemo.tables import write_table
+
+    path = tmp_path / "order.parquet"
+    table = no_order(np.zeros((3, 3)))
+    write_table(table, path, command="order",
+                parameters={"objects": [{"radius": 23.5}, {"radius": None}, {"radius": 18.0}]})
+    assert _averaging_radius(str(path)) == [23.5, None, 18.0]
+    write_table(table, path, command="order", parameters={"radius": 12.0})
+    assert _averaging_radius(str(path)) == 12.0
+    write_table(table, path, command="order", parameters={"radius": None})
+    assert _averaging_radius(str(path)) is None

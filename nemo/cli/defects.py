@@ -66,18 +66,23 @@ def add_arguments(parser) -> None:
     add_common(parser, output_help="output defects table (.parquet)")
 
 
-def _averaging_radius(order_path: str) -> float | list[float] | None:
-    """The order table's averaging radius from its provenance (one per object on a mesh of several)."""
+def _averaging_radius(order_path: str) -> float | list[float | None] | None:
+    """The order table's averaging radius from its provenance: one per object on a mesh of several,
+    None for an object without one (estimated from its S field, as ``nemo run`` does: one object
+    without an order, e.g. a cap cut by the border, leaves the others' radii as they are)."""
     from nemo import objects
     from nemo.tables import read_provenance
 
     prov = read_provenance(order_path)
     params = prov.get("parameters") or {}
     radius = objects.values(params, "radius") if params else prov.get("radius")
-    radii = radius if isinstance(radius, list) else [radius]
-    if not all(isinstance(r, (int, float)) and r > 0 for r in radii):
-        return None  # estimated from S
-    return [float(r) for r in radii] if isinstance(radius, list) else float(radius)
+    if isinstance(radius, list):
+        return [float(r) if _usable(r) else None for r in radius]
+    return float(radius) if _usable(radius) else None
+
+
+def _usable(radius) -> bool:
+    return isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius > 0
 
 
 def run(args) -> int:
