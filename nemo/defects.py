@@ -82,7 +82,11 @@ have a resolved, non-zero charge: every step of the winding below :func:`step_li
 (2.5 × the mean step π/k of a ½ defect on k steps, within 60-80°) and
 ``|charge − charge_rounded| ≤ charge_tolerance``, ``charge_rounded ≠ 0`` (with
 ``curvature_correction=False`` the raw winding is biased by design, so the tolerance test is
-skipped). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged; every
+skipped). A contour that encloses more than :data:`MAX_ENCLOSED_FRACTION` of the surface's
+vertices is rejected (``"contour encloses most of the surface"``): on a small object a contour
+radius grown from the averaging radius can reach round the far side, and such a contour's charge
+is that of every defect inside it (a "+2" on a sphere with two +1 poles, 26 µm from both, in an
+independent review). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged; every
 examined candidate (accepted or not, with its contour S, floor, largest step, limit and reason)
 is kept in ``df.attrs["candidates"]`` (:func:`candidate_table`, ``nemo defects --candidates``).
 
@@ -833,6 +837,8 @@ def _rejection(res: dict | None, st: _Settings) -> str | None:
         return "disordered contour"
     if res["max_step_deg"] > res["step_limit_deg"]:
         return "unresolved winding"
+    if res.get("enclosed_fraction", 0.0) > MAX_ENCLOSED_FRACTION:
+        return ENCLOSES_REASON
     if res["charge_rounded"] == 0:
         return "zero charge"
     if st.curvature_correction and abs(res["charge"] - res["charge_rounded"]) > st.charge_tolerance:
@@ -855,7 +861,7 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
     ``rejected`` (reason -> count) and ``contours`` (contour kind -> count, ``shrunk`` at a rim).
     """
     tally = {"rejected": dict.fromkeys(("disordered contour", "unresolved winding", "zero charge", "off-half charge",
-                                        "no contour", RIM_REASON, "same dip", "same defect"), 0),
+                                        "no contour", RIM_REASON, ENCLOSES_REASON, "same dip", "same defect"), 0),
              "contours": dict.fromkeys(("loop", "ring", "circle", "shrunk", "k_from_vertices"), 0)}
     # low-S dips = connected components of the candidate vertices. Several zeros of the averaged
     # Q-tensor can share one dip (an |m| = 1 defect splits into two ±1/2 zeros a few µm apart under
@@ -997,6 +1003,11 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
 
 #: What :func:`_charge` returns when no contour fits between the candidate and the open rim.
 AT_RIM = {"at_rim": True}
+#: Largest fraction of the surface's vertices a defect's contour may enclose: beyond it the
+#: contour's "inside" holds most of the surface, and its charge is the sum of the defects there.
+MAX_ENCLOSED_FRACTION = 0.5
+#: The rejection of such a contour.
+ENCLOSES_REASON = "contour encloses most of the surface"
 #: Rejection reason of a candidate whose contour would leave the surface (an open rim).
 RIM_REASON = "contour leaves the surface"
 
@@ -1026,9 +1037,11 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
     kind = "loop"
     if loop is not None and len(loop) >= 8:
         enclosed = float(geo.kdA[region].sum() - 0.5 * geo.kdA[loop].sum())  # contour vertices count half
+        fraction = len(region) / len(geo.verts)
     else:  # non-manifold ball boundary: ring of vertices sorted by angle, ball = enclosed
         loop = angle_sorted_contour(geo.verts, geo.verts[v], geo.normals[v], idx, dist, r_c, 2 * h)
         enclosed = float(geo.kdA[idx[dist < r_c]].sum())
+        fraction = float(np.sum(dist < r_c)) / len(geo.verts)
         kind = "ring"
     n_pts = steps_needed(r_c, st.avg_radius)
     if len(loop) < n_pts * (2 if kind == "ring" else 1):  # a ring is a band about two vertices wide
@@ -1046,7 +1059,8 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
     else:
         n_dir = None
     return _winding_result(dirs, geo.normals[loop], f.S[loop], n_dir, pts, enclosed, st,
-                           {"contour": kind, "contour_radius": float(r_c), "shrunk": shrunk}, disc)
+                           {"contour": kind, "contour_radius": float(r_c), "shrunk": shrunk,
+                            "enclosed_fraction": fraction}, disc)
 
 
 def _is_disc(geo: _Geometry, region: np.ndarray) -> bool:
@@ -1092,8 +1106,10 @@ def _circle_contour(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: floa
     w = np.clip(0.5 + (r_e - np.linalg.norm(geo.verts[ball] - x0, axis=1)) / geo.h, 0.0, 1.0)
     enclosed = float(np.sum(w * geo.kdA[ball]))
     disc = st.k_from_contour and _is_disc(geo, ball[np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e])
+    fraction = float(np.sum(np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e)) / len(geo.verts)
     return _winding_result(dirs, nrm, s_pts, n_dir, pts, enclosed, st,
-                           {"contour": "circle", "contour_radius": float(r_c), "shrunk": shrunk}, disc)
+                           {"contour": "circle", "contour_radius": float(r_c), "shrunk": shrunk,
+                            "enclosed_fraction": fraction}, disc)
 
 
 def _field_at_points(geo: _Geometry, f: _Fields, st: _Settings, pts: np.ndarray, nrm: np.ndarray,

@@ -253,6 +253,25 @@ def test_sphere_two_plus_one(sphere60):
     assert df.attrs["euler_check"]["matches"]
 
 
+def test_a_contour_round_most_of_a_small_sphere_is_no_defect():
+    """Two +1 poles on a sphere R 20 µm: a contour of geodesic radius 38 µm encloses two thirds of
+    the surface (one of 58 µm on a sphere R 20, round a dip between the poles, enclosed both and
+    read "+2", which passed the Σ-charge check in an independent review). Such a contour is
+    rejected; one of 12 µm finds each +1."""
+    from nemo.defects import ENCLOSES_REASON
+
+    mesh = mc_sphere(20.0, 1.0)
+    dirs = rotated(np.array([[0, 0, 1.0], [0, 0, -1.0]]), 5)  # off the director field's own axis
+    mesh, ddf, odf = sphere_case(20.0, 1.0, dirs, [1.0, 1.0], 1500, 6.0, seed=2, noise=3.0, mesh=mesh)
+    wide = find_defects(mesh, odf, ddf, avg_radius=6.0, contour_radius=38.0)
+    assert len(wide) == 0
+    assert wide.attrs["parameters"]["rejected"][ENCLOSES_REASON] >= 1
+    assert ENCLOSES_REASON in set(candidate_table(wide)["reason"])
+    df = find_defects(mesh, odf, ddf, avg_radius=6.0, contour_radius=12.0)
+    assert len(df) == 2 and match(df, 20.0 * dirs).max() < 1.5
+    np.testing.assert_allclose(df["charge"], 1.0, atol=0.05)
+
+
 @pytest.mark.parametrize("source", ["contour", "angle-defects", "table"])
 def test_curvature_term_on_strongly_curved_sphere(source):
     """R = 30 µm, contour of geodesic radius 20 µm: the winding alone misses
