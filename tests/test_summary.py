@@ -125,6 +125,23 @@ def test_frame_summary_flags_a_surface_open_where_the_series_is_closed(frame_fil
     assert flagged == [False] * 6 + [True, False], flagged
 
 
+def test_frame_summary_flags_keep_largest_switching_objects(frame_files, tmp_path):
+    """keep: largest with three objects in view: a shrinking shell is the largest at t 0–1 and a
+    growing one from t 2, 54 µm away. The series mixes two objects (its area falls and rises), so
+    the frame where the largest changed is flagged; a drift of a few µm is not, nor a frame of
+    one object in view."""
+    measure = json.loads(frame_files["measure"].read_text())
+    records = []
+    for t, (x, area, n) in enumerate(((50, 8500, 3), (52, 7200, 3), (108, 7800, 3), (110, 8500, 3), (170, 8600, 1))):
+        path = tmp_path / f"measure{t}.json"
+        path.write_text(json.dumps({**measure, "centre": [x, 65.0, 40.0], "area": area, "n_objects": n}))
+        records.append({**frame_files, "t": t, "measure": path})
+    out = frame_summary(records)
+    flagged = out["qc_flags"].str.contains("another object than at t = ").tolist()
+    assert flagged == [False, False, True, False, False], out["qc_flags"].tolist()
+    assert "another object than at t = 1 (centre moved 56" in out["qc_flags"][2] and "keep: all" in out["qc_flags"][2]
+
+
 def test_frame_summary_walls_come_from_the_mesh_step(frame_files):
     """The mesh step's walls (1 or 2; one per object with several) reach the row; a frame of one
     wall with its NaN thickness is not flagged for it."""
