@@ -28,12 +28,12 @@ import pandas as pd
 from nemo.errors import NemoError
 from nemo.objects import value_for
 from nemo.tables import read_provenance, read_table
+from nemo.track import link_objects
 
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
-    "t", "c", "layer", "object", "surface", "n_objects", "walls", "regions", "centre_x", "centre_y", "centre_z", "snr",
-    "saturated", "area",
-    "volume", "euler_characteristic", "closed", "H_mean", "K_mean",
+    "t", "c", "layer", "object", "object_id", "surface", "n_objects", "walls", "regions", "centre_x", "centre_y",
+    "centre_z", "snr", "saturated", "area", "volume", "euler_characteristic", "closed", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median", "coherency_noise",
     "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
@@ -302,6 +302,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     _flag_changed_walls(out)
     _flag_cut_objects(out)
     _flag_switched_object(out)
+    out["object_id"] = link_objects(out)
     return out.sort_values(["t", "c", "layer", "object"], kind="stable").reset_index(drop=True)
 
 
@@ -476,9 +477,10 @@ def collect_defects(records: Iterable[Mapping], frames: pd.DataFrame | None = No
 
 
 def _with_frame_qc(defects: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
-    """``defects`` with the ``qc_pass`` and ``qc_flags`` of their frame's row (t, c, layer, object)."""
+    """``defects`` with the ``object_id``, ``qc_pass`` and ``qc_flags`` of their frame's row (t, c, layer,
+    object)."""
     keys = ["t", "c", "layer", "object"]
-    qc = frames[[*keys, "qc_pass", "qc_flags"]].drop_duplicates(keys)
+    qc = frames[[*keys, *(["object_id"] if "object_id" in frames else []), "qc_pass", "qc_flags"]].drop_duplicates(keys)
     out = defects.astype({"object": "int64"}).merge(qc.astype({"object": "int64"}), on=keys, how="left",
                                                      validate="many_to_one")
     out["qc_pass"] = out["qc_pass"].fillna(False).astype(bool)  # a defect of no summarised frame: not vouched for

@@ -126,6 +126,58 @@ def link_defects(
     return out.set_axis(defects.index)
 
 
+def link_objects(frames: pd.DataFrame) -> pd.Series:
+    """A persistent identity (``object_id``) for each object of ``frames.parquet`` across time points.
+
+    With ``mesh.keep: all`` the ``object`` label of a frame is an area rank, so two objects whose
+    areas cross swap labels (an independent review: a shrinking shell and a growing one 1.5 µm
+    apart swapped at t = 3, and each label's series fell and rose again). Per channel, the objects
+    of each time point are matched to those of the last time point with objects by the linear
+    assignment of their centres (scipy), a match only within the larger of the two objects' radii
+    (of the sphere of the same area); an object without a match gets a new id (it entered the field,
+    or its centre jumped). Ids count from 0 in order of first appearance, then of label.
+
+    Parameters
+    ----------
+    frames : DataFrame
+        Rows with ``t``, ``c``, ``object``, ``centre_x``, ``centre_y``, ``centre_z`` and ``area``
+        (several rows of one object, one per layer or surface, share its id; its first row's
+        centre and area are used).
+
+    Returns
+    -------
+    Series of Int64, aligned with ``frames``
+        The id; NA for a row without a finite centre and area (an empty frame's speck has one,
+        and is linked like any object).
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    keys = ["t", "c", "object"]
+    objs = frames.drop_duplicates(keys).sort_values(keys)
+    xyz = objs[["centre_x", "centre_y", "centre_z"]].to_numpy(np.float64)
+    radius = np.sqrt(objs["area"].to_numpy(np.float64) / (4 * np.pi))
+    ok = np.isfinite(xyz).all(axis=1) & np.isfinite(radius)
+    ids = np.full(len(objs), -1, dtype=np.int64)
+    next_id = 0
+    for c in np.unique(objs["c"].to_numpy()):  # a loop over channels and time points, not objects
+        last = np.zeros(0, dtype=np.int64)  # rows of the last time point with objects
+        for t in np.unique(objs["t"].to_numpy()):
+            now = np.flatnonzero((objs["c"].to_numpy() == c) & (objs["t"].to_numpy() == t) & ok)
+            if len(last) and len(now):
+                dist = np.linalg.norm(xyz[last][:, None] - xyz[now][None], axis=2)
+                gate = np.maximum(radius[last][:, None], radius[now][None])
+                rows, cols = linear_sum_assignment(np.where(dist <= gate, dist, 1e300))
+                keep = dist[rows, cols] <= gate[rows, cols]
+                ids[now[cols[keep]]] = ids[last[rows[keep]]]
+            new = now[ids[now] < 0]
+            ids[new] = next_id + np.arange(len(new))
+            next_id += len(new)
+            last = now if len(now) else last
+    labelled = pd.Series(ids, index=pd.MultiIndex.from_frame(objs[keys]))
+    found = labelled.reindex(pd.MultiIndex.from_frame(frames[keys])).to_numpy()
+    return pd.Series(found, index=frames.index, dtype="Int64").where(lambda v: v >= 0)
+
+
 def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
     """One row per track from a table made by :func:`link_defects`.
 
@@ -144,7 +196,10 @@ def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
         successive detections), ``mean_speed`` (µm per unit of t: path length /
         (last_t - first_t); NaN for a single detection), ``mean_S``; with a ``qc_pass``
         column in ``linked`` (the workflow's defects, from their frames' quality control) also
-        ``n_flagged`` (detections in frames that failed it) and ``qc_pass`` (none did).
+        ``n_flagged`` (detections in frames that failed it) and ``qc_pass`` (none did); with an
+        ``object_id`` column (:func:`link_objects`, the workflow's defects) also ``object_id``
+        (the object of most of its detections) and ``n_objects`` (the objects its detections lie
+        on: 1 for a track that stays on its object).
     """
     if "track_id" not in linked.columns:
         raise NemoError("table has no 'track_id' column: link the defects first (nemo track)")
@@ -179,6 +234,12 @@ def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
         agg["n_flagged"] = flagged.to_numpy(dtype=np.int64)
         agg["qc_pass"] = agg["n_flagged"] == 0
         cols += ["n_flagged", "qc_pass"]
+    if "object_id" in df.columns:  # the workflow's defects: the object each detection lies on
+        ids = df["object_id"].astype("Int64").groupby(df["track_id"], sort=True)
+        agg["object_id"] = ids.agg(lambda v: v.mode().min() if v.notna().any() else pd.NA).astype("Int64").to_numpy()
+        agg["n_objects"] = ids.nunique().to_numpy(dtype=np.int64)
+        cols.insert(1 + len(group), "object_id")
+        cols.append("n_objects")
     agg["span"] = agg["last_t"] - agg["first_t"] + 1
     dt = (agg["last_t"] - agg["first_t"]).to_numpy(dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):

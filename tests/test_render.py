@@ -446,6 +446,18 @@ def test_frames_figure_draws_a_line_per_object():
     assert "object 1" in legend
 
 
+def test_frames_figure_follows_objects_by_their_id_not_their_label():
+    """Two objects whose area ranks swap at t = 1 (labels 0 and 1 swap): with ``object_id`` each
+    line keeps one object's values (S 0.9 or 0.5 throughout), not a zigzag between them."""
+    one = _frames_table()
+    swap = one["t"] >= 1
+    a = one.assign(object=np.where(swap, 1, 0), object_id=0, S_mean=0.9)
+    b = one.assign(object=np.where(swap, 0, 1), object_id=1, S_mean=0.5)
+    fig = frames_figure(pd.concat([a, b], ignore_index=True))
+    solid = [ln for ln in _axis(fig, "nematic order").get_lines() if ln.get_linestyle() == "-"]
+    assert len(solid) == 4 and all(np.ptp(ln.get_ydata()) == 0 for ln in solid)  # 2 layers × 2 objects
+
+
 def test_frame_qc_without_qc_columns():
     df = _frames_table().drop(columns=["qc_pass", "qc_flags"])
     df.loc[1, "charge_sum"] = 1.5

@@ -140,6 +140,7 @@ def test_frame_summary_flags_keep_largest_switching_objects(frame_files, tmp_pat
     flagged = out["qc_flags"].str.contains("another object than at t = ").tolist()
     assert flagged == [False, False, True, False, False], out["qc_flags"].tolist()
     assert "another object than at t = 1 (centre moved 56" in out["qc_flags"][2] and "keep: all" in out["qc_flags"][2]
+    assert out["object_id"].tolist() == [0, 0, 1, 1, 2]  # the same objects, by their centres
 
 
 def test_frame_summary_walls_come_from_the_mesh_step(frame_files):

@@ -177,3 +177,52 @@ def test_tracks_count_their_detections_in_flagged_frames():
     df["qc_pass"] = True
     assert summarise_tracks(link_defects(df, max_distance=15.0, gap_frames=1))["qc_pass"].all()
     assert "n_flagged" not in summarise_tracks(link_defects(df.drop(columns="qc_pass"), 15.0, 1)).columns
+
+
+def _two_objects_crossing(n_t: int = 4) -> pd.DataFrame:
+    """frames.parquet of two shells whose areas cross at t = 2 (labels are area ranks: they swap),
+    two layer rows per object, and a third object entering at t = 3 far from both."""
+    a = [(50.0, 8500.0), (52.0, 7200.0), (54.0, 6100.0), (56.0, 5000.0)]
+    b = [(120.0, 2800.0), (116.0, 3600.0), (112.0, 6500.0), (108.0, 7800.0)]
+    rows = []
+    for t in range(n_t):
+        objs = [("A", *a[t]), ("B", *b[t])] + ([("C", 180.0, 2000.0)] if t == 3 else [])
+        for label, (name, x, area) in enumerate(sorted(objs, key=lambda o: -o[2])):
+            for layer in ("fibres", "cortex"):
+                rows.append({"t": t, "c": 0, "layer": layer, "object": label, "centre_x": x, "centre_y": 65.0,
+                             "centre_z": 40.0, "area": area, "name": name})
+    return pd.DataFrame(rows)
+
+
+def test_objects_keep_their_identity_when_their_area_ranks_swap():
+    """Each object keeps one id over time although its label (area rank) changes; every row of an
+    object has its id; an object entering the field gets a new one; a channel is linked on its own."""
+    from nemo.track import link_objects
+
+    df = _two_objects_crossing()
+    df["object_id"] = link_objects(df)
+    ids = df.groupby("name")["object_id"].agg(lambda v: sorted(set(v)))
+    assert ids.to_dict() == {"A": [0], "B": [1], "C": [2]}
+    assert df.loc[(df["t"] == 3) & (df["name"] == "A"), "object"].iloc[0] == 1  # the label did swap
+    two = pd.concat([df.drop(columns="object_id"), df.drop(columns="object_id").assign(c=1)], ignore_index=True)
+    linked = link_objects(two)
+    assert linked[two["c"] == 1].nunique() == 3 and not set(linked[two["c"] == 0]) & set(linked[two["c"] == 1])
+    # an object whose centre jumps by more than its radius is another object
+    jump = df.drop(columns="object_id")
+    jump.loc[(jump["name"] == "A") & (jump["t"] >= 2), "centre_x"] += 80.0
+    assert sorted(set(link_objects(jump)[jump["name"] == "A"])) == [0, 2]  # ids in order of appearance
+    # no finite centre: no id
+    gone = df.drop(columns="object_id")
+    gone.loc[gone["t"] == 1, "centre_x"] = np.nan
+    assert link_objects(gone)[gone["t"] == 1].isna().all()
+
+
+def test_a_track_reports_the_object_it_lies_on():
+    """summarise_tracks gives each track the object_id of its detections and counts the objects
+    (a track that stays on its object: 1)."""
+    linked = pd.DataFrame({"track_id": [0, 0, 0, 1, 1], "t": [0, 1, 2, 0, 1], "x": [0.0, 1, 2, 50, 51],
+                           "y": 0.0, "z": 0.0, "charge_rounded": [1.0, 1, 1, 0.5, 0.5],
+                           "object_id": pd.array([3, 3, 3, 1, 2], dtype="Int64")})
+    tracks = summarise_tracks(linked)
+    assert tracks["object_id"].tolist() == [3, 1] and tracks["n_objects"].tolist() == [1, 2]
+    assert "object_id" not in summarise_tracks(linked.drop(columns="object_id"))

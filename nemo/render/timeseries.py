@@ -291,8 +291,11 @@ def _frame_groups(frames: pd.DataFrame) -> tuple[dict, dict]:
 
     cs = frames["c"] if "c" in frames.columns else pd.Series(0, index=frames.index)
     lay = frames["layer"].astype(str) if "layer" in frames.columns else pd.Series("", index=frames.index)
-    # several objects (mesh.keep: all): a line per object
+    # several objects (mesh.keep: all): a line per object, followed over time by its object_id (labels
+    # are area ranks, which swap when two objects' areas cross)
     obj = frames["object"] if "object" in frames.columns else pd.Series(0, index=frames.index)
+    if "object_id" in frames.columns and frames["object_id"].notna().any():
+        obj = frames["object_id"].astype("Int64").fillna(-1)
     several = obj.nunique() > 1
 
     def tag(o) -> str:
