@@ -224,6 +224,38 @@ def test_spherical_map_puts_defects_at_their_angles(demo):
         assert ax.get_xlabel() == "azimuth φ [°]" and ax.get_ylabel() == "polar angle θ [°]"
 
 
+def test_spherical_map_of_several_objects_centres_each_object():
+    """A surface of two labelled spheres 100 µm apart (mesh.keep: all): one panel per object, each
+    about its own centre, so each object's defect at its north pole reads polar angle 0 (about the
+    centroid of both, the maps overlaid and the poles read 27°)."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    import trimesh
+
+    from nemo.objects import concatenate
+    from nemo.render.data import Layer, Surface
+
+    spheres = [trimesh.creation.icosphere(subdivisions=3, radius=25.0) for _ in range(2)]
+    spheres[1].apply_translation([100.0, 0.0, 0.0])
+    mesh = concatenate(spheres, [0, 1])
+    n = len(mesh.vertices)
+    order = pd.DataFrame({"vertex": np.arange(n), **dict(zip("xyz", np.asarray(mesh.vertices).T)), "S": 0.8,
+                          "nx": 1.0, "ny": 0.0, "nz": 0.0})
+    defects = pd.DataFrame({"x": [0.0, 100.0], "y": 0.0, "z": 25.0, "charge": [1.0, 0.5], "object": [0, 1]})
+    layer = Layer("a", "inner", intensity=np.linspace(0, 1, n), order=order, defects=defects)
+    frame = SimpleNamespace(layers={"a": layer}, surfaces={"inner": Surface("inner", Path("m.ply"), mesh)})
+    fig = spherical_figure(frame, "a")
+    maps = [ax for ax in fig.axes if ax.get_xlabel() == "azimuth φ [°]"]
+    assert len(maps) == 2
+    for k, ax in enumerate(maps):
+        assert f"object {k}" in ax.get_title()
+        xy = np.asarray(next(c for c in ax.collections if c.get_gid() == "defects").get_offsets())
+        assert len(xy) == 1 and xy[0, 1] < 1.0  # its own north pole
+        glyphs = next(c for c in ax.collections if c.get_gid() == "directors")
+        assert 0 < len(glyphs.X) < n  # its own directors only
+
+
 def test_spherical_map_directors_follow_the_field(demo):
     """A glyph's chart direction is the analytic director mapped into the chart."""
     truth = demo["frames"][0]

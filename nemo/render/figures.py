@@ -18,8 +18,9 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
-from nemo import atomic
+from nemo import atomic, objects
 from nemo.render.charts import (
     chart_directions,
     glyph_spacing,
@@ -148,52 +149,88 @@ def _chart_defects(ax, pos, charges, centre, fig, colorbar=True):
     return sc
 
 
+#: Largest number of objects drawn, one panel each, in a frame's spherical map (the largest first).
+MAX_MAP_OBJECTS = 6
+
+
 def spherical_figure(frame: Frame, layer: str, n_polar: int = 180, max_glyphs: int = 900):
     """Intensity + averaged directors + defects in spherical coordinates -- paper Fig. 2D.
 
     The chart is centred on the area-weighted centroid of the layer's surface. Directors are
     thinned evenly on the surface (about ``max_glyphs``) and coloured by S; defects are circles
-    coloured by charge with the rounded charge as text.
+    coloured by charge with the rounded charge as text. A surface of several objects
+    (``mesh.keep: all``) gets one panel per object, each about its own centroid (at most
+    :data:`MAX_MAP_OBJECTS`, the largest first): about one centroid of them all, their maps
+    overlaid each other.
     """
     lay = frame.layers[layer]
     surf = frame.surfaces[lay.surface]
-    verts = np.asarray(surf.mesh.vertices)
-    centre = surface_centre(surf.mesh)
-    fig, (ax,) = _figure(1, 10.5, 5.0)
+    pieces = objects.parts(surf.mesh) or [objects.Part(0, surf.mesh, np.arange(len(surf.mesh.vertices)))]
+    pieces = pieces[:MAX_MAP_OBJECTS]
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10.5, 5.0 * len(pieces)), layout="constrained")
+    for ax, part in zip(fig.subplots(len(pieces), 1, squeeze=False)[:, 0], pieces):
+        _spherical_panel(ax, fig, lay, part, surf.unit, len(pieces) > 1, n_polar, max_glyphs)
+    return fig
+
+
+def _spherical_panel(ax, fig, lay, part, unit: str, several: bool, n_polar: int, max_glyphs: int) -> None:
+    """One object's map in :func:`spherical_figure` (``part``: a :class:`nemo.objects.Part`)."""
+    verts = np.asarray(part.mesh.vertices)
+    centre = surface_centre(part.mesh)
     if lay.intensity is not None:
-        vals = _fill_nearest(lay.intensity, verts)
+        vals = _fill_nearest(np.asarray(lay.intensity)[part.vertices], verts)
         _map_image(ax, verts, vals, centre, "gray", robust_limits(vals), field_label("intensity"),
                    fig, n_polar)
     else:
         _map_axes(ax)
-    if lay.order is not None and len(lay.order):
-        od = lay.order
-        pos = od[["x", "y", "z"]].to_numpy(dtype=np.float64)
-        keep = subsample_even(pos, glyph_spacing(surf.mesh, max_glyphs))
+    od = _of_part(lay.order, part, several)
+    if od is not None and len(od):
+        keep = subsample_even(od[["x", "y", "z"]].to_numpy(np.float64), glyph_spacing(part.mesh, max_glyphs))
         od = od.iloc[keep]
         _chart_segments(ax, od[["x", "y", "z"]].to_numpy(float), od[["nx", "ny", "nz"]].to_numpy(float),
                         od["S"].to_numpy(float), centre, fig, length_deg=0.8 * 180 / np.sqrt(max_glyphs / 2))
-    if lay.defects is not None and len(lay.defects):
-        _chart_defects(ax, lay.defects[["x", "y", "z"]].to_numpy(float),
-                       lay.defects["charge"].to_numpy(float), centre, fig)
-    ax.set_title(f"layer {layer}: spherical coordinates around the centroid "
-                 f"({centre[0]:.1f}, {centre[1]:.1f}, {centre[2]:.1f}) {unit_text(surf.unit)}", fontsize=10)
-    return fig
+    dd = _of_part(lay.defects, part, several)
+    if dd is not None and len(dd):
+        _chart_defects(ax, dd[["x", "y", "z"]].to_numpy(float), dd["charge"].to_numpy(float), centre, fig)
+    what = f"layer {lay.name}" + (f", object {part.label}" if several else "")
+    ax.set_title(f"{what}: spherical coordinates around the centroid "
+                 f"({centre[0]:.1f}, {centre[1]:.1f}, {centre[2]:.1f}) {unit_text(unit)}", fontsize=10)
+
+
+def _of_part(df: pd.DataFrame | None, part, several: bool) -> pd.DataFrame | None:
+    """The rows of a vertex-keyed table (order) or an object-keyed one (defects) on ``part``."""
+    if df is None or not several:
+        return df
+    if "object" in df.columns:
+        return df[df["object"].to_numpy() == part.label]
+    if "vertex" in df.columns:
+        return df[np.isin(df["vertex"].to_numpy(), part.vertices)]
+    return df
 
 
 def morphology_figure(surf: Surface, n_polar: int = 120):
-    """Spherical maps of H, K and thickness (those present) on one surface, or None."""
+    """Spherical maps of H, K and thickness (those present) on one surface, or None; a row per
+    object about its own centroid on a surface of several (at most :data:`MAX_MAP_OBJECTS`)."""
     names = [n for n in ("H", "K", "thickness") if n in surf.fields]
     if not names:
         return None
-    fig, axes = _figure(len(names), 6.2, 3.6)
-    verts = np.asarray(surf.mesh.vertices)
-    centre = surface_centre(surf.mesh)
-    for ax, name in zip(axes, names):
-        vals = surf.fields[name]
-        _map_image(ax, verts, vals, centre, FIELD_CMAPS[name], robust_limits(vals, name),
-                   surf.label(name), fig, n_polar)
-        ax.set_title(f"{name} ({surf.key} surface)", fontsize=10)
+    pieces = objects.parts(surf.mesh) or [objects.Part(0, surf.mesh, np.arange(len(surf.mesh.vertices)))]
+    pieces = pieces[:MAX_MAP_OBJECTS]
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.2 * len(names), 3.6 * len(pieces)), layout="constrained")
+    grid = fig.subplots(len(pieces), len(names), squeeze=False)
+    for row, part in zip(grid, pieces):
+        verts = np.asarray(part.mesh.vertices)
+        centre = surface_centre(part.mesh)
+        for ax, name in zip(row, names):
+            vals = np.asarray(surf.fields[name])[part.vertices]
+            _map_image(ax, verts, vals, centre, FIELD_CMAPS[name], robust_limits(vals, name),
+                       surf.label(name), fig, n_polar)
+            ax.set_title(f"{name} ({surf.key} surface" + (f", object {part.label})" if len(pieces) > 1 else ")"),
+                         fontsize=10)
     return fig
 
 
