@@ -1474,7 +1474,8 @@ def _image_quality(mesh: trimesh.Trimesh) -> dict:
     """What NEMO's mesh step found in the image (None for meshes from elsewhere)."""
     params = mesh.metadata.get("nemo_params") or {}
     return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "walls",
-                                             "regions", "turned_out")}
+                                             "regions", "turned_out", "mask_offset", "mask_offset_limit",
+                                             "mask_contrast")}
 
 
 def _genus(topo: dict, notes: list[str]) -> int | None:

@@ -176,6 +176,8 @@ def mesh(
                       f"frame below {QC_MIN_SNR:g} is flagged in the summary); check the channel and the time point",
                       NemoWarning, stacklevel=2)
     _check_object_size(whole, spacing, unit)
+    if mask is not None and volume is not None:  # does the mask follow the segmented channel's edges?
+        p.update(_mask_fit(whole, volume, spacing, unit))
     regions = regions_per_object(whole, found, surface.get("region_peaks") or [])
     _warn_joined_regions(regions, p["keep"])
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
@@ -227,6 +229,24 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
     level = iso_level(volume, spacing, sigma, p["step"], threshold, p["edge"])
     p["deconvolution"].update(level=level, level_sigma=sigma)
     return sharp, level
+
+
+def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) -> dict:
+    """:func:`nemo.surface.mask_edge_offset` of a mask's surface on the segmented channel, warned about
+    when the mask holds the darker side or lies off the channel's edges (the summary flags it)."""
+    from nemo.surface import mask_edge_offset
+
+    fit = mask_edge_offset(whole, volume, spacing)
+    if fit["mask_contrast"] < 0:
+        warnings.warn("the mask's inside is darker than its outside in the segmented channel: a mask of the "
+                      "background or a cavity class? (check mask_channel with a probability map of several classes, "
+                      "and segment_channel)", NemoWarning, stacklevel=3)
+    elif fit["mask_offset"] > fit["mask_offset_limit"]:
+        warnings.warn(f"the mask's surface lies {fit['mask_offset']:.3g} {unit} (median) from the segmented channel's "
+                      f"own edges (more than {fit['mask_offset_limit']:.3g}): a mask of another time point, channel "
+                      "or class? (check the mask's T axis and order, mask_channel and segment_channel)",
+                      NemoWarning, stacklevel=3)
+    return fit
 
 
 def _warn_joined_regions(regions: list[int], keep: str) -> None:
@@ -844,7 +864,28 @@ def order(mesh: trimesh.Trimesh, directors_df: pd.DataFrame, params: dict | None
             raise NemoError("order.radius is not given and the directors' patch radius is unknown: "
                             "give the averaging radius (e.g. 2.5 × the patch radius)")
         p["radius"] = ORDER_PER_PATCH * float(patch_radius)
+        _warn_wide_average(mesh, p["radius"])
     return q_average(mesh, directors_df, float(p["radius"]), targets=p["targets"], weights=p["weights"]), p
+
+
+#: A default averaging radius above this fraction of the object's radius is warned about.
+WIDE_AVERAGE = 0.5
+
+
+def _warn_wide_average(mesh: trimesh.Trimesh, radius: float) -> None:
+    """Warn when the default averaging radius spans much of a small object (its patch radius at the
+    floor of :data:`nemo.directors.PATCH_MIN_EDGES` edges): S is then averaged over a good part of
+    the surface, low-S caps widen, and a +1 may read as two +½ far apart (an independent review:
+    23 µm on shells of R 13–26 µm)."""
+    from nemo.directors import PATCH_MIN_EDGES
+
+    size = object_radius(mesh)
+    if radius > WIDE_AVERAGE * size:
+        warnings.warn(f"the default averaging radius {radius:.3g} is {radius / size:.2g} × the object's radius "
+                      f"{size:.3g} ({ORDER_PER_PATCH:g} × the directors' patch, at least {PATCH_MIN_EDGES:g} mesh "
+                      "edges): S is averaged over much of the object and its defects' positions and charges are "
+                      "uncertain; a finer mesh (smaller voxels or mesh.step) or a smaller order.radius helps",
+                      NemoWarning, stacklevel=3)
 
 
 def defects(

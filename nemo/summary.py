@@ -210,6 +210,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if measure.get("turned_out"):
         flags.append(f"{measure['turned_out']} object(s) enclosed by the foreground, turned out (a dark object in a "
                      "bright surround, or a mask's background class: check the channel or mask)")
+    flags += _mask_flags(measure)
     saturated = measure.get("saturated")
     if saturated is not None and saturated > QC_MAX_SATURATED:
         flags.append(f"{100 * saturated:.1f} % of the object's core saturated: walls placed outward, "
@@ -228,6 +229,18 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID and row.get("walls") != 1:  # one wall: no thickness
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices")
     return flags + (_layer_flags(row, closed, chi) if "n_directors" in row else [])
+
+
+def _mask_flags(measure: Mapping) -> list[str]:
+    """A mask that does not follow the segmented channel (:func:`nemo.surface.mask_edge_offset`)."""
+    contrast, offset, limit = (measure.get(k) for k in ("mask_contrast", "mask_offset", "mask_offset_limit"))
+    if contrast is not None and contrast < 0:
+        return ["the mask holds the darker side of the segmented channel (a background or cavity class? check "
+                "mask_channel)"]
+    if offset is not None and limit is not None and offset > limit:
+        return [f"the mask lies {offset:.2g} (median) from the segmented channel's edges, more than {limit:.2g} (a mask "
+                "of another time point, channel or class?)"]
+    return []
 
 
 def _looks_empty(row: Mapping) -> bool:

@@ -868,3 +868,62 @@ def test_keep_all_says_which_surfaces_it_leaves_out(caplog):
     left = [r.getMessage() for r in caplog.records if r.getMessage().startswith("left out")]
     assert len(left) == 1 and "left out 1 surface(s) below 10 %" in left[0], left
     assert "centre (60" in left[0]
+
+
+@pytest.mark.parametrize("patch, warned", [(8.0, True), (3.0, False)])
+def test_a_default_averaging_radius_spanning_a_small_object_is_warned_about(patch, warned):
+    """2.5 × a patch of 8 µm (the 8-edge floor of a 1 µm mesh) on a sphere of R 20 µm averages S
+    over the radius of the object itself: warned about, with what to change; 2.5 × 3 µm is not."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    idx = np.arange(0, len(mesh.vertices), 7)
+    xyz = np.asarray(mesh.vertices)[idx]
+    azimuthal = np.cross(xyz, [0.3, 0.1, 1.0])
+    azimuthal /= np.linalg.norm(azimuthal, axis=1, keepdims=True)
+    ddf = pd.DataFrame({"vertex": idx, "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "nx": azimuthal[:, 0],
+                        "ny": azimuthal[:, 1], "nz": azimuthal[:, 2], "coherency": 0.9})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _, p = stages.order(mesh, ddf, {}, patch_radius=patch)
+    told = [str(w.message) for w in caught if "averaging radius" in str(w.message)]
+    assert p["radius"] == 2.5 * patch
+    assert bool(told) == warned
+    if warned:
+        assert "1 × the object's radius 20" in told[0] and "order.radius" in told[0]
+
+
+def _shell_and_masks(r_in: float = 12.0, r_out: float = 18.0):
+    """A shell (R 12–18 µm, voxels 1 × 0.5 × 0.5 µm, PSF 1.2 / 0.5 / 0.5 µm, Poisson noise) and its
+    label mask; the mask of the shell 2 µm larger (another time point); the cavity's mask."""
+    from scipy.ndimage import gaussian_filter
+
+    spacing = np.array([1.0, 0.5, 0.5])
+    zyx = np.indices((48, 90, 90)).transpose(1, 2, 3, 0) * spacing
+    r = np.sqrt(((zyx - np.array([24.0, 22.5, 22.5])) ** 2).sum(-1))
+    wall = (r >= r_in) & (r <= r_out)
+    image = np.random.default_rng(1).poisson(50 + 400 * gaussian_filter(wall.astype(float), np.array([1.2, 0.5, 0.5]) / spacing))
+    masks = {"same": wall, "another time point": (r >= r_in + 2) & (r <= r_out + 2), "cavity": r < r_in}
+    return image.astype(np.uint16), {k: v.astype(np.uint8) for k, v in masks.items()}, tuple(spacing)
+
+
+def test_a_mask_that_does_not_follow_the_image_is_told():
+    """A mask is meshed as given; its surface is checked against the segmented channel's own edges:
+    the shell's own mask lies ~0.1 µm from them, a mask of the shell 2 µm larger (another time
+    point) over 1 µm (warned, recorded for the summary's flag), and the cavity's mask holds the
+    darker side."""
+    image, masks, spacing = _shell_and_masks()
+    seen = {}
+    for name, mask in masks.items():
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            _, p = stages.mesh(image, spacing, {"split": "none"}, mask=mask)
+        seen[name] = (p, [str(w.message) for w in caught if "mask's" in str(w.message)])
+    p, told = seen["same"]
+    assert p["mask_offset"] < 0.25 and p["mask_contrast"] > 0 and p["mask_offset_limit"] == 0.5 and not told
+    p, told = seen["another time point"]
+    assert p["mask_offset"] > 1.0 and len(told) == 1 and "another time point" in told[0]
+    p, told = seen["cavity"]
+    assert p["mask_contrast"] < 0 and len(told) == 1 and "darker" in told[0]
+    _, p = stages.mesh(image, spacing, {"split": "none"})  # no mask: nothing to check
+    assert "mask_offset" not in p

@@ -251,6 +251,12 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"regions": 2}, CLOSED, ["the surface holds 2 separate bright regions of the image: touching objects meshed as "
                               "one, their area and volume together (a mask that labels them apart separates them)"]),
     ({"regions": 1}, CLOSED, []),
+    ({}, {**CLOSED, "mask_offset": 1.4, "mask_offset_limit": 0.5, "mask_contrast": 45.0},
+     ["the mask lies 1.4 (median) from the segmented channel's edges, more than 0.5 (a mask of another time point, "
+      "channel or class?)"]),
+    ({}, {**CLOSED, "mask_offset": 0.09, "mask_offset_limit": 0.5, "mask_contrast": 86.0}, []),
+    ({}, {**CLOSED, "mask_offset": 0.2, "mask_offset_limit": 0.5, "mask_contrast": -40.0},
+     ["the mask holds the darker side of the segmented channel (a background or cavity class? check mask_channel)"]),
     ({"regions": None}, CLOSED, []),
     ({"regions": pd.NA}, CLOSED, []),
 ])
