@@ -126,6 +126,7 @@ def mesh(
     from nemo.geometry import rim
     from nemo.surface import (
         auto_sigma,
+        default_mask_sigma,
         default_sigma,
         find_objects,
         image_noise,
@@ -148,8 +149,8 @@ def mesh(
     p["sigma_auto"] = None
     if p["sigma"] is None and volume is not None and mask is None:
         p["sigma"], p["sigma_auto"] = auto_sigma(sharp, spacing, p["step"], threshold=threshold)
-    elif p["sigma"] is None:
-        p["sigma"] = default_sigma(spacing, p["step"])
+    elif p["sigma"] is None:  # a mask (or no image): its voxel staircase is what the blur smooths
+        p["sigma"] = (default_mask_sigma if mask is not None else default_sigma)(spacing, p["step"])
     whole = reconstruct(sharp, spacing, sigma=float(p["sigma"]), threshold=threshold, mask=mask,
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit,
                         border=p["border"], refine=bool(p["refine"]), refine_sigma=p["refine_sigma"],

@@ -91,6 +91,7 @@ __all__ = [
     "count_walls",
     "auto_sigma",
     "blur_noise_gain",
+    "default_mask_sigma",
     "default_sigma",
     "face_components",
     "find_objects",
@@ -701,6 +702,19 @@ def _with_metadata(out: trimesh.Trimesh, mesh: trimesh.Trimesh) -> trimesh.Trime
         out.metadata.pop("parent_faces", None)
         out.metadata.pop("parent_vertices", None)
     return out
+
+
+def default_mask_sigma(spacing, step: int = 1) -> float:
+    """Default blur σ (physical units) of a binary mask: half the largest voxel side × ``step``.
+
+    A mask has no noise to merge, but its surface is a staircase of voxel faces; blurred by half
+    the lateral voxel (:func:`default_sigma`), the terraces of planes 2–3 × farther apart stay, and
+    the area of every masked object read 4.5–6 % high in an independent review (shells at 1 × 0.5
+    × 0.5 µm, nuclei at 2 × 1 × 1 µm; blurred by half the plane spacing: +0.6 %, radii within
+    0.04 µm). The same as :func:`default_sigma` for cubic voxels.
+    """
+    dz, dy, dx = check_spacing(spacing)
+    return 0.5 * max(1, int(step)) * max(dz, dy, dx)
 
 
 def default_sigma(spacing, step: int = 1) -> float:

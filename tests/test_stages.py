@@ -927,3 +927,17 @@ def test_a_mask_that_does_not_follow_the_image_is_told():
     assert p["mask_contrast"] < 0 and len(told) == 1 and "darker" in told[0]
     _, p = stages.mesh(image, spacing, {"split": "none"})  # no mask: nothing to check
     assert "mask_offset" not in p
+
+
+@pytest.mark.parametrize("spacing", [(2.0, 1.0, 1.0), (1.0, 0.5, 0.5), (2.0, 0.5, 0.5)])
+def test_a_ball_mask_on_anisotropic_voxels_has_its_area(spacing):
+    """A binary mask of a ball R 10 µm: blurred by half the largest voxel side, the staircase of its
+    z planes no longer adds area (half the lateral voxel left +4 to +9 %); within 2 % of 4πR²."""
+    spacing_ = np.array(spacing)
+    zyx = np.indices(tuple(int(np.ceil(30 / s)) for s in spacing_)).transpose(1, 2, 3, 0) * spacing_
+    mask = (((zyx - np.array([15.0, 15.3, 14.8])) ** 2).sum(-1) < 10.0**2).astype(np.uint8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NemoWarning)
+        meshes, p = stages.mesh(None, spacing, {"split": "none"}, mask=mask)
+    assert p["sigma"] == pytest.approx(0.5 * max(spacing))
+    assert meshes["whole"].area == pytest.approx(4 * np.pi * 10.0**2, rel=0.02)
