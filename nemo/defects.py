@@ -82,8 +82,8 @@ have a resolved, non-zero charge: every step of the winding below :func:`step_li
 (2.5 × the mean step π/k of a ½ defect on k steps, within 60-80°) and
 ``|charge − charge_rounded| ≤ charge_tolerance``, ``charge_rounded ≠ 0`` (with
 ``curvature_correction=False`` the raw winding is biased by design, so the tolerance test is
-skipped). A contour that encloses more than :data:`MAX_ENCLOSED_FRACTION` of the surface's
-vertices is rejected (``"contour encloses most of the surface"``): on a small object a contour
+skipped). On a closed surface, a contour that encloses more than :data:`MAX_ENCLOSED_FRACTION`
+of the surface's vertices is rejected (``"contour encloses most of the surface"``): on a small object a contour
 radius grown from the averaging radius can reach round the far side, and such a contour's charge
 is that of every defect inside it (a "+2" on a sphere with two +1 poles, 26 µm from both, in an
 independent review). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged; every
@@ -451,6 +451,11 @@ class _Geometry:
     k_source: str
     boundary: np.ndarray  # (N,) bool, vertices on the mesh boundary
     h: float  # mean edge length
+
+    @property
+    def closed(self) -> bool:
+        """No boundary: a contour's inside and outside are then ambiguous (which side holds the defect)."""
+        return not bool(self.boundary.any())
 
 
 @dataclass
@@ -837,7 +842,7 @@ def _rejection(res: dict | None, st: _Settings) -> str | None:
         return "disordered contour"
     if res["max_step_deg"] > res["step_limit_deg"]:
         return "unresolved winding"
-    if res.get("enclosed_fraction", 0.0) > MAX_ENCLOSED_FRACTION:
+    if res.get("enclosed_fraction", 0.0) > MAX_ENCLOSED_FRACTION:  # set on closed surfaces only
         return ENCLOSES_REASON
     if res["charge_rounded"] == 0:
         return "zero charge"
@@ -1037,11 +1042,11 @@ def _charge(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: float) -> di
     kind = "loop"
     if loop is not None and len(loop) >= 8:
         enclosed = float(geo.kdA[region].sum() - 0.5 * geo.kdA[loop].sum())  # contour vertices count half
-        fraction = len(region) / len(geo.verts)
+        fraction = len(region) / len(geo.verts) if geo.closed else 0.0
     else:  # non-manifold ball boundary: ring of vertices sorted by angle, ball = enclosed
         loop = angle_sorted_contour(geo.verts, geo.verts[v], geo.normals[v], idx, dist, r_c, 2 * h)
         enclosed = float(geo.kdA[idx[dist < r_c]].sum())
-        fraction = float(np.sum(dist < r_c)) / len(geo.verts)
+        fraction = float(np.sum(dist < r_c)) / len(geo.verts) if geo.closed else 0.0
         kind = "ring"
     n_pts = steps_needed(r_c, st.avg_radius)
     if len(loop) < n_pts * (2 if kind == "ring" else 1):  # a ring is a band about two vertices wide
@@ -1106,7 +1111,7 @@ def _circle_contour(geo: _Geometry, f: _Fields, st: _Settings, v: int, r_c: floa
     w = np.clip(0.5 + (r_e - np.linalg.norm(geo.verts[ball] - x0, axis=1)) / geo.h, 0.0, 1.0)
     enclosed = float(np.sum(w * geo.kdA[ball]))
     disc = st.k_from_contour and _is_disc(geo, ball[np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e])
-    fraction = float(np.sum(np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e)) / len(geo.verts)
+    fraction = float(np.sum(np.linalg.norm(geo.verts[ball] - x0, axis=1) < r_e)) / len(geo.verts) if geo.closed else 0.0
     return _winding_result(dirs, nrm, s_pts, n_dir, pts, enclosed, st,
                            {"contour": "circle", "contour_radius": float(r_c), "shrunk": shrunk,
                             "enclosed_fraction": fraction}, disc)

@@ -377,18 +377,19 @@ def _flag_switched_object(out: pd.DataFrame) -> None:
     centre moving by more than the radius of the sphere of the object's area between two time
     points is taken as another object."""
     several = out.groupby(["t", "c", "layer", "surface"], dropna=False)["object"].transform("nunique") > 1
-    rows = out[~several & (out["n_objects"].fillna(1) > 1) & ~(out["snr"] < QC_EMPTY_SNR)]
+    rows = out[~several & ~(out["snr"] < QC_EMPTY_SNR)]
     centre = ["centre_x", "centre_y", "centre_z"]
     for _, g in rows.groupby(["c", "layer", "surface"], dropna=False):  # a loop over the few series
         g = g.sort_values("t")
         xyz, area = g[centre].to_numpy(np.float64), g["area"].to_numpy(np.float64)
         moved = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
         radius = np.sqrt(np.maximum(area[:-1], area[1:]) / (4 * np.pi))
-        for k in np.flatnonzero(moved > radius):  # the few switches
+        crowded = g["n_objects"].fillna(1).to_numpy(np.float64) > 1  # one object in view at both: it moved
+        for k in np.flatnonzero((moved > radius) & (crowded[:-1] | crowded[1:])):  # the few switches
             i = g.index[k + 1]
             _add_flag(out, i, f"another object than at t = {g['t'].iloc[k]} (centre moved {moved[k]:.3g}, more than its "
-                              f"radius {radius[k]:.3g}): with {out.at[i, 'n_objects']} objects in view the largest "
-                              "changed; set mesh.keep: all, or give a mask of the object")
+                              f"radius {radius[k]:.3g}): with several objects in view the largest changed; set "
+                              "mesh.keep: all, or give a mask of the object")
 
 
 def _skipped_searches(r: Mapping) -> dict[int, str]:

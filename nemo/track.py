@@ -126,56 +126,80 @@ def link_defects(
     return out.set_axis(defects.index)
 
 
-def link_objects(frames: pd.DataFrame) -> pd.Series:
+#: Time points (ranks) an object may be missing, or its frame empty, and keep its id when it returns.
+OBJECT_GAP = 2
+
+
+def link_objects(frames: pd.DataFrame, gap: int = OBJECT_GAP) -> pd.Series:
     """A persistent identity (``object_id``) for each object of ``frames.parquet`` across time points.
 
     With ``mesh.keep: all`` the ``object`` label of a frame is an area rank, so two objects whose
     areas cross swap labels (an independent review: a shrinking shell and a growing one 1.5 µm
-    apart swapped at t = 3, and each label's series fell and rose again). Per channel, the objects
-    of each time point are matched to those of the last time point with objects by the linear
-    assignment of their centres (scipy), a match only within the larger of the two objects' radii
-    (of the sphere of the same area); an object without a match gets a new id (it entered the field,
-    or its centre jumped). Ids count from 0 in order of first appearance, then of label.
+    apart swapped at t = 3, and each label's series fell and rose again). The objects of each time
+    point are matched to the ids seen in the last ``gap`` + 1 time points (at their last centre)
+    by the linear assignment of the distances between centres (scipy); a match only within the
+    larger of the two objects' radii (of the sphere of the same area). An object without a match
+    gets a new id (it entered the field, or its centre jumped). Ids count from 0 in order of first
+    appearance, then of label. Channels peeled from one segmentation share its objects' ids (rows
+    of one time point with the same label and centre are one object).
 
     Parameters
     ----------
     frames : DataFrame
         Rows with ``t``, ``c``, ``object``, ``centre_x``, ``centre_y``, ``centre_z`` and ``area``
         (several rows of one object, one per layer or surface, share its id; its first row's
-        centre and area are used).
+        centre and area are used); with ``snr``, rows of a frame that looks empty
+        (:data:`nemo.summary.QC_EMPTY_SNR`) get no id and do not break the others' links.
+    gap : int
+        Time points an id may go unseen and still be matched.
 
     Returns
     -------
     Series of Int64, aligned with ``frames``
-        The id; NA for a row without a finite centre and area (an empty frame's speck has one,
-        and is linked like any object).
+        The id; NA for a row without a finite centre and area, or of an empty frame.
     """
+    from nemo.summary import QC_EMPTY_SNR
+
+    centre = ["centre_x", "centre_y", "centre_z"]
+    usable = frames[centre + ["area"]].apply(pd.to_numeric, errors="coerce").notna().all(axis=1)
+    if "snr" in frames.columns:
+        usable &= ~(pd.to_numeric(frames["snr"], errors="coerce") < QC_EMPTY_SNR)
+    key = frames[["t", "object"]].assign(**{k: frames[k].astype(float).round(3) for k in centre})
+    objs = frames[usable].assign(_key=list(map(tuple, key[usable].to_numpy()))).drop_duplicates("_key")
+    objs = objs.sort_values(["t", "object", "c"])
+    xyz = objs[centre].to_numpy(np.float64)
+    radius = np.sqrt(objs["area"].to_numpy(np.float64) / (4 * np.pi))
+    times = objs["t"].to_numpy()
+    ids = np.full(len(objs), -1, dtype=np.int64)
+    last_seen: dict[int, tuple[int, int]] = {}  # id -> (rank of its last time point, its row there)
+    for rank, t in enumerate(np.unique(times)):  # a loop over time points, not objects
+        now = np.flatnonzero(times == t)
+        known = [(i, row) for i, (r, row) in last_seen.items() if rank - r <= gap + 1]
+        if known:
+            before = np.array([row for _, row in known])
+            ids[now] = _assign(xyz[before], radius[before], xyz[now], radius[now], np.array([i for i, _ in known]))
+        new = now[ids[now] < 0]
+        ids[new] = len(last_seen) + np.arange(len(new))
+        last_seen.update({int(ids[j]): (rank, int(j)) for j in now})
+    by_key = dict(zip(objs["_key"], ids))
+    found = [by_key.get(k, -1) for k in map(tuple, key.to_numpy())]
+    return pd.Series(found, index=frames.index, dtype="Int64").where(lambda v: (v >= 0) & usable.to_numpy())
+
+
+def _assign(xyz_a: np.ndarray, r_a: np.ndarray, xyz_b: np.ndarray, r_b: np.ndarray, ids_a: np.ndarray) -> np.ndarray:
+    """The id of ``ids_a`` that each of B takes (−1: none): the linear assignment of the centres'
+    distances, a pair only within the larger of their radii. Pairs out of reach cost more than any
+    assignment of pairs in reach (a finite cost: an infinite one spoils the solver's optimum)."""
     from scipy.optimize import linear_sum_assignment
 
-    keys = ["t", "c", "object"]
-    objs = frames.drop_duplicates(keys).sort_values(keys)
-    xyz = objs[["centre_x", "centre_y", "centre_z"]].to_numpy(np.float64)
-    radius = np.sqrt(objs["area"].to_numpy(np.float64) / (4 * np.pi))
-    ok = np.isfinite(xyz).all(axis=1) & np.isfinite(radius)
-    ids = np.full(len(objs), -1, dtype=np.int64)
-    next_id = 0
-    for c in np.unique(objs["c"].to_numpy()):  # a loop over channels and time points, not objects
-        last = np.zeros(0, dtype=np.int64)  # rows of the last time point with objects
-        for t in np.unique(objs["t"].to_numpy()):
-            now = np.flatnonzero((objs["c"].to_numpy() == c) & (objs["t"].to_numpy() == t) & ok)
-            if len(last) and len(now):
-                dist = np.linalg.norm(xyz[last][:, None] - xyz[now][None], axis=2)
-                gate = np.maximum(radius[last][:, None], radius[now][None])
-                rows, cols = linear_sum_assignment(np.where(dist <= gate, dist, 1e300))
-                keep = dist[rows, cols] <= gate[rows, cols]
-                ids[now[cols[keep]]] = ids[last[rows[keep]]]
-            new = now[ids[now] < 0]
-            ids[new] = next_id + np.arange(len(new))
-            next_id += len(new)
-            last = now if len(now) else last
-    labelled = pd.Series(ids, index=pd.MultiIndex.from_frame(objs[keys]))
-    found = labelled.reindex(pd.MultiIndex.from_frame(frames[keys])).to_numpy()
-    return pd.Series(found, index=frames.index, dtype="Int64").where(lambda v: v >= 0)
+    dist = np.linalg.norm(xyz_a[:, None] - xyz_b[None], axis=2)
+    near = dist <= np.maximum(r_a[:, None], r_b[None])
+    cost = np.where(near, dist, (dist[near].sum() if near.any() else 0.0) + 1.0)
+    rows, cols = linear_sum_assignment(cost)
+    out = np.full(len(xyz_b), -1, dtype=np.int64)
+    keep = near[rows, cols]
+    out[cols[keep]] = ids_a[rows[keep]]
+    return out
 
 
 def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:

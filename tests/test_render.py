@@ -449,7 +449,8 @@ def test_frames_figure_marks_flagged_frames():
 def test_frames_figure_leaves_out_an_empty_frames_morphology():
     """A frame whose segmented channel looks empty meshes a noise speck: its area is not the
     object's, so it is not drawn (nor sets the panel's scale)."""
-    df = _frames_table().assign(snr=8.0)
+    df = _frames_table().assign(snr=8.0, closed=True, walls=pd.array([2] * 6, dtype="Int64"),
+                                object_id=pd.array([0] * 6, dtype="Int64"))  # the dtypes of frames.parquet
     empty = df["t"] == 1
     df.loc[empty, ["area", "snr", "qc_pass", "qc_flags"]] = [12.5, 0.9, False, "the segmented channel looks empty"]
     fig = frames_figure(df)

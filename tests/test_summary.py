@@ -132,15 +132,18 @@ def test_frame_summary_flags_keep_largest_switching_objects(frame_files, tmp_pat
     one object in view."""
     measure = json.loads(frame_files["measure"].read_text())
     records = []
-    for t, (x, area, n) in enumerate(((50, 8500, 3), (52, 7200, 3), (108, 7800, 3), (110, 8500, 3), (170, 8600, 1))):
+    for t, (x, area, n) in enumerate(((50, 8500, 3), (52, 7200, 3), (108, 7800, 3), (110, 8500, 3), (170, 8600, 1),
+                                      (230, 8600, 1))):
         path = tmp_path / f"measure{t}.json"
         path.write_text(json.dumps({**measure, "centre": [x, 65.0, 40.0], "area": area, "n_objects": n}))
         records.append({**frame_files, "t": t, "measure": path})
     out = frame_summary(records)
     flagged = out["qc_flags"].str.contains("another object than at t = ").tolist()
-    assert flagged == [False, False, True, False, False], out["qc_flags"].tolist()
+    # t 4: the other objects left the field, and the one in view is not the one of t 3 (flagged);
+    # t 5: one object in view at both time points, moved (not flagged)
+    assert flagged == [False, False, True, False, True, False], out["qc_flags"].tolist()
     assert "another object than at t = 1 (centre moved 56" in out["qc_flags"][2] and "keep: all" in out["qc_flags"][2]
-    assert out["object_id"].tolist() == [0, 0, 1, 1, 2]  # the same objects, by their centres
+    assert out["object_id"].tolist() == [0, 0, 1, 1, 2, 3]  # the same objects, by their centres
 
 
 def test_frame_summary_walls_come_from_the_mesh_step(frame_files):

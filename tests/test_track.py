@@ -196,7 +196,8 @@ def _two_objects_crossing(n_t: int = 4) -> pd.DataFrame:
 
 def test_objects_keep_their_identity_when_their_area_ranks_swap():
     """Each object keeps one id over time although its label (area rank) changes; every row of an
-    object has its id; an object entering the field gets a new one; a channel is linked on its own."""
+    object has its id; an object entering the field gets a new one; channels of one segmentation
+    share the ids; an empty frame or an object missing for a time point does not renumber them."""
     from nemo.track import link_objects
 
     df = _two_objects_crossing()
@@ -204,9 +205,18 @@ def test_objects_keep_their_identity_when_their_area_ranks_swap():
     ids = df.groupby("name")["object_id"].agg(lambda v: sorted(set(v)))
     assert ids.to_dict() == {"A": [0], "B": [1], "C": [2]}
     assert df.loc[(df["t"] == 3) & (df["name"] == "A"), "object"].iloc[0] == 1  # the label did swap
+    # a second channel peeled from the same meshes: the same objects, the same ids
     two = pd.concat([df.drop(columns="object_id"), df.drop(columns="object_id").assign(c=1)], ignore_index=True)
     linked = link_objects(two)
-    assert linked[two["c"] == 1].nunique() == 3 and not set(linked[two["c"] == 0]) & set(linked[two["c"] == 1])
+    assert (linked[two["c"] == 1].to_numpy() == linked[two["c"] == 0].to_numpy()).all()
+    # an empty frame (its noise speck far away) and an object missing for a time point keep the ids
+    gappy = df.drop(columns="object_id").assign(snr=8.0)
+    gappy.loc[gappy["t"] == 1, ["centre_x", "area", "snr"]] = [300.0, 5.0, 0.9]
+    gappy = gappy[~((gappy["t"] == 2) & (gappy["name"] == "B"))]
+    ids = link_objects(gappy)
+    assert ids[gappy["t"] == 1].isna().all()
+    assert gappy.assign(i=ids).dropna().groupby("name")["i"].agg(lambda v: sorted(set(v))).to_dict() == {
+        "A": [0], "B": [1], "C": [2]}
     # an object whose centre jumps by more than its radius is another object
     jump = df.drop(columns="object_id")
     jump.loc[(jump["name"] == "A") & (jump["t"] >= 2), "centre_x"] += 80.0

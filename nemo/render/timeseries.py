@@ -395,9 +395,14 @@ def _without_empty_frames(rows: pd.DataFrame) -> pd.DataFrame:
     if not empty.any():
         return rows
     rows = rows.copy()
-    values = [c for c in rows.columns if c not in ("t", "c", "object", "layer", "surface", "snr", "qc_pass", "qc_flags")
-              and pd.api.types.is_numeric_dtype(rows[c])]
-    rows.loc[empty, values] = np.nan
+    keys = ("t", "c", "object", "object_id", "snr")
+    for c in rows.columns:  # a loop over the table's columns: floats get NaN, nullable integers NA
+        if c in keys or pd.api.types.is_bool_dtype(rows[c]):
+            continue
+        if pd.api.types.is_float_dtype(rows[c]):
+            rows.loc[empty, c] = np.nan
+        elif isinstance(rows[c].dtype, pd.Int64Dtype):
+            rows.loc[empty, c] = pd.NA
     return rows
 
 
