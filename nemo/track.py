@@ -231,7 +231,9 @@ def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
     cols = ["track_id", *group, "charge", "charge_rounded", "first_t", "last_t", "length",
             "span", "path_length", "mean_speed", "mean_S"]
     if linked.empty:
-        return pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else float) for c in cols})
+        extra = (["n_flagged", "qc_pass"] if "qc_pass" in linked.columns else []) + (
+            ["object_id", "n_objects"] if "object_id" in linked.columns else [])
+        return pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else float) for c in cols + extra})
     df = linked.sort_values(["track_id", "t"]).reset_index(drop=True)
     xyz = df[["x", "y", "z"]].to_numpy(dtype=float)
     tid = df["track_id"].to_numpy()
@@ -260,8 +262,8 @@ def summarise_tracks(linked: pd.DataFrame) -> pd.DataFrame:
         cols += ["n_flagged", "qc_pass"]
     if "object_id" in df.columns:  # the workflow's defects: the object each detection lies on
         ids = df["object_id"].astype("Int64").groupby(df["track_id"], sort=True)
-        agg["object_id"] = ids.agg(lambda v: v.mode().min() if v.notna().any() else pd.NA).astype("Int64").to_numpy()
-        agg["n_objects"] = ids.nunique().to_numpy(dtype=np.int64)
+        agg["object_id"] = ids.agg(lambda v: v.mode().min() if v.notna().any() else pd.NA).astype("Int64").array
+        agg["n_objects"] = ids.nunique().to_numpy(dtype=np.int64)  # 0: none of its detections has an id
         cols.insert(1 + len(group), "object_id")
         cols.append("n_objects")
     agg["span"] = agg["last_t"] - agg["first_t"] + 1

@@ -116,6 +116,28 @@ def _balls(shape, spheres, sigma=1.0):
 TWO_SHELLS = [(20, 20, 20, 9, 14), (56, 20, 20, 9, 14)]
 
 
+@pytest.mark.parametrize("contrast", [0.3, 2.0])
+def test_a_nucleus_with_bright_foci_is_not_two_nuclei(contrast):
+    """One nucleus R 7 µm with two foci R 2.5 µm (chromocentres, +0.3 or +2 × its brightness) 7 µm
+    apart: the component tree parts the foci and the watershed splits the nucleus between them,
+    across its middle; a part met over so wide a face is not a blob of its own, so the nucleus is
+    not counted as two (it was, in a code review)."""
+    from scipy.ndimage import gaussian_filter
+
+    spacing = np.array([1.0, 0.5, 0.5])
+    zyx = np.indices((30, 60, 60)).transpose(1, 2, 3, 0) * spacing
+    centre = np.array([15.0, 15.0, 15.0])
+    vol = (np.sqrt(((zyx - centre) ** 2).sum(-1)) < 7.0).astype(np.float64)
+    for sign in (1, -1):
+        vol += contrast * (np.sqrt(((zyx - centre - sign * np.array([0, 0, 3.5])) ** 2).sum(-1)) < 2.5)
+    vol = np.random.default_rng(0).poisson(100 + 1000 * gaussian_filter(vol, np.array([1.5, 0.6, 0.6]) / spacing))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _, p = stages.mesh(vol.astype(np.uint16), tuple(spacing), {"split": "none", "keep": "all"})
+    assert p["n_objects"] == 1 and not p["regions"]
+    assert not [w for w in caught if "separate bright regions" in str(w.message)]
+
+
 @pytest.mark.parametrize("gap, axis, joined", [(0.5, 0, True), (0.5, 2, True), (1.0, 0, True), (4.0, 0, False),
                                                (2.0, 2, False)])
 def test_touching_nuclei_meshed_as_one_surface_are_told(gap, axis, joined):

@@ -235,4 +235,6 @@ def test_a_track_reports_the_object_it_lies_on():
                            "object_id": pd.array([3, 3, 3, 1, 2], dtype="Int64")})
     tracks = summarise_tracks(linked)
     assert tracks["object_id"].tolist() == [3, 1] and tracks["n_objects"].tolist() == [1, 2]
+    assert str(tracks["object_id"].dtype) == "Int64"
+    assert {"object_id", "n_objects"} <= set(summarise_tracks(linked.iloc[:0]).columns)
     assert "object_id" not in summarise_tracks(linked.drop(columns="object_id"))
