@@ -619,6 +619,10 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
             present = np.unique(data[data != 0])
             raise NemoError(f"{name} has none of the labels {list(labels)}; labels present: "
                             f"{present[:20].tolist()}{' …' if present.size > 20 else ''}")
+        absent = sorted(set(int(v) for v in labels) - set(np.unique(data[mask]).astype(int).tolist()))
+        if absent:  # one label of several given is not in this frame: the object is only the others
+            warnings.warn(f"{name} has no voxel of label(s) {absent} of mask_labels {list(labels)}: meshing the "
+                          "others only (a label of another frame, or mistyped?)", NemoWarning, stacklevel=3)
         return mask
     if threshold is None:
         if not _warn_if_probabilities(data, name):

@@ -393,6 +393,8 @@ def test_mask_from_a_label_image(segmentation):
     np.testing.assert_array_equal(read_mask(d / "labels.tif", 1, 0, shape, labels=[3, 5]), labels[1] > 0)
     with pytest.raises(NemoError, match=r"none of the labels \[5\]; labels present: \[3\]"):
         read_mask(d / "labels.tif", 0, 0, shape, labels=[5])
+    with pytest.warns(NemoWarning, match=r"no voxel of label\(s\) \[5\] of mask_labels \[3, 5\]: meshing the others"):
+        np.testing.assert_array_equal(read_mask(d / "labels.tif", 0, 0, shape, labels=[3, 5]), labels[0] == 3)
 
 
 def test_the_masks_channel_picks_the_class_of_a_probability_map(tmp_path):
