@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
+from nemo._log import logger
 from nemo.atomic import atomic_path
 from nemo.errors import NemoError, NemoWarning
 
@@ -515,7 +516,7 @@ def _read_pixels(series: tifffile.TiffPageSeries, key: tuple, path: str | os.Pat
 
 def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
               labels: list[int] | None = None, threshold: float | None = None,
-              channel: int | None = None) -> np.ndarray:
+              channel: int | None = None, apart: tuple[int, int, int] | None = None) -> np.ndarray:
     """The object mask for time point ``t``, channel ``c`` of an image, from a segmentation.
 
     The mask is a TIFF or OME-Zarr image with its own T and C axes (then ``t``/``c`` select
@@ -529,6 +530,12 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
 
     ``channel`` picks the mask's channel (a probability map with one channel per class: the
     object's class); None takes ``c`` when the mask has channels, else its only one.
+
+    ``apart`` (``mesh.keep: all``; :func:`label_gap`, half-widths in voxels along z, y, x) keeps
+    the labels of a label image apart: the voxels that have another label within that reach are
+    left out, so touching nuclei or cells of a Cellpose or StarDist segmentation stay separate
+    objects after the mask's blur (each loses a thin layer where they meet; without it every
+    touching label merges into one surface, which is warned).
 
     Returns
     -------
@@ -554,8 +561,20 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
             f"the mask {path} has shape (Z, Y, X) = {data.shape} but the image stack has {tuple(shape)}; "
             "give a mask of the same size"
         )
-    mask = _select_object(data, labels, threshold, f"the mask {path} (t = {mt}, c = {mc})")
+    name = f"the mask {path} (t = {mt}, c = {mc})"
+    apart = apart if apart is not None and _is_label_image(data) and threshold is None else None
+    mask = _select_object(data, labels, threshold, name, warn_touch=apart is None)
+    if apart is not None:
+        _cut_where_labels_meet(data, mask, name, apart)
     return mask
+
+
+def label_gap(spacing, sigma: float) -> tuple[int, int, int]:
+    """Half-widths (voxels along z, y, x) of the cut between touching labels (:func:`read_mask`'s
+    ``apart``) for a mask blurred by ``sigma`` (physical): two labels then lie at least
+    1.35 σ apart, where the blurred halves of both sum to less than the 0.5 level
+    (2 Φ(−0.675) = 0.5)."""
+    return tuple(max(1, int(np.ceil(1.35 * float(sigma) / float(d) - 1e-9))) for d in spacing)
 
 
 def _warn_if_probabilities(data: np.ndarray, name: str) -> bool:
@@ -604,11 +623,41 @@ def _warn_if_labels_touch(data: np.ndarray, name: str) -> None:
     if pairs:
         shown = ", ".join(f"{a}–{b}" for a, b in sorted(pairs)[:5]) + (" …" if len(pairs) > 5 else "")
         warnings.warn(f"{name}: labels touch ({shown}): with every nonzero label as object they are meshed as one "
-                      "surface; give mask_labels to select one object", NemoWarning, stacklevel=4)
+                      "surface; give mask_labels to select one object, or mesh.keep: all to keep every label apart",
+                      NemoWarning, stacklevel=4)
+
+
+def _is_label_image(data: np.ndarray) -> bool:
+    """An integer image of more than one nonzero value (a label image, not a binary mask)."""
+    return not (np.issubdtype(data.dtype, np.floating) or data.dtype == bool) and int(data.max()) > 1
+
+
+def _cut_where_labels_meet(data: np.ndarray, mask: np.ndarray, name: str, reach: tuple[int, int, int],
+                           slab: int = 32) -> None:
+    """Leave out of ``mask`` (in place) the voxels that have a voxel of another nonzero label within
+    ``reach`` (half-widths along z, y, x), so that touching labels stay separate objects after the
+    mask's blur (see :func:`read_mask`'s ``apart``). Slab by slab of ``slab`` planes (with their
+    halo): no full-size temporaries."""
+    from scipy import ndimage as ndi
+
+    size = tuple(2 * int(r) + 1 for r in reach)
+    big = int(data.max()) + 1  # above every label (int64's own maximum overflows scipy's filter)
+    cut = 0
+    for z0 in range(0, len(data), slab):  # a loop over slabs of planes
+        lo_z, hi_z = max(0, z0 - reach[0]), min(len(data), z0 + slab + reach[0])
+        block = data[lo_z:hi_z].astype(np.int64)
+        larger = ndi.maximum_filter(block, size=size, mode="nearest") > block
+        smaller = ndi.minimum_filter(np.where(block == 0, big, block), size=size, mode="nearest") < block
+        meets = ((block != 0) & (larger | smaller))[z0 - lo_z:z0 - lo_z + min(slab, len(data) - z0)]
+        cut += int(np.count_nonzero(mask[z0:z0 + slab] & meets))
+        mask[z0:z0 + slab] &= ~meets
+    if cut:
+        logger.info("%s: %d voxels within %s voxels of another label left out, so that touching labels stay "
+                    "separate objects", name, cut, "×".join(map(str, reach)))
 
 
 def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float | None,
-                   name: str) -> np.ndarray:
+                   name: str, warn_touch: bool = True) -> np.ndarray:
     """Object voxels of a binary mask, label image or probability map (see :func:`read_mask`)."""
     if labels:
         if np.issubdtype(data.dtype, np.floating):
@@ -625,7 +674,7 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
                           "others only (a label of another frame, or mistyped?)", NemoWarning, stacklevel=3)
         return mask
     if threshold is None:
-        if not _warn_if_probabilities(data, name):
+        if not _warn_if_probabilities(data, name) and warn_touch:
             _warn_if_labels_touch(data, name)
     if threshold is None and np.issubdtype(data.dtype, np.floating):
         threshold = 0.5

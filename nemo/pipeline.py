@@ -196,7 +196,7 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     with timed("read"):
         volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    mask = _mesh_source(frame, t, volume.shape, sections)
+    mask = _mesh_source(frame, t, volume.shape, sections, info.spacing)
     summary = {"image": frame["image"], "dataset": frame["dataset"], "t": t, "c": c,
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
                "outdir": str(final)}
@@ -272,7 +272,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     sections = nconfig.analysis(cfg, frame["dataset"])
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    mask = _mesh_source(frame, t, volume.shape, sections)  # the same mesh source as run_frame
+    mask = _mesh_source(frame, t, volume.shape, sections, info.spacing)  # the same mesh source as run_frame
     meshes, sections["mesh"] = _mesh_or_import(volume, info, mask, sections["mesh"],
                                                psf=channel_psf(frame["psf"], frame["seg"]))
     del volume, mask
@@ -301,7 +301,19 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     return json.loads(json.dumps(sections, default=atomic.json_default))
 
 
-def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict):
+def _label_gap(sections: dict, spacing) -> tuple[int, int, int] | None:
+    """With ``mesh.keep: all``, the cut between a label image's touching labels (:func:`nemo.io.label_gap`)
+    for the mask's blur; else None."""
+    from nemo.io import label_gap
+    from nemo.surface import default_mask_sigma
+
+    mesh = sections.get("mesh") or {}
+    if mesh.get("keep") != "all":
+        return None
+    return label_gap(spacing, mesh.get("sigma") or default_mask_sigma(spacing, mesh.get("step") or 1))
+
+
+def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict, spacing):
     """The frame's mask (or None); a user's surface is noted in ``sections["mesh"]``."""
     from nemo.io import read_mask
 
@@ -311,7 +323,8 @@ def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict):
     if not frame["mask"]:
         return None
     return read_mask(frame["mask"], t, frame["seg"], shape, labels=frame["mask_labels"],
-                     threshold=frame["mask_threshold"], channel=frame["mask_channel"])
+                     threshold=frame["mask_threshold"], channel=frame["mask_channel"],
+                     apart=_label_gap(sections, spacing))
 
 
 def _mesh_or_import(volume, info, mask, section: dict, psf=None, deconvolved=None):

@@ -428,6 +428,37 @@ def test_touching_labels_are_warned_about(tmp_path):
         read_mask(tmp_path / "binary.tif", 0, 0, labels.shape)
 
 
+def test_touching_labels_are_kept_apart_with_keep_all(tmp_path):
+    """``apart`` (mesh.keep: all): the voxels within reach of another label are left out, so labels 1
+    and 2 mesh as two objects (at the default blur, 1 × 1 × 1 µm voxels: one voxel each side);
+    nothing else changes and nothing is warned. A binary mask is read as before."""
+    from nemo import stages
+    from nemo.io import label_gap
+    from nemo.surface import default_mask_sigma
+
+    reach = label_gap((1.0, 1.0, 1.0), default_mask_sigma((1.0, 1.0, 1.0)))
+    assert reach == (1, 1, 1) and label_gap((2.0, 1.0, 1.0), 1.0) == (1, 2, 2)
+
+    labels = np.zeros((12, 16, 30), np.uint16)
+    labels[2:10, 3:13, 3:15], labels[2:10, 3:13, 15:27] = 1, 2  # two boxes touching along x
+    write_hyperstack(tmp_path / "touch.tif", labels, (1, 1, 1), axes="ZYX")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mask = read_mask(tmp_path / "touch.tif", 0, 0, labels.shape, apart=reach)
+    expected = labels > 0
+    expected[2:10, 3:13, 14:16] = False  # the two faces that meet
+    np.testing.assert_array_equal(mask, expected)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NemoWarning)
+        _, p = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none", "keep": "all"}, mask=mask)
+        _, merged = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none", "keep": "all"},
+                                mask=read_mask(tmp_path / "touch.tif", 0, 0, labels.shape))
+    assert p["n_objects"] == 2 and merged["n_objects"] == 1
+    binary = (labels > 0).astype(np.uint8)
+    write_hyperstack(tmp_path / "binary.tif", binary, (1, 1, 1), axes="ZYX")
+    np.testing.assert_array_equal(read_mask(tmp_path / "binary.tif", 0, 0, labels.shape, apart=reach), binary > 0)
+
+
 def test_mask_from_a_probability_map(segmentation):
     d, labels = segmentation
     shape = labels.shape[1:]
