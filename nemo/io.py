@@ -564,17 +564,34 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     name = f"the mask {path} (t = {mt}, c = {mc})"
     apart = apart if apart is not None and _is_label_image(data) and threshold is None else None
     mask = _select_object(data, labels, threshold, name, warn_touch=apart is None)
-    if apart is not None:
+    if apart is not None and _varying(data) is None:
         _cut_where_labels_meet(data, mask, name, apart)
+        if not mask.any():
+            raise NemoError(f"{name}: no voxel is left once the labels are kept apart (mesh.keep: all): every "
+                            "object voxel touches another label; give mask_threshold if it is a probability map")
     return mask
 
 
 def label_gap(spacing, sigma: float) -> tuple[int, int, int]:
     """Half-widths (voxels along z, y, x) of the cut between touching labels (:func:`read_mask`'s
-    ``apart``) for a mask blurred by ``sigma`` (physical): two labels then lie at least
-    1.35 σ apart, where the blurred halves of both sum to less than the 0.5 level
-    (2 Φ(−0.675) = 0.5)."""
+    ``apart``) for a mask blurred by ``sigma`` (physical): each label loses what lies within
+    1.35 σ of another. Two labels then end at least 1.35 σ apart, where the blurred halves of both
+    sum to less than the 0.5 level (2 Φ(−0.675) = 0.5), also where they only nearly touched (a
+    reach of half that on each side leaves such near misses one voxel apart, and the blur joins
+    them: two touching nuclei of a review stayed one object). Where they touch over a face, each
+    loses that layer (two balls R 9 µm at 2 × 1 × 1 µm: −6.8 %)."""
     return tuple(max(1, int(np.ceil(1.35 * float(sigma) / float(d) - 1e-9))) for d in spacing)
+
+
+def _varying(data: np.ndarray) -> float | None:
+    """The fraction of neighbouring nonzero voxels (along x, in a sample of whole rows) whose values
+    differ, when it exceeds a half over more than 16 values: integers that vary like a probability
+    map saved as integers (a label image is constant within each label); else None."""
+    rows = data[:: max(1, data.shape[0] // 16), :: max(1, data.shape[1] // 256)]
+    left, right = rows[:, :, :-1], rows[:, :, 1:]
+    inside = (left != 0) & (right != 0)
+    varies = np.count_nonzero(inside & (left != right)) / max(1, np.count_nonzero(inside))
+    return float(varies) if varies > 0.5 and np.unique(rows).size > 16 else None
 
 
 def _warn_if_probabilities(data: np.ndarray, name: str) -> bool:
@@ -589,11 +606,8 @@ def _warn_if_probabilities(data: np.ndarray, name: str) -> bool:
                           "in [0, 1]; if its scale is another, give mask_threshold (e.g. half its maximum)",
                           NemoWarning, stacklevel=4)
         return True
-    rows = data[:: max(1, data.shape[0] // 16), :: max(1, data.shape[1] // 256)]  # a sample of whole rows
-    left, right = rows[:, :, :-1], rows[:, :, 1:]
-    inside = (left != 0) & (right != 0)
-    varies = np.count_nonzero(inside & (left != right)) / max(1, np.count_nonzero(inside))
-    if varies > 0.5 and np.unique(rows).size > 16:
+    varies = _varying(data)
+    if varies is not None:
         warnings.warn(f"{name} varies between neighbouring nonzero voxels ({100 * varies:.0f} % of them, values up "
                       f"to {top:.4g}): it looks like a probability map saved as integers, read here as labels "
                       "(every nonzero voxel is object); give mask_threshold (e.g. half its range) if it is one",
@@ -645,7 +659,7 @@ def _cut_where_labels_meet(data: np.ndarray, mask: np.ndarray, name: str, reach:
     cut = 0
     for z0 in range(0, len(data), slab):  # a loop over slabs of planes
         lo_z, hi_z = max(0, z0 - reach[0]), min(len(data), z0 + slab + reach[0])
-        block = data[lo_z:hi_z].astype(np.int64)
+        block = np.where(mask[lo_z:hi_z], data[lo_z:hi_z], 0).astype(np.int64)  # the selected labels only
         larger = ndi.maximum_filter(block, size=size, mode="nearest") > block
         smaller = ndi.minimum_filter(np.where(block == 0, big, block), size=size, mode="nearest") < block
         meets = ((block != 0) & (larger | smaller))[z0 - lo_z:z0 - lo_z + min(slab, len(data) - z0)]

@@ -301,18 +301,6 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     return json.loads(json.dumps(sections, default=atomic.json_default))
 
 
-def _label_gap(sections: dict, spacing) -> tuple[int, int, int] | None:
-    """With ``mesh.keep: all``, the cut between a label image's touching labels (:func:`nemo.io.label_gap`)
-    for the mask's blur; else None."""
-    from nemo.io import label_gap
-    from nemo.surface import default_mask_sigma
-
-    mesh = sections.get("mesh") or {}
-    if mesh.get("keep") != "all":
-        return None
-    return label_gap(spacing, mesh.get("sigma") or default_mask_sigma(spacing, mesh.get("step") or 1))
-
-
 def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict, spacing):
     """The frame's mask (or None); a user's surface is noted in ``sections["mesh"]``."""
     from nemo.io import read_mask
@@ -324,7 +312,7 @@ def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict, spacing):
         return None
     return read_mask(frame["mask"], t, frame["seg"], shape, labels=frame["mask_labels"],
                      threshold=frame["mask_threshold"], channel=frame["mask_channel"],
-                     apart=_label_gap(sections, spacing))
+                     apart=stages.mask_label_gap(shape, spacing, sections.get("mesh")))
 
 
 def _mesh_or_import(volume, info, mask, section: dict, psf=None, deconvolved=None):

@@ -139,7 +139,7 @@ def mesh(
     p = nconfig.section("mesh", params)
     shape = (volume if volume is not None else mask).shape
     if p["step"] is None:
-        p["step"] = 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
+        p["step"] = default_step(shape)
     if mask is None:
         sharp, threshold = _deconvolved(volume, spacing, p, psf, unit, deconvolved)
     else:  # a mask is meshed as given (the layers are still peeled from the deconvolved image)
@@ -230,6 +230,25 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
     level = iso_level(volume, spacing, sigma, p["step"], threshold, p["edge"])
     p["deconvolution"].update(level=level, level_sigma=sigma)
     return sharp, level
+
+
+def default_step(shape: tuple[int, ...]) -> int:
+    """The marching-cubes step: 1 voxel, 2 for a stack of more than :data:`STEP2_VOXELS` voxels."""
+    return 1 if int(np.prod(shape)) <= STEP2_VOXELS else 2
+
+
+def mask_label_gap(shape: tuple[int, ...], spacing, params: dict | None) -> tuple[int, int, int] | None:
+    """With ``mesh.keep: all``, the cut that keeps a label image's touching labels apart
+    (:func:`nemo.io.label_gap`, ``read_mask(apart=...)``) for the blur the mesh step will give the
+    mask (its ``sigma``, else :func:`nemo.surface.default_mask_sigma` at its step); else None.
+    The workflow's ``nemo mesh`` and ``nemo run`` both take it from here."""
+    from nemo.io import label_gap
+    from nemo.surface import default_mask_sigma
+
+    p = nconfig.section("mesh", params)
+    if p["keep"] != "all":
+        return None
+    return label_gap(spacing, p["sigma"] or default_mask_sigma(spacing, p["step"] or default_step(shape)))
 
 
 def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) -> dict:

@@ -535,7 +535,9 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
     A mask from another time point, channel or class of a probability map is meshed as given and
     passed quality control (an independent review: a mask of t 0 on t 1, volume −23 %; the cavity
     class of a 3-class map meshed as the object). The channel's half level is taken half-way
-    between the medians of the image three voxels inside and outside the surface along its normals;
+    between the medians (over the vertices) of the brightest sample up to three voxels inside and the
+    darkest up to three voxels outside along the normals (a thin wall or a small nucleus peaks
+    within that depth); ``mask_contrast`` compares the samples one voxel in and out;
     each vertex's offset to where the image (blurred by a voxel) crosses it along the normal is
     found within three voxels (:func:`nemo.refine.refine_vertices`' search).
 
@@ -568,10 +570,19 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
         return out
     smooth = ndi.gaussian_filter(np.asarray(image, dtype=np.float32), [voxel / d for d in spacing], truncate=3.0)
     per_voxel = np.asarray(spacing, dtype=np.float64)[::-1]  # dx, dy, dz
-    inside, outside = (ndi.map_coordinates(smooth, ((vertices[ok] + sign * 3 * voxel * normals[ok]) / per_voxel)[:, ::-1].T,
-                                           order=1, mode="nearest") for sign in (-1.0, 1.0))
-    out["mask_contrast"] = float(np.median(inside) - np.median(outside))
-    level = float(0.5 * (np.median(inside) + np.median(outside)))
+
+    def along(depths: np.ndarray) -> np.ndarray:  # (n, D) samples at signed depths (voxels) along the normals
+        pts = vertices[ok][:, None] + depths[None, :, None] * voxel * normals[ok][:, None]
+        return ndi.map_coordinates(smooth, (pts.reshape(-1, 3) / per_voxel)[:, ::-1].T, order=1,
+                                   mode="nearest").reshape(len(pts), len(depths))
+
+    near = along(np.array([-1.0, 1.0]))
+    out["mask_contrast"] = float(np.median(near[:, 0]) - np.median(near[:, 1]))
+    # the plateau: the brightest sample up to 3 voxels in (a thin wall or a small nucleus peaks
+    # before that depth, and a fixed depth would read its lumen or far side); the background: the
+    # darkest up to 3 voxels out
+    depths = np.arange(0.5, 3.01, 0.5)
+    level = float(0.5 * (np.median(along(-depths).max(axis=1)) + np.median(along(depths).min(axis=1))))
     reach = np.full(len(vertices), 3.0 * voxel)
     offsets, left = _edge_offsets(smooth, vertices, np.where(ok[:, None], normals, np.nan), reach, per_voxel, 24,
                                   _neighbour_matrix(faces, len(vertices)), "level", level, None)

@@ -140,15 +140,15 @@ def link_objects(frames: pd.DataFrame, gap: int = OBJECT_GAP) -> pd.Series:
     by the linear assignment of the distances between centres (scipy); a match only within the
     larger of the two objects' radii (of the sphere of the same area). An object without a match
     gets a new id (it entered the field, or its centre jumped). Ids count from 0 in order of first
-    appearance, then of label. Channels peeled from one segmentation share its objects' ids (rows
-    of one time point with the same label and centre are one object).
+    appearance, then of label. One object's rows (its layers, surfaces and the channels peeled from
+    the one segmentation) share its id: each (t, object) is linked once, by the centre and area of
+    its ``whole`` surface's row (else its first row).
 
     Parameters
     ----------
     frames : DataFrame
-        Rows with ``t``, ``c``, ``object``, ``centre_x``, ``centre_y``, ``centre_z`` and ``area``
-        (several rows of one object, one per layer or surface, share its id; its first row's
-        centre and area are used); with ``snr``, rows of a frame that looks empty
+        Rows with ``t``, ``object``, ``centre_x``, ``centre_y``, ``centre_z`` and ``area`` (and
+        ``surface``); with ``snr``, rows of a frame that looks empty
         (:data:`nemo.summary.QC_EMPTY_SNR`) get no id and do not break the others' links.
     gap : int
         Time points an id may go unseen and still be matched.
@@ -164,9 +164,9 @@ def link_objects(frames: pd.DataFrame, gap: int = OBJECT_GAP) -> pd.Series:
     usable = frames[centre + ["area"]].apply(pd.to_numeric, errors="coerce").notna().all(axis=1)
     if "snr" in frames.columns:
         usable &= ~(pd.to_numeric(frames["snr"], errors="coerce") < QC_EMPTY_SNR)
-    key = frames[["t", "object"]].assign(**{k: frames[k].astype(float).round(3) for k in centre})
-    objs = frames[usable].assign(_key=list(map(tuple, key[usable].to_numpy()))).drop_duplicates("_key")
-    objs = objs.sort_values(["t", "object", "c"])
+    whole_first = frames["surface"].astype(str).ne("whole") if "surface" in frames.columns else False
+    objs = frames[usable].assign(_rank=whole_first).sort_values(["t", "object", "_rank"], kind="stable")
+    objs = objs.drop_duplicates(["t", "object"])
     xyz = objs[centre].to_numpy(np.float64)
     radius = np.sqrt(objs["area"].to_numpy(np.float64) / (4 * np.pi))
     times = objs["t"].to_numpy()
@@ -181,8 +181,8 @@ def link_objects(frames: pd.DataFrame, gap: int = OBJECT_GAP) -> pd.Series:
         new = now[ids[now] < 0]
         ids[new] = len(last_seen) + np.arange(len(new))
         last_seen.update({int(ids[j]): (rank, int(j)) for j in now})
-    by_key = dict(zip(objs["_key"], ids))
-    found = [by_key.get(k, -1) for k in map(tuple, key.to_numpy())]
+    by_key = dict(zip(zip(objs["t"], objs["object"]), ids))
+    found = [by_key.get(k, -1) for k in zip(frames["t"], frames["object"])]
     return pd.Series(found, index=frames.index, dtype="Int64").where(lambda v: (v >= 0) & usable.to_numpy())
 
 

@@ -437,7 +437,7 @@ def test_touching_labels_are_kept_apart_with_keep_all(tmp_path):
     from nemo.surface import default_mask_sigma
 
     reach = label_gap((1.0, 1.0, 1.0), default_mask_sigma((1.0, 1.0, 1.0)))
-    assert reach == (1, 1, 1) and label_gap((2.0, 1.0, 1.0), 1.0) == (1, 2, 2)
+    assert reach == (1, 1, 1) and label_gap((2.0, 1.0, 1.0), 1.0) == (1, 2, 2) and label_gap((1, 1, 1), 3.0) == (5, 5, 5)
 
     labels = np.zeros((12, 16, 30), np.uint16)
     labels[2:10, 3:13, 3:15], labels[2:10, 3:13, 15:27] = 1, 2  # two boxes touching along x
@@ -454,6 +454,9 @@ def test_touching_labels_are_kept_apart_with_keep_all(tmp_path):
         _, merged = stages.mesh(None, (1.0, 1.0, 1.0), {"split": "none", "keep": "all"},
                                 mask=read_mask(tmp_path / "touch.tif", 0, 0, labels.shape))
     assert p["n_objects"] == 2 and merged["n_objects"] == 1
+    # with mask_labels, a selected label is not cut where it meets one left out
+    np.testing.assert_array_equal(read_mask(tmp_path / "touch.tif", 0, 0, labels.shape, labels=[1], apart=reach),
+                                  labels == 1)
     binary = (labels > 0).astype(np.uint8)
     write_hyperstack(tmp_path / "binary.tif", binary, (1, 1, 1), axes="ZYX")
     np.testing.assert_array_equal(read_mask(tmp_path / "binary.tif", 0, 0, labels.shape, apart=reach), binary > 0)

@@ -188,9 +188,9 @@ def _two_objects_crossing(n_t: int = 4) -> pd.DataFrame:
     for t in range(n_t):
         objs = [("A", *a[t]), ("B", *b[t])] + ([("C", 180.0, 2000.0)] if t == 3 else [])
         for label, (name, x, area) in enumerate(sorted(objs, key=lambda o: -o[2])):
-            for layer in ("fibres", "cortex"):
-                rows.append({"t": t, "c": 0, "layer": layer, "object": label, "centre_x": x, "centre_y": 65.0,
-                             "centre_z": 40.0, "area": area, "name": name})
+            for layer, surface, dx in (("fibres", "inner", 0.4), ("cortex", "outer", -0.3)):  # each surface its centre
+                rows.append({"t": t, "c": 0, "layer": layer, "surface": surface, "object": label, "centre_x": x + dx,
+                             "centre_y": 65.0, "centre_z": 40.0, "area": area, "name": name})
     return pd.DataFrame(rows)
 
 

@@ -166,7 +166,8 @@ def run(args) -> int:
         raise NemoError("--mask-labels, --mask-threshold and --mask-channel select from a --mask: give the mask file")
     mask = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
                      threshold=args.mask_threshold, channel=args.mask_channel,
-                     apart=_label_gap(args, info.spacing)) if args.mask else None
+                     apart=stages.mask_label_gap(volume.shape, info.spacing, section_params(args, "mesh"))
+                     ) if args.mask else None
     if args.from_mesh:
         if mask is not None or args.deconvolved:
             raise NemoError(f"--from-mesh replaces the meshing of the image: drop "
@@ -208,12 +209,3 @@ def run(args) -> int:
     print(f"{how}; done in {time.perf_counter() - start:.2f} s")
     return 0
 
-
-def _label_gap(args, spacing) -> tuple[int, int, int] | None:
-    """With ``--keep all``, the cut between a label image's touching labels for the mask's blur."""
-    from nemo.io import label_gap
-    from nemo.surface import default_mask_sigma
-
-    if args.keep != "all":
-        return None
-    return label_gap(spacing, args.sigma or default_mask_sigma(spacing, args.step or 1))
