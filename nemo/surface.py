@@ -525,7 +525,7 @@ def saturated_fraction(values: np.ndarray, dtype: np.dtype | None = None) -> flo
 
 #: A mask's surface is flagged when the segmented channel's own edge lies farther from it than
 #: this many of the largest voxel sides (the median over the vertices; a mask dilated by one
-#: lateral voxel reads half of it, a mask of the shell 2 µm larger 1.7–2.0 at 1 µm planes).
+#: lateral voxel reads half of it, a mask of the shell 2 µm larger 1.8 at 1 µm planes).
 MASK_MAX_OFFSET_VOXELS = 1.0
 
 
