@@ -248,7 +248,8 @@ def mask_label_gap(shape: tuple[int, ...], spacing, params: dict | None) -> tupl
     p = nconfig.section("mesh", params)
     if p["keep"] != "all":
         return None
-    return label_gap(spacing, p["sigma"] or default_mask_sigma(spacing, p["step"] or default_step(shape)))
+    sigma = p["sigma"] if p["sigma"] is not None else default_mask_sigma(spacing, p["step"] or default_step(shape))
+    return label_gap(spacing, sigma)
 
 
 def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) -> dict:
