@@ -547,7 +547,10 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
         A mask of another (Z, Y, X) size than the image, a truncated or corrupt mask file,
         labels absent from the frame, or a mask that selects nothing.
     """
-    info = read_info(path)
+    try:
+        info = read_info(path)
+    except NemoError as err:  # the reader speaks of an image: say that it is the mask
+        raise NemoError(f"the mask ({path}): {err}") from None
     mt = t if info.shape["T"] > 1 else 0
     mc = c if info.shape["C"] > 1 else 0
     if channel is not None:

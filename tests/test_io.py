@@ -462,6 +462,16 @@ def test_touching_labels_are_kept_apart_with_keep_all(tmp_path):
     np.testing.assert_array_equal(read_mask(tmp_path / "binary.tif", 0, 0, labels.shape, apart=reach), binary > 0)
 
 
+def test_an_unreadable_mask_is_named_as_the_mask(tmp_path):
+    """A missing mask, or one whose axes cannot be read (a channel-last ilastik export saved as plain
+    TIFF), is named as the mask: the reader's own message speaks of an image."""
+    with pytest.raises(NemoError, match=r"^the mask \(.*nope.tif\): image file not found"):
+        read_mask(tmp_path / "nope.tif", 0, 0, (5, 6, 7))
+    tifffile.imwrite(tmp_path / "classes.tif", np.zeros((5, 6, 7, 2), np.float32))  # Z, Y, X, class
+    with pytest.raises(NemoError, match=r"^the mask \(.*classes.tif\): image axes 'QQYX'"):
+        read_mask(tmp_path / "classes.tif", 0, 0, (5, 6, 7))
+
+
 def test_mask_from_a_probability_map(segmentation):
     d, labels = segmentation
     shape = labels.shape[1:]
