@@ -34,8 +34,10 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def frame_setup(cfg: dict, dataset: str | None, image, spacing, psf=None) -> dict:
-    """Image, spacing, PSF, mask and segmented channel of a frame: from the dataset, else given."""
+def frame_setup(cfg: dict, dataset: str | None, image, spacing, psf=None, mask: dict | None = None) -> dict:
+    """Image, spacing, PSF, mask and segmented channel of a frame: from the dataset, else given
+    (``mask``: a dataset's ``mask``, ``mask_labels``, ``mask_threshold`` and ``mask_channel``, which
+    replace the dataset's)."""
     if dataset is None and image is None and len(cfg["datasets"]) == 1:
         dataset = next(iter(cfg["datasets"]))
     d = cfg["datasets"].get(dataset, {}) if dataset is not None else {}
@@ -46,10 +48,11 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing, psf=None) -> dic
     if image is None:
         raise NemoError("give an image (or a config with a dataset and --dataset NAME)")
     seg = d.get("segment_channel")
+    m = mask if mask is not None else d
     return {"dataset": dataset, "image": str(image), "spacing": spacing or d.get("spacing"),
             "psf": check_psf_spec(psf if psf is not None else d.get("psf"), "psf"),
-            "mask": d.get("mask"), "mask_labels": d.get("mask_labels"), "mask_threshold": d.get("mask_threshold"),
-            "mask_channel": d.get("mask_channel"),
+            "mask": m.get("mask"), "mask_labels": m.get("mask_labels"), "mask_threshold": m.get("mask_threshold"),
+            "mask_channel": m.get("mask_channel"),
             "surface_mesh": d.get("surface_mesh"), "mesh_unit": d.get("mesh_unit"),
             "seg": cfg["segment_channel"] if seg is None else seg}
 
@@ -78,6 +81,7 @@ def run_frame(
     spacing: tuple[float, float, float] | None = None,
     dataset: str | None = None,
     psf: tuple[float, float, float] | None = None,
+    mask: dict | None = None,
 ) -> dict:
     """Analyse one (t, c) frame into ``outdir``.
 
@@ -102,6 +106,9 @@ def run_frame(
         None) per channel, in channel order, gives each channel its own, as ``datasets.NAME.psf``
         does (:func:`nemo.psf.channel_psf`): the mesh takes the segmented channel's, the peels
         channel ``c``'s.
+    mask : dict, optional
+        ``mask`` (the segmentation's file), ``mask_labels``, ``mask_threshold``, ``mask_channel``
+        as a dataset gives them, replacing the dataset's (``nemo run --mask``).
 
     Returns
     -------
@@ -114,7 +121,7 @@ def run_frame(
     only when every step succeeded: a failed or interrupted run leaves earlier results intact.
     """
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
-    frame = frame_setup(cfg, dataset, image, spacing, psf)
+    frame = frame_setup(cfg, dataset, image, spacing, psf, mask)
     check_selection(cfg, frame, t, c)
     sections = nconfig.analysis(cfg, frame["dataset"])
     final = Path(outdir).resolve()  # `-o .`, `-o a/..` and symlinked folders: stage beside the real one
@@ -255,7 +262,7 @@ def _deconvolved(volume, info, psf, timed, needed: bool):
 
 
 def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, dataset: str | None = None,
-                    psf=None) -> dict:
+                    psf=None, mask: dict | None = None) -> dict:
     """The analysis sections with every data-derived default as the number this frame gets.
 
     Meshes the frame (nothing is written); per surface and per layer where a default depends
@@ -267,7 +274,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     from nemo.io import read_stack
 
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
-    frame = frame_setup(cfg, dataset, image, spacing, psf)
+    frame = frame_setup(cfg, dataset, image, spacing, psf, mask)
     check_selection(cfg, frame, t, c)
     sections = nconfig.analysis(cfg, frame["dataset"])
     sp = tuple(frame["spacing"]) if frame["spacing"] else None

@@ -157,3 +157,35 @@ def test_the_run_report_counts_the_quality_control_of_many_objects(capsys):
     assert out == ["quality control (layer fibres inner object 0): pass",
                    "quality control (layer fibres inner object 1): FAIL: Σ charge 0.50 ≠ χ 2 (1 defects); "
                    "no directors: too small"]
+
+
+def test_nemo_run_takes_a_mask_as_nemo_mesh_and_a_dataset_do(tmp_path):
+    """``nemo run IMAGE --mask LABELS --mask-labels 2`` meshes the labelled ball as a config's dataset
+    with that mask does (the same surface); a selection flag without --mask is refused."""
+    import yaml
+    from scipy.ndimage import gaussian_filter
+
+    from nemo.cli import main
+    from nemo.io import write_hyperstack
+
+    zyx = np.indices((32, 32, 48)).transpose(1, 2, 3, 0)
+    ball = ((zyx - np.array([16, 16, 16])) ** 2).sum(-1) < 10.5**2
+    other = ((zyx - np.array([16, 16, 38])) ** 2).sum(-1) < 6**2
+    write_hyperstack(tmp_path / "img.tif", gaussian_filter(200.0 * (ball | other), 1.0).astype(np.float32), (1, 1, 1),
+                     axes="ZYX")
+    write_hyperstack(tmp_path / "labels.tif", np.where(ball, 2, np.where(other, 5, 0)).astype(np.uint16), (1, 1, 1),
+                     axes="ZYX")
+    cfg = {"datasets": {"d": {"path": str(tmp_path / "img.tif"), "mask": str(tmp_path / "labels.tif"),
+                              "mask_labels": [2]}},
+           "layers": {}, "curvature": None, "thickness": None, "mesh": {"split": "none"}}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+    bare = {k: v for k, v in cfg.items() if k != "datasets"}
+    (tmp_path / "bare.yaml").write_text(yaml.safe_dump(bare))
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["run", "--config", str(tmp_path / "c.yaml"), "--dataset", "d", "-o", str(tmp_path / "a")]) == 0
+        assert main(["run", str(tmp_path / "img.tif"), "--config", str(tmp_path / "bare.yaml"), "--mask",
+                     str(tmp_path / "labels.tif"), "--mask-labels", "2", "-o", str(tmp_path / "b")]) == 0
+        refused = main(["run", str(tmp_path / "img.tif"), "--mask-labels", "2", "-o", str(tmp_path / "c")])
+    a, b = (json.loads((tmp_path / k / "measure_whole.json").read_text()) for k in "ab")
+    assert a["area"] == pytest.approx(b["area"], rel=1e-12) and a["area"] == pytest.approx(4 * np.pi * 10.5**2, rel=0.08)
+    assert refused != 0

@@ -200,3 +200,31 @@ def section_params(args: argparse.Namespace, name: str) -> dict:
     from nemo.config import section_defaults
 
     return {key: getattr(args, key) for key in section_defaults(name) if hasattr(args, key)}
+
+
+def add_mask_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--mask`` and the flags that select from it (``nemo mesh``, ``nemo run``)."""
+    parser.add_argument("--mask", metavar="MASK",
+                        help="segmentation used instead of the threshold (TIFF or OME-Zarr; same Z, Y, X "
+                             "size as the image; its own T and C axes when it has them: the time point and "
+                             "the channel meshed, else 0): a binary mask (nonzero = object), a label image or "
+                             "a probability map")
+    parser.add_argument("--mask-labels", type=int, nargs="+", metavar="LABEL",
+                        help="labels of the object in a label image --mask (default: every nonzero label)")
+    parser.add_argument("--mask-threshold", type=number, metavar="P",
+                        help="object where the --mask value exceeds P (default 0.5 for a floating-point "
+                             "probability map, else nonzero)")
+    parser.add_argument("--mask-channel", type=int, metavar="C",
+                        help="the --mask's channel to use (a probability map with a channel per class: the "
+                             "object's class; default: --c when the mask has channels)")
+
+
+def mask_options(args: argparse.Namespace) -> dict | None:
+    """The ``--mask`` flags as a dataset's keys (``mask``, ``mask_labels``, ``mask_threshold``,
+    ``mask_channel``), or None without ``--mask``; the selection flags need the mask."""
+    if (args.mask_labels or args.mask_threshold is not None or args.mask_channel is not None) and not args.mask:
+        raise NemoError("--mask-labels, --mask-threshold and --mask-channel select from a --mask: give the mask file")
+    if not args.mask:
+        return None
+    return {"mask": args.mask, "mask_labels": args.mask_labels, "mask_threshold": args.mask_threshold,
+            "mask_channel": args.mask_channel}

@@ -10,7 +10,17 @@ from pathlib import Path
 import numpy as np
 
 from nemo import atomic
-from nemo.cli.common import add_common, input_files, non_negative, number, output_path, positive, refuse_to_overwrite
+from nemo.cli.common import (
+    add_common,
+    add_mask_arguments,
+    input_files,
+    mask_options,
+    non_negative,
+    number,
+    output_path,
+    positive,
+    refuse_to_overwrite,
+)
 from nemo.errors import NemoError, NemoWarning
 
 HELP = "reconstruct a surface mesh (PLY) from an image: blur, threshold, marching cubes"
@@ -85,18 +95,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--edge", choices=("half", "threshold"), default=None,
                         help="with yen/otsu: surface half-way between object and background intensity "
                              "(default, the true edge of a blurred object) or at the threshold itself")
-    parser.add_argument("--mask", metavar="MASK",
-                        help="segmentation used instead of the threshold (TIFF or OME-Zarr; same Z, Y, X "
-                             "size as the image; its own t/c = --t/--c when it has them, else 0): a "
-                             "binary mask (nonzero = object), a label image or a probability map")
-    parser.add_argument("--mask-labels", type=int, nargs="+", metavar="LABEL",
-                        help="labels of the object in a label image --mask (default: every nonzero label)")
-    parser.add_argument("--mask-threshold", type=number, metavar="P",
-                        help="object where the --mask value exceeds P (default 0.5 for a floating-point "
-                             "probability map, else nonzero)")
-    parser.add_argument("--mask-channel", type=int, metavar="C",
-                        help="the --mask's channel to use (a probability map with a channel per class: the "
-                             "object's class; default: --c when the mask has channels)")
+    add_mask_arguments(parser)
     parser.add_argument("--from-mesh", metavar="SURFACE",
                         help="use this surface (PLY, OBJ or STL made in MeshLab, Blender, ilastik ...) instead "
                              "of meshing the image: it is checked against the image (unit, extent, manifold) "
@@ -162,8 +161,7 @@ def run(args) -> int:
     volume, info = read_stack(args.image, args.t, args.c, spacing=args.spacing)
     logger.info("read %s t=%d c=%d: %s %s, spacing %s %s", args.image, args.t, args.c,
                 "x".join(map(str, volume.shape)), volume.dtype, tuple(info.spacing), info.unit)
-    if (args.mask_labels or args.mask_threshold is not None or args.mask_channel is not None) and not args.mask:
-        raise NemoError("--mask-labels, --mask-threshold and --mask-channel select from a --mask: give the mask file")
+    mask_options(args)  # checks the selection flags
     mask = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
                      threshold=args.mask_threshold, channel=args.mask_channel,
                      apart=stages.mask_label_gap(volume.shape, info.spacing, section_params(args, "mesh"))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nemo.cli.common import add_common
+from nemo.cli.common import add_common, add_mask_arguments, mask_options
 
 HELP = "one frame through the whole analysis (the workflow's steps, config and file names)"
 DESCRIPTION = """\
@@ -34,6 +34,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--print-config", action="store_true",
                         help="print the parameters resolved on this frame (meshes it, no other output) and exit")
     add_common(parser, frame=True, output_help="output folder", output_required=False)
+    add_mask_arguments(parser)
 
 
 def run(args) -> int:
@@ -42,18 +43,19 @@ def run(args) -> int:
 
     spacing = tuple(args.spacing) if args.spacing else None
     psf = tuple(args.psf) if args.psf else None
+    mask = mask_options(args)
     if args.print_config:
         import yaml
 
         from nemo.pipeline import resolved_config
 
         print(yaml.safe_dump(resolved_config(args.image, args.config, t=args.t, c=args.c, spacing=spacing,
-                                             dataset=args.dataset, psf=psf), sort_keys=False), end="")
+                                             dataset=args.dataset, psf=psf, mask=mask), sort_keys=False), end="")
         return 0
     if not args.output:
         raise NemoError("give an output folder with -o OUTDIR")
     summary = run_frame(args.image, args.output, args.config, t=args.t, c=args.c, spacing=spacing,
-                        dataset=args.dataset, psf=psf)
+                        dataset=args.dataset, psf=psf, mask=mask)
     dec = summary["mesh"].get("deconvolution") or {}
     psf_note = (f", deconvolved by the PSF σ {' '.join(f'{v:g}' for v in dec['psf'])} ({dec['iterations']} iterations)"
                 if dec.get("iterations") else "")
