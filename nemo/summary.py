@@ -314,8 +314,8 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
                       "n_defects": "Int64", "qc_pass": "bool", "qc_flags": "str", "closed": "bool"})
     _flag_changed_walls(out)
     _flag_cut_objects(out)
-    _flag_switched_object(out)
     out["object_id"] = link_objects(out)
+    _flag_switched_object(out)
     return out.sort_values(["t", "c", "layer", "object"], kind="stable").reset_index(drop=True)
 
 
@@ -373,23 +373,19 @@ def _flag_switched_object(out: pd.DataFrame) -> None:
     """Flag (in place) the rows where ``keep: largest`` analysed another object than at the time
     point before: with several objects in view, the largest may change (an independent review:
     one shell shrinking and another growing made t0–2 one shell and t3–5 the other, one series
-    whose area and volume fell and rose again, and only "3 objects in the image" flagged). The
-    centre moving by more than the radius of the sphere of the object's area between two time
-    points is taken as another object."""
+    whose area and volume fell and rose again, and only "3 objects in the image" flagged). Another
+    object is another ``object_id`` (:func:`nemo.track.link_objects`: its centre moved by more
+    than its radius); one object in view at both time points has only moved."""
     several = out.groupby(["t", "c", "layer", "surface"], dropna=False)["object"].transform("nunique") > 1
-    rows = out[~several & ~(out["snr"] < QC_EMPTY_SNR)]
-    centre = ["centre_x", "centre_y", "centre_z"]
+    rows = out[~several & out["object_id"].notna()]
     for _, g in rows.groupby(["c", "layer", "surface"], dropna=False):  # a loop over the few series
         g = g.sort_values("t")
-        xyz, area = g[centre].to_numpy(np.float64), g["area"].to_numpy(np.float64)
-        moved = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
-        radius = np.sqrt(np.maximum(area[:-1], area[1:]) / (4 * np.pi))
-        crowded = g["n_objects"].fillna(1).to_numpy(np.float64) > 1  # one object in view at both: it moved
-        for k in np.flatnonzero((moved > radius) & (crowded[:-1] | crowded[1:])):  # the few switches
-            i = g.index[k + 1]
-            _add_flag(out, i, f"another object than at t = {g['t'].iloc[k]} (centre moved {moved[k]:.3g}, more than its "
-                              f"radius {radius[k]:.3g}): with several objects in view the largest changed; set "
-                              "mesh.keep: all, or give a mask of the object")
+        ids = g["object_id"].to_numpy(np.int64)
+        crowded = g["n_objects"].fillna(1).to_numpy(np.float64) > 1
+        for k in np.flatnonzero((ids[1:] != ids[:-1]) & (crowded[:-1] | crowded[1:])):  # the few switches
+            _add_flag(out, g.index[k + 1], f"another object than at t = {g['t'].iloc[k]} (object_id {ids[k]} → "
+                                           f"{ids[k + 1]}): with several objects in view the largest changed; set "
+                                           "mesh.keep: all, or give a mask of the object")
 
 
 def _skipped_searches(r: Mapping) -> dict[int, str]:

@@ -142,7 +142,7 @@ def test_frame_summary_flags_keep_largest_switching_objects(frame_files, tmp_pat
     # t 4: the other objects left the field, and the one in view is not the one of t 3 (flagged);
     # t 5: one object in view at both time points, moved (not flagged)
     assert flagged == [False, False, True, False, True, False], out["qc_flags"].tolist()
-    assert "another object than at t = 1 (centre moved 56" in out["qc_flags"][2] and "keep: all" in out["qc_flags"][2]
+    assert "another object than at t = 1 (object_id 0 → 1)" in out["qc_flags"][2] and "keep: all" in out["qc_flags"][2]
     assert out["object_id"].tolist() == [0, 0, 1, 1, 2, 3]  # the same objects, by their centres
 
 
