@@ -179,18 +179,17 @@ def mesh(
     _check_object_size(whole, spacing, unit)
     if mask is not None and volume is not None:  # does the mask follow the segmented channel's edges?
         p.update(_mask_fit(whole, volume, spacing, unit))
-    regions = regions_per_object(whole, found, surface.get("region_peaks") or [])
-    _warn_joined_regions(regions, p["keep"])
+    analysed = found if p["keep"] == "all" else found[:1]
+    regions = regions_per_object(whole, analysed, surface.get("region_peaks") or [])
+    _warn_joined_regions(regions)
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
         meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)
         p["n_objects"] = len(found)
-        p["regions"] = regions if len(found) > 1 else regions[:1]
     else:  # several objects: the largest, and a warning
         whole = one_object(whole, p["split"] != "none", p["keep"], objects=found)
         meshes = _walls(whole, p, centre)
         p["n_objects"] = int(whole.metadata["n_objects"])
-        p["regions"] = regions[:1]
-    p["regions"] = [int(n) for n in p["regions"]] if any(p["regions"]) else None
+    p["regions"] = [int(n) for n in regions] if any(regions) else None
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
     info = rim(meshes["whole"].faces, len(meshes["whole"].vertices))  # of the analysed surface
     p["rim_vertices"], p["rim_loops"] = info["n_vertices"], info["n_loops"]
@@ -270,10 +269,10 @@ def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) ->
     return fit
 
 
-def _warn_joined_regions(regions: list[int], keep: str) -> None:
-    """Warn about objects whose surface holds several of the image's separate bright regions."""
+def _warn_joined_regions(regions: list[int]) -> None:
+    """Warn about analysed objects whose surface holds several of the image's separate bright regions."""
     joined = [(k, n) for k, n in enumerate(regions) if n > 1]
-    if joined and (keep == "all" or joined[0][0] == 0):
+    if joined:
         warnings.warn("one surface holds several separate bright regions of the image (object: regions "
                       + ", ".join(f"{k}: {n}" for k, n in joined[:10]) + "): touching objects, or objects closer than "
                       "the blur, meshed as one; its area and volume are theirs together (flagged in the summary). "

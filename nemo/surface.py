@@ -527,6 +527,8 @@ def saturated_fraction(values: np.ndarray, dtype: np.dtype | None = None) -> flo
 #: this many of the largest voxel sides (the median over the vertices; a mask dilated by one
 #: lateral voxel reads half of it, a mask of the shell 2 µm larger 1.8 at 1 µm planes).
 MASK_MAX_OFFSET_VOXELS = 1.0
+#: How far (in the largest voxel side) the mask check looks along each normal, in and out.
+MASK_REACH_VOXELS = 3
 
 
 def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[float, float, float]) -> dict:
@@ -581,10 +583,11 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
     # the plateau: the brightest sample up to 3 voxels in (a thin wall or a small nucleus peaks
     # before that depth, and a fixed depth would read its lumen or far side); the background: the
     # darkest up to 3 voxels out
-    depths = np.arange(0.5, 3.01, 0.5)
+    depths = np.arange(1, 2 * MASK_REACH_VOXELS + 1) / 2.0  # every half voxel
     level = float(0.5 * (np.median(along(-depths).max(axis=1)) + np.median(along(depths).min(axis=1))))
-    reach = np.full(len(vertices), 3.0 * voxel)
-    offsets, left = _edge_offsets(smooth, vertices, np.where(ok[:, None], normals, np.nan), reach, per_voxel, 24,
+    reach = np.full(len(vertices), MASK_REACH_VOXELS * voxel)
+    offsets, left = _edge_offsets(smooth, vertices, np.where(ok[:, None], normals, np.nan), reach, per_voxel,
+                                  8 * MASK_REACH_VOXELS,  # profile samples each side: 8 per voxel
                                   _neighbour_matrix(faces, len(vertices)), "level", level, None)
     found = np.isfinite(offsets) & ~left & ok
     out["mask_edges_found"] = float(found.mean())

@@ -165,14 +165,19 @@ def spherical_figure(frame: Frame, layer: str, n_polar: int = 180, max_glyphs: i
     """
     lay = frame.layers[layer]
     surf = frame.surfaces[lay.surface]
-    pieces = objects.parts(surf.mesh) or [objects.Part(0, surf.mesh, np.arange(len(surf.mesh.vertices)))]
-    pieces = pieces[:MAX_MAP_OBJECTS]
+    pieces = _map_parts(surf.mesh)
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(10.5, 5.0 * len(pieces)), layout="constrained")
     for ax, part in zip(fig.subplots(len(pieces), 1, squeeze=False)[:, 0], pieces):
         _spherical_panel(ax, fig, lay, part, surf.unit, len(pieces) > 1, n_polar, max_glyphs)
     return fig
+
+
+def _map_parts(mesh) -> list:
+    """The objects a frame's maps draw, largest first (:func:`nemo.objects.parts`; the whole mesh
+    as one part when it has no object labels), at most :data:`MAX_MAP_OBJECTS`."""
+    return (objects.parts(mesh) or [objects.Part(0, mesh, np.arange(len(mesh.vertices)))])[:MAX_MAP_OBJECTS]
 
 
 def _spherical_panel(ax, fig, lay, part, unit: str, several: bool, n_polar: int, max_glyphs: int) -> None:
@@ -216,8 +221,7 @@ def morphology_figure(surf: Surface, n_polar: int = 120):
     names = [n for n in ("H", "K", "thickness") if n in surf.fields]
     if not names:
         return None
-    pieces = objects.parts(surf.mesh) or [objects.Part(0, surf.mesh, np.arange(len(surf.mesh.vertices)))]
-    pieces = pieces[:MAX_MAP_OBJECTS]
+    pieces = _map_parts(surf.mesh)
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(6.2 * len(names), 3.6 * len(pieces)), layout="constrained")
