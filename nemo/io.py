@@ -526,7 +526,9 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     * a label image (Cellpose, StarDist, ilastik object export): ``labels`` selects the
       objects; without it every nonzero label is object;
     * a probability map (ilastik pixel classification, float values in [0, 1]): object where
-      the value exceeds ``threshold`` (0.5 for a float image without a threshold).
+      the value exceeds ``threshold`` (0.5 for a float image without a threshold). A map on
+      another scale (floats beyond 1, or integers that vary from voxel to voxel as no label
+      image does) needs ``threshold``: read without one it is refused, with that fix.
 
     ``channel`` picks the mask's channel (a probability map with one channel per class: the
     object's class); None takes ``c`` when the mask has channels, else its only one.
@@ -545,7 +547,8 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     ------
     NemoError
         A mask of another (Z, Y, X) size than the image, a truncated or corrupt mask file,
-        labels absent from the frame, or a mask that selects nothing.
+        labels absent from the frame, a probability map on another scale without ``threshold``,
+        or a mask that selects nothing.
     """
     try:
         info = read_info(path)
@@ -597,26 +600,40 @@ def _varying(data: np.ndarray) -> float | None:
     return float(varies) if varies > 0.5 and np.unique(rows).size > 16 else None
 
 
-def _warn_if_probabilities(data: np.ndarray, name: str) -> bool:
-    """Warn when a mask read without a threshold looks like a probability map on another scale:
-    float values beyond 1 (cut at 0.5 they select nearly every nonzero voxel), or integers that
-    vary from voxel to voxel inside the object (a label image is constant within each label).
-    Returns whether the mask is a probability map (float, or warned about)."""
+def _check_not_probabilities(data: np.ndarray, name: str) -> bool:
+    """Refuse a mask read without a threshold that is a probability map on another scale: float
+    values beyond 1 that are not whole numbers (cut at 0.5 they would keep nearly every nonzero
+    voxel), or integers that vary from voxel to voxel inside the object (a label image is constant
+    within each label; read as labels, every nonzero voxel would be object: a fat or boxy surface
+    that passes no check). Returns whether the mask is a probability map in [0, 1] (float).
+
+    Raises
+    ------
+    NemoError
+        Such a map, with the fix (``mask_threshold``).
+    """
     top = float(np.nanmax(data))
+    fix = (f"give mask_threshold (e.g. half its range, {0.5 * top:.4g}; `--mask-threshold` for nemo mesh and "
+           "nemo run), or mask_threshold: 0 if every nonzero voxel is object (an intensity image masked to 0 "
+           "outside the object)")
     if np.issubdtype(data.dtype, np.floating):
-        if top > 1.0:
-            warnings.warn(f"{name} is a float image with values up to {top:.4g}: cut at 0.5 as a probability map "
-                          "in [0, 1]; if its scale is another, give mask_threshold (e.g. half its maximum)",
-                          NemoWarning, stacklevel=4)
-        return True
+        if top > 1.0 and not _whole_numbers(data):
+            raise NemoError(f"{name} is a float image with values up to {top:.4g}, not a probability map in "
+                            f"[0, 1] (which is cut at 0.5) nor a label image: {fix}")
+        return top <= 1.0
     varies = _varying(data)
     if varies is not None:
-        warnings.warn(f"{name} varies between neighbouring nonzero voxels ({100 * varies:.0f} % of them, values up "
-                      f"to {top:.4g}): it looks like a probability map saved as integers, read here as labels "
-                      "(every nonzero voxel is object); give mask_threshold (e.g. half its range) if it is one",
-                      NemoWarning, stacklevel=4)
-        return True
+        raise NemoError(f"{name} varies between neighbouring nonzero voxels ({100 * varies:.0f} % of them, values "
+                        f"up to {top:.4g}): a probability map or an intensity image saved as integers, not a label "
+                        f"image or a binary mask: {fix}")
     return False
+
+
+def _whole_numbers(data: np.ndarray) -> bool:
+    """Whether a float image holds whole numbers only (a label image saved as float), on a sample of planes."""
+    rows = data[:: max(1, data.shape[0] // 16)]
+    finite = rows[np.isfinite(rows)]
+    return bool(np.all(finite == np.round(finite)))
 
 
 def _warn_if_labels_touch(data: np.ndarray, name: str) -> None:
@@ -691,10 +708,10 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
                           "others only (a label of another frame, or mistyped?)", NemoWarning, stacklevel=3)
         return mask
     if threshold is None:
-        if not _warn_if_probabilities(data, name) and warn_touch:
+        if _check_not_probabilities(data, name):
+            threshold = 0.5
+        elif warn_touch:
             _warn_if_labels_touch(data, name)
-    if threshold is None and np.issubdtype(data.dtype, np.floating):
-        threshold = 0.5
     mask = data > threshold if threshold is not None else data != 0
     if mask.all():
         rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"

@@ -485,18 +485,28 @@ def test_mask_from_a_probability_map(segmentation):
         read_mask(d / "prob.tif", 0, 0, shape, labels=[1])
 
 
-def test_probability_maps_on_another_scale_are_warned_about(tmp_path, rng):
-    """A map in 0..255 (float or uint8) read without a threshold, and a label image that is not."""
+def test_probability_maps_on_another_scale_are_refused_with_the_fix(tmp_path, rng):
+    """A map in 0..255 (float or uint8) read without a threshold is refused with the fix; a label
+    image (also saved as float) is read as labels, and mask_threshold reads the maps."""
     z, y, x = np.meshgrid(*(np.arange(n) for n in (12, 20, 20)), indexing="ij")
     ball = 255 / (1 + np.exp(np.sqrt((z - 6) ** 2 + (y - 10) ** 2 + (x - 10) ** 2) - 6))
-    for name, data, warned in (("p8", np.clip(ball + rng.normal(0, 3, ball.shape), 0, 255).astype(np.uint8), True),
-                               ("pf", ball.astype(np.float32), True),
-                               ("labels", np.where(ball > 128, 7, 0).astype(np.uint16), False)):
+    inside = ball > 127.5
+    for name, data in (("p8", np.clip(ball + rng.normal(0, 3, ball.shape), 0, 255).astype(np.uint8)),
+                       ("pf", ball.astype(np.float32))):
         write_hyperstack(tmp_path / f"{name}.tif", data, (1, 1, 1), axes="ZYX")
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
+        with pytest.raises(NemoError, match=r"values up to .*give mask_threshold \(e\.g\. half its range"):
             read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape)
-        assert any("probability map" in str(w.message) for w in caught) == warned, name
+        got = read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape, threshold=127.5)
+        assert np.count_nonzero(got != inside) <= 0.02 * inside.sum(), name
+    for name, data in (("labels", np.where(inside, 7, 0).astype(np.uint16)),
+                       ("float_labels", np.where(inside, 7.0, 0.0).astype(np.float32))):
+        write_hyperstack(tmp_path / f"{name}.tif", data, (1, 1, 1), axes="ZYX")
+        np.testing.assert_array_equal(read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape), inside)
+    masked = np.where(inside, 100 + rng.integers(0, 900, ball.shape), 0).astype(np.uint16)  # intensity, 0 outside
+    write_hyperstack(tmp_path / "masked.tif", masked, (1, 1, 1), axes="ZYX")
+    with pytest.raises(NemoError, match="mask_threshold: 0 if every nonzero voxel is object"):
+        read_mask(tmp_path / "masked.tif", 0, 0, masked.shape)
+    np.testing.assert_array_equal(read_mask(tmp_path / "masked.tif", 0, 0, masked.shape, threshold=0), inside)
 
 
 def test_mask_options_need_a_mask(run_cli, segmentation):
