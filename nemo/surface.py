@@ -1230,7 +1230,7 @@ def _edge_width(sub: np.ndarray, background: float, median: float, spacing: np.n
 
 
 def _object_levels(field: np.ndarray, thr: float, background: float | None, level: float, method: str,
-                   spacing: np.ndarray) -> list[float]:
+                   spacing: np.ndarray, shift: bool = True) -> tuple[list[float], list[list[float]]]:
     """Shift ``field`` (in place) so that each separate bright object crosses ``level`` at its own half level.
 
     One level for the whole stack puts a dim object's surface inside it, or loses it, next to a
@@ -1241,7 +1241,8 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
     contrast, the field over the regions and two samples around them is shifted by ``level``
     minus their level (a higher level wins where two meet). Only when ``level`` is at or above
     the threshold, so each region holds its whole edge (a textured wall whose threshold picks
-    its bright fibres is left alone).
+    its bright fibres is left alone). ``shift=False`` (the refinement, which crosses the stack's one
+    level, or ``edge="threshold"``): the peaks only, the field left as it is.
 
     Returns
     -------
@@ -1262,11 +1263,12 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
     levels, peaks = [], []
     for sl, own, others, wide in regions:  # a loop over the few objects
         region = np.where(others, np.float32(background), field[sl])
-        levels.append(_own_level(region, own, thr, background, level, method, spacing))
+        if shift:
+            levels.append(_own_level(region, own, thr, background, level, method, spacing))
         if not wide and _compact(region, own, thr, spacing):  # a nucleus, not a piece of a wall or of a nucleus
             peak = np.unravel_index(int(np.argmax(np.where(own, region, -np.inf))), own.shape)
             peaks.append([float((b.start + i) * d) for b, i, d in zip(sl, peak, spacing)][::-1])  # x, y, z
-    if max(abs(lev - level) for lev in levels) <= OBJECT_LEVEL_TOLERANCE * (level - background):
+    if not shift or max(abs(lev - level) for lev in levels) <= OBJECT_LEVEL_TOLERANCE * (level - background):
         return [], peaks
     own_level = np.full(field.shape, np.float32(level), dtype=np.float32)  # the one full-size temporary
     for j in np.argsort(levels, kind="stable"):  # ascending: a higher level wins where zones meet
@@ -1757,9 +1759,9 @@ def reconstruct(
                                              (dz * step, dy * step, dx * step))
     logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
     object_levels, region_peaks = [], []
-    if isinstance(how, str) and edge == "half" and not refine:  # refine crosses the stack's one level
+    if isinstance(how, str):  # own levels only at the half edge and without refine (it crosses the one level)
         object_levels, region_peaks = _object_levels(inner, thr, background, level, how,
-                                                     np.array([dz, dy, dx]) * step)
+                                                     np.array([dz, dy, dx]) * step, shift=edge == "half" and not refine)
         if object_levels:
             logger.info("%d separate objects at their own half levels: %s (the stack's %.4g)", len(object_levels),
                         listed((f"{lev * scale:.4g}" for lev in object_levels), sep=", "), level * scale)

@@ -138,13 +138,15 @@ def test_a_nucleus_with_bright_foci_is_not_two_nuclei(contrast):
     assert not [w for w in caught if "separate bright regions" in str(w.message)]
 
 
-@pytest.mark.parametrize("gap, axis, joined", [(0.5, 0, True), (0.5, 2, True), (1.0, 0, True), (4.0, 0, False),
-                                               (2.0, 2, False)])
-def test_touching_nuclei_meshed_as_one_surface_are_told(gap, axis, joined):
+@pytest.mark.parametrize("gap, axis, joined, options", [
+    (0.5, 0, True, {}), (0.5, 2, True, {}), (1.0, 0, True, {}), (4.0, 0, False, {}), (2.0, 2, False, {}),
+    (0.5, 0, True, {"refine": True}), (0.5, 0, True, {"edge": "threshold"}), (4.0, 0, False, {"refine": True})])
+def test_touching_nuclei_meshed_as_one_surface_are_told(gap, axis, joined, options):
     """Two balls R 5 µm ``gap`` µm apart along z (0) or x (2) under a 1.5 / 0.6 µm PSF (voxels
     1 × 0.5 × 0.5 µm): the image's component tree parts them, but within ~1 µm along z (0.5 µm
     along x) the iso-surface joins them. Such a surface is counted as holding 2 regions (its
-    area and volume are the pair's), warned about and flagged; apart, each object holds 1."""
+    area and volume are the pair's), warned about and flagged; apart, each object holds 1. Also
+    with the refinement or the threshold's edge, which mesh at the stack's one level."""
     from scipy.ndimage import gaussian_filter
 
     spacing, radius = np.array([1.0, 0.5, 0.5]), 5.0
@@ -156,7 +158,7 @@ def test_touching_nuclei_meshed_as_one_surface_are_told(gap, axis, joined):
     vol = np.random.default_rng(0).poisson(100 + 1000 * gaussian_filter(vol, np.array([1.5, 0.6, 0.6]) / spacing))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        meshes, p = stages.mesh(vol.astype(np.uint16), tuple(spacing), {"split": "none", "keep": "all"})
+        meshes, p = stages.mesh(vol.astype(np.uint16), tuple(spacing), {"split": "none", "keep": "all", **options})
     told = [w for w in caught if "separate bright regions" in str(w.message)]
     if joined:
         assert p["n_objects"] == 1 and p["regions"] == [2] and len(told) == 1
