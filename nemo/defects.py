@@ -169,7 +169,7 @@ from nemo.order import lift_q, tangential_eig
 COLUMNS = (
     "x", "y", "z", "vertex", "S", "charge", "charge_winding", "charge_curvature",
     "charge_rounded", "contour_radius", "n_contour", "contour_S", "max_step_deg",
-    "refine", "shift",
+    "refine", "shift", "coherency",
 )
 
 #: Columns of the candidate table (:func:`candidate_table`, ``nemo defects --candidates``).
@@ -706,7 +706,9 @@ def find_defects(
         vertex), ``S`` (at that vertex), ``charge``, ``charge_winding``, ``charge_curvature``,
         ``charge_rounded`` and diagnostics ``contour_radius``, ``n_contour``, ``contour_S``
         (median S on the contour), ``max_step_deg``, ``refine`` (method used), ``shift`` (µm from
-        the minimum-S vertex). ``df.attrs`` holds the parameters used (with the rejection counts
+        the minimum-S vertex), ``coherency`` (the directors' median coherency within the contour
+        radius over the surface's, :func:`_local_coherency`: well below 1 where the fibres are
+        faint and the position unreliable). ``df.attrs`` holds the parameters used (with the rejection counts
         ``rejected`` and the contour kinds ``contours``), ``euler_check`` and ``candidates``
         (every examined candidate with its reason, as records: :func:`candidate_table`).
     """
@@ -765,6 +767,7 @@ def find_defects(
                                                   "fit_exclude": fit_exclude, "fit_harmonic": fit_harmonic})
     df = pd.DataFrame(rows, columns=list(COLUMNS))
     df = df.astype({"vertex": np.int64, "n_contour": np.int64}) if len(df) else df
+    df["coherency"] = _local_coherency(f, df)
     df.attrs["euler_check"] = _euler_check(mesh, df)
     df.attrs["parameters"] = {
         "s_threshold": float(s_threshold), "s_ref": s_ref, "min_distance": float(min_distance),
@@ -779,6 +782,22 @@ def find_defects(
     logger.info("defects: %d found, %d low-S candidates rejected (%s)", len(df), sum(tally["rejected"].values()),
                 ", ".join(f"{k}: {v}" for k, v in tally["rejected"].items() if v) or "none")
     return df
+
+
+def _local_coherency(f: _Fields, df: pd.DataFrame) -> np.ndarray:
+    """Per defect (rows of ``df``), the median coherency of the raw directors within its contour
+    radius over the surface's median director coherency: about 1 where the fibres are as clear as
+    elsewhere (a defect is ordered fibres turning, each patch still coherent), well below where
+    they are faint (no fibres, or fibres across an anisotropic PSF's long axis), where a low S
+    says nothing of the field and the position is unreliable. NaN without directors."""
+    out = np.full(len(df), np.nan)
+    if f.dtree is None or not len(df) or not np.median(f.dcoh) > 0:
+        return out
+    near = f.dtree.query_ball_point(df[["x", "y", "z"]].to_numpy(np.float64), df["contour_radius"].to_numpy(np.float64))
+    for k, idx in enumerate(near):  # a loop over the few defects
+        if len(idx):
+            out[k] = float(np.median(f.dcoh[idx])) / float(np.median(f.dcoh))
+    return out
 
 
 def candidate_table(df: pd.DataFrame) -> pd.DataFrame:

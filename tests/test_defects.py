@@ -229,6 +229,23 @@ def test_sphere_four_half_defects_random_rotation(sphere60, seed):
     assert check["sum_charge"] == pytest.approx(2.0, abs=0.05)
 
 
+def test_a_defect_where_the_fibres_are_faint_is_told_by_its_coherency(sphere60):
+    """``coherency``: the directors' median coherency within the contour radius over the surface's.
+    The four +½ of a tetrahedron, the directors round one of them faint (coherency 0.3 against
+    0.9): that defect reads 1/3, the others 1."""
+    dirs = rotated(TETRA, 3)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=3, noise=5.0, mesh=sphere60)
+    pos = ddf[["x", "y", "z"]].to_numpy()
+    faint = np.linalg.norm(pos - 60.0 * dirs[0], axis=1) < 40.0
+    ddf["coherency"] = np.where(faint, 0.3, 0.9)
+    df = find_defects(mesh, odf, ddf, avg_radius=15.0)
+    assert len(df) == 4
+    at_faint = np.linalg.norm(df[["x", "y", "z"]].to_numpy() - 60.0 * dirs[0], axis=1) < 3.0
+    assert at_faint.sum() == 1
+    assert df["coherency"][at_faint].iloc[0] == pytest.approx(1 / 3, abs=0.01)
+    np.testing.assert_allclose(df["coherency"][~at_faint], 1.0)
+
+
 def test_sphere_five_plus_one_minus_half(sphere60):
     dirs = rotated(OCTA, 5)
     charges = [-0.5, 0.5, 0.5, 0.5, 0.5, 0.5]
