@@ -11,8 +11,9 @@ so that normals point **out of the bright object** (the solid). Steps:
    With ``edge="half"`` (default for Yen/Otsu) the automatic threshold only tells background
    from object; the surface is placed half-way between the background intensity (the mode of
    the class below the threshold) and the object's plateau (the most populated histogram peak
-   above the background that rises above the lowest count between them by a third, and by three
-   times the counts' Poisson noise, so no blip of the sparse bright tail). Noise smears that
+   above the background, taken at the centre of its mode region, among the peaks that rise
+   above the lowest count between them by a third, and by three times the counts' Poisson
+   noise, so no blip of the sparse bright tail). Noise smears that
    peak into the continuum of edge voxels below it; where the histogram of the flat voxels
    (blurred-image gradient below a quarter of the edge's) peaks on its upper flank, that peak is
    the plateau (:func:`_flat_plateau`). That is where a
@@ -1085,10 +1086,10 @@ def _auto_level(field: np.ndarray, method: str, edge: str, spacing=(1.0, 1.0, 1.
     """(classification threshold, iso-level, background) of an automatic threshold on a blurred volume.
 
     The background is the mode of the class below the threshold (None when every or no sample
-    lies below it); the plateau the most populated histogram peak above it, moved up to the
-    peak of the flat voxels' histogram where that lies on its upper flank
-    (:func:`_flat_plateau`); the median of the object's flat core (:func:`_interior_plateau`)
-    where no such peak lies near it; without either, the median of the samples above the
+    lies below it); the plateau the most populated histogram peak above it (the centre of its
+    mode region, :func:`_mode_run`), moved up to the peak of the flat voxels' histogram where that lies on its
+    upper flank (:func:`_flat_plateau`); the median of the object's flat core
+    (:func:`_interior_plateau`) where that peak lies well below it; without either, the median of the samples above the
     threshold (:func:`_half_level`). The iso-level is half-way between the background and the
     plateau. ``spacing`` (dz, dy, dx) is the physical spacing of ``field``'s samples.
     """
@@ -1101,7 +1102,7 @@ def _auto_level(field: np.ndarray, method: str, edge: str, spacing=(1.0, 1.0, 1.
     thr = float(filters.threshold_yen(sample) if method == "yen" else filters.threshold_otsu(sample))
     # The two dominant intensity populations of the blurred image: the background (mode of the
     # class below the threshold) and the object plateau (the most populated histogram peak
-    # above it). Peaks rather than class medians/modes: robust to the many edge voxels of thin
+    # above it, the centre of its mode region). Peaks rather than class medians/modes: robust to the many edge voxels of thin
     # objects, to bright sub-structures (fibres) and to a threshold that cuts through the object.
     edges = _histogram_edges(sample)
     counts, centres = _smoothed_histogram(sample, edges)
@@ -1140,13 +1141,18 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
     rise = counts[peaks] - valley[peaks - b0]
     # ... and by more than the counts' own noise (3 Poisson std): no blips of the sparse tail
     ok = (counts[peaks] >= (4.0 / 3.0) * valley[peaks - b0]) & (rise >= 3.0 * np.sqrt(counts[peaks]))
-    if core is not None and (not ok.any() or _peak_plateau(sub, background, edges, counts, peaks, ok)
-                             < core - INTERIOR_MAX_SPREAD * (core - background)):
+    low = None if core is None else core - INTERIOR_MAX_SPREAD * (core - background)
+    if core is not None and (not ok.any() or _peak_plateau(sub, background, edges, counts, peaks, ok) < low):
         # an object with a flat core whose histogram peaks well below it: a small object's peaks are
-        # its edge voxels (a noisy r 6 µm nucleus: 146 for 168). A plateau above the core is not
-        # overruled: the "core" of a thin wall under a z-PSF is its caps, which look thick along z
-        # but never reach the plateau (a 5 µm wall at σz 2 µm: 160 for the resolved walls' 198)
-        return max(thr, 0.5 * (background + core))
+        # its edge voxels (a noisy r 6 µm nucleus: 146 for 168). The plateau is then the core, or
+        # the plateau of the most populated peak near it (within INTERIOR_MAX_SPREAD of the contrast)
+        # where that is higher. A plateau above the core is not overruled: the "core" of a thin wall
+        # under a z-PSF is its caps, which look thick along z but never reach the plateau (a 5 µm
+        # wall at σz 2 µm: 160 for the resolved walls' 198), and the plane outside a cap can make a
+        # bump in the skirt (38) that outnumbers the plateau's peaks near the core
+        near = ok & (edges[peaks + 1] >= low) & (edges[peaks] <= 2.0 * core - low)
+        plateau = max(core, _peak_plateau(sub, background, edges, counts, peaks, near) if near.any() else core)
+        return max(thr, 0.5 * (background + plateau))
     if not ok.any():  # no plateau peak (a blob, or a wall smeared by texture and noise)
         # half-way to the object's median, never below the threshold: a textured noisy wall gets
         # its half-maximum level, a blob (median near the threshold) the threshold
@@ -1162,8 +1168,27 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
 
 def _peak_plateau(sub: np.ndarray, background: float, edges: np.ndarray, counts: np.ndarray, peaks: np.ndarray,
                   ok: np.ndarray) -> float:
-    """The plateau of the histogram's most populated accepted peak (:func:`_flat_plateau`)."""
-    return _flat_plateau(sub, background, edges, counts, peaks[ok][np.argmax(counts[peaks[ok]])])
+    """The plateau (:func:`_flat_plateau`) of the most populated accepted peak, taken at the centre of
+    its mode region (:func:`_mode_run`)."""
+    top = int(peaks[ok][np.argmax(counts[peaks[ok]])])
+    return _flat_plateau(sub, background, edges, counts, _run_centre(counts, *_mode_run(counts, top)))
+
+
+def _mode_run(counts: np.ndarray, top: int) -> tuple[int, int]:
+    """The run of bins ``[lo, hi)`` around the peak ``top`` whose counts lie within the counts' own
+    noise (4 Poisson std: smoothed counts dip together over a few bins) of its count, above or
+    below: its mode region. A fibre-broadened or noisy plateau is a flat-topped hump of near-equal
+    peaks, and the most populated one jumps between statistically identical frames (137-147 in a
+    review's time-lapse, the level with it); the run's centre (:func:`_run_centre`) does not."""
+    off = np.abs(counts - counts[top]) > 4.0 * np.sqrt(max(float(counts[top]), 0.0))  # higher bins are no part of it
+    low = np.flatnonzero(off[:top + 1])
+    high = np.flatnonzero(off[top:])
+    return (int(low[-1]) + 1 if low.size else 0), (top + int(high[0]) if high.size else len(counts))
+
+
+def _run_centre(counts: np.ndarray, lo: int, hi: int) -> int:
+    """The bin at the count-weighted centre of the bins ``[lo, hi)``."""
+    return int(round(float(np.average(np.arange(lo, hi), weights=counts[lo:hi]))))
 
 
 def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: float,
@@ -1479,9 +1504,11 @@ def _flat_plateau(sub: np.ndarray, background: float, edges: np.ndarray, counts:
     187 for 200, its walls 0.3 µm outward). Voxels above the half level where the blurred image
     is flat (gradient below :data:`FLAT_GRADIENT` × the median gradient at the edge, the voxels
     within 10 % of the contrast of the half level) are off the edge: their histogram keeps the
-    plateau without the continuum (196 for 200). It is used only between ``peak`` and the upper
-    half-height of the whole histogram's peak: a textured wall whose flat voxels are its dim gaps
-    or its bright tops (a tissue's nuclei) keeps ``peak``.
+    plateau without the continuum (196 for 200). It is used between ``peak`` and the upper
+    half-height of the whole histogram's peak, and fades out from there to its quarter-height
+    (a hard cut made a time-lapse's level jump by 4 % of the contrast between identical frames):
+    a textured wall whose flat voxels are its dim gaps or its bright tops (a tissue's nuclei)
+    keeps ``peak``.
 
     Parameters
     ----------
@@ -1512,10 +1539,26 @@ def _flat_plateau(sub: np.ndarray, background: float, edges: np.ndarray, counts:
     flat = sub[(grad < FLAT_GRADIENT * np.median(grad[band])) & (sub > half)]
     if not flat.size:
         return peak
-    flat_top = int(np.argmax(_smoothed_histogram(flat, edges)[0]))
-    low = np.flatnonzero(counts[top:] < 0.5 * counts[top])  # bins past the peak's upper half-height
-    upper = top + (int(low[0]) if low.size else len(counts))
-    return 0.5 * float(edges[flat_top] + edges[flat_top + 1]) if top <= flat_top < upper else peak
+    flat_counts = _smoothed_histogram(flat, edges)[0]
+    flat_top = int(np.argmax(flat_counts))
+    # the centre of its top (the run within 80 % of its count): a few flat voxels' counts are too few
+    # for a mode run's noise band, which would lean into the continuum below the spike
+    low_counts = flat_counts < 0.8 * flat_counts[flat_top]
+    below, beyond = np.flatnonzero(low_counts[:flat_top + 1]), np.flatnonzero(low_counts[flat_top:])
+    flat_top = _run_centre(flat_counts, int(below[-1]) + 1 if below.size else 0,
+                           flat_top + int(beyond[0]) if beyond.size else len(flat_counts))
+    if flat_top < top:
+        return peak
+    # from the upper half-height to the quarter-height its weight fades: no jump where it is crossed
+    half_height, quarter_height = (top + _first(counts[top:] < f * counts[top], len(counts)) for f in (0.5, 0.25))
+    weight = float(np.clip((quarter_height - flat_top) / max(quarter_height - half_height, 1), 0.0, 1.0))
+    return weight * 0.5 * float(edges[flat_top] + edges[flat_top + 1]) + (1.0 - weight) * peak
+
+
+def _first(flags: np.ndarray, default: int) -> int:
+    """Index of the first True in ``flags`` (``default`` when none)."""
+    hit = np.flatnonzero(flags)
+    return int(hit[0]) if hit.size else default
 
 
 def _cancel_duplicate_faces(faces: np.ndarray) -> np.ndarray:
