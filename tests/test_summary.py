@@ -81,6 +81,18 @@ def test_frame_summary_means_ignore_nan(frame_files):
     assert str(out["n_directors"].dtype) == "Int64" and str(out["n_defects"].dtype) == "Int64"
 
 
+def test_frame_summary_counts_the_defects_where_the_fibres_are_faint(frame_files):
+    """``defects_faint``: the defects whose coherency (nemo.defects: the directors' median within the
+    contour over the surface's) is below 0.85, flagged; a defects table without the column (an
+    older one) counts none."""
+    write_table(_defects([0.5, 0.5, 0.5, 0.5], [0.5] * 4, coherency=[1.0, 0.97, 0.74, 0.88]), frame_files["defects"])
+    row = frame_summary([frame_files]).iloc[0]
+    assert row["defects_faint"] == 1 and "1 defect(s) where the fibres are faint (coherency 0.74" in row["qc_flags"]
+    write_table(_defects([0.5, 0.5, 0.5, 0.5], [0.5] * 4), frame_files["defects"])
+    row = frame_summary([frame_files]).iloc[0]
+    assert row["defects_faint"] == 0 and "faint" not in row["qc_flags"]
+
+
 def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
     """A frame of one object whose defect search could not run (nemo.stages.defects: an object
     too small for its derived lengths) fails the QC with the reason, as an object of several does;
@@ -95,6 +107,7 @@ def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
     assert not row["qc_pass"] and f"no defect search: {reason}" in row["qc_flags"]
     assert "Σ charge" not in row["qc_flags"], row["qc_flags"]
     assert row["n_defects"] is pd.NA and np.isnan(row["charge_sum"])  # not searched: not "none found"
+    assert row["defects_faint"] is pd.NA
 
 
 def test_frame_summary_flags_a_surface_open_where_the_series_is_closed(frame_files, tmp_path):
@@ -262,6 +275,11 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
      ["the mask holds the darker side of the segmented channel (a background or cavity class? check mask_channel)"]),
     ({"regions": None}, CLOSED, []),
     ({"regions": pd.NA}, CLOSED, []),
+    ({"defects_faint": 1, "defect_coherency_min": 0.72}, CLOSED,
+     ["1 defect(s) where the fibres are faint (coherency 0.72 of the surface's, below 0.85): a low S there says "
+      "little, the position is uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)"]),
+    ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
+    ({"defects_faint": pd.NA}, CLOSED, []),
 ])
 def test_quality_flags_name_each_reason(change, measure, expected):
     assert quality_flags({**GOOD, **change}, measure) == expected
