@@ -767,7 +767,7 @@ def find_defects(
                                                   "fit_exclude": fit_exclude, "fit_harmonic": fit_harmonic})
     df = pd.DataFrame(rows, columns=list(COLUMNS))
     df = df.astype({"vertex": np.int64, "n_contour": np.int64}) if len(df) else df
-    df["coherency"] = _local_coherency(f, df)
+    df["coherency"] = _local_coherency(f.dtree, f.dcoh, df)
     df.attrs["euler_check"] = _euler_check(mesh, df)
     df.attrs["parameters"] = {
         "s_threshold": float(s_threshold), "s_ref": s_ref, "min_distance": float(min_distance),
@@ -784,19 +784,19 @@ def find_defects(
     return df
 
 
-def _local_coherency(f: _Fields, df: pd.DataFrame) -> np.ndarray:
-    """Per defect (rows of ``df``), the median coherency of the raw directors within its contour
-    radius over the surface's median director coherency: about 1 where the fibres are as clear as
-    elsewhere (a defect is ordered fibres turning, each patch still coherent), well below where
-    they are faint (no fibres, or fibres across an anisotropic PSF's long axis), where a low S
-    says nothing of the field and the position is unreliable. NaN without directors."""
+def _local_coherency(tree: cKDTree | None, coherency: np.ndarray | None, df: pd.DataFrame) -> np.ndarray:
+    """Per defect (rows of ``df``), the median coherency of the raw directors (positions in ``tree``,
+    ``coherency``) within its contour radius over their median: about 1 where the fibres are as
+    clear as elsewhere (a defect is ordered fibres turning, each patch still coherent), well below
+    where they are faint (no fibres, or fibres across an anisotropic PSF's long axis), where a low
+    S says nothing of the field and the position is unreliable. NaN without directors."""
     out = np.full(len(df), np.nan)
-    if f.dtree is None or not len(df) or not np.median(f.dcoh) > 0:
+    if tree is None or not len(df) or not np.median(coherency) > 0:
         return out
-    near = f.dtree.query_ball_point(df[["x", "y", "z"]].to_numpy(np.float64), df["contour_radius"].to_numpy(np.float64))
+    near = tree.query_ball_point(df[["x", "y", "z"]].to_numpy(np.float64), df["contour_radius"].to_numpy(np.float64))
     for k, idx in enumerate(near):  # a loop over the few defects
         if len(idx):
-            out[k] = float(np.median(f.dcoh[idx])) / float(np.median(f.dcoh))
+            out[k] = float(np.median(coherency[idx])) / float(np.median(coherency))
     return out
 
 
@@ -1331,4 +1331,9 @@ def refine_with_directors(
     extra = directors(mesh, intensity, centres=near, **{k: director_params[k] for k in keys if k in director_params})
     logger.info("refinement: %d extra directors within %.3g of %d defect(s)", len(extra), rho, len(defects_df))
     refined = find_defects(mesh, order_df, pd.concat([directors_df, extra], ignore_index=True), **find_kwargs)
+    if len(refined) and "coherency" in directors_df:  # the first pass's directors: the extra ones crowd the defects
+        base = directors_df[["x", "y", "z"]].to_numpy(np.float64)
+        good = np.all(np.isfinite(base), axis=1)
+        refined["coherency"] = _local_coherency(cKDTree(base[good]), np.nan_to_num(
+            directors_df["coherency"].to_numpy(np.float64)[good]), refined)
     return refined, extra

@@ -617,7 +617,7 @@ def _check_not_probabilities(data: np.ndarray, name: str) -> bool:
            "nemo run), or mask_threshold: 0 if every nonzero voxel is object (an intensity image masked to 0 "
            "outside the object)")
     if np.issubdtype(data.dtype, np.floating):
-        if top > 1.0 and not _whole_numbers(data):
+        if top > 1.0 and (not _whole_numbers(data) or _varying(np.nan_to_num(data)) is not None):
             raise NemoError(f"{name} is a float image with values up to {top:.4g}, not a probability map in "
                             f"[0, 1] (which is cut at 0.5) nor a label image: {fix}")
         return top <= 1.0
@@ -712,7 +712,7 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
             threshold = 0.5
         elif warn_touch:
             _warn_if_labels_touch(data, name)
-    mask = data > threshold if threshold is not None else data != 0
+    mask = data > threshold if threshold is not None else (data != 0) & ~np.isnan(data)  # NaN: no object
     if mask.all():
         rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"
         raise NemoError(f"{name} selects every voxel (all are {rule}; the smallest value is {data.min():.4g}): no "

@@ -285,9 +285,11 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
                      "patches: no texture to orient (noise, or no fibres at that depth)")
     faint = row.get("defects_faint")
     if faint is not None and not pd.isna(faint) and faint > 0:
-        flags.append(f"{faint} defect(s) where the fibres are faint (coherency {row['defect_coherency_min']:.2f} of the "
-                     f"surface's, below {QC_MIN_DEFECT_COHERENCY:g}): a low S there says little, the position is "
-                     "uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)")
+        lowest = row.get("defect_coherency_min", math.nan)
+        flags.append(f"{faint} defect(s) where the fibres are faint (coherency "
+                     f"{f'{lowest:.2f} ' if np.isfinite(lowest) else ''}below {QC_MIN_DEFECT_COHERENCY:g} of the "
+                     "surface's): a low S there says little, the position is uncertain (fibres across a z-elongated "
+                     "PSF fade; giving the PSF helps)")
     charge = row["charge_sum"]
     searched = not row.get("defects_skipped")  # a skipped search has its own flag; no sum to check
     if searched and closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:

@@ -11,9 +11,8 @@ so that normals point **out of the bright object** (the solid). Steps:
    With ``edge="half"`` (default for Yen/Otsu) the automatic threshold only tells background
    from object; the surface is placed half-way between the background intensity (the mode of
    the class below the threshold) and the object's plateau (the most populated histogram peak
-   above the background, taken at the centre of its mode region, among the peaks that rise
-   above the lowest count between them by a third, and by three times the counts' Poisson
-   noise, so no blip of the sparse bright tail). Noise smears that
+   above the background that rises above the lowest count between them by a third, and by three
+   times the counts' Poisson noise, so no blip of the sparse bright tail). Noise smears that
    peak into the continuum of edge voxels below it; where the histogram of the flat voxels
    (blurred-image gradient below a quarter of the edge's) peaks on its upper flank, that peak is
    the plateau (:func:`_flat_plateau`). That is where a
@@ -1086,10 +1085,10 @@ def _auto_level(field: np.ndarray, method: str, edge: str, spacing=(1.0, 1.0, 1.
     """(classification threshold, iso-level, background) of an automatic threshold on a blurred volume.
 
     The background is the mode of the class below the threshold (None when every or no sample
-    lies below it); the plateau the most populated histogram peak above it (the centre of its
-    mode region, :func:`_mode_run`), moved up to the peak of the flat voxels' histogram where that lies on its
-    upper flank (:func:`_flat_plateau`); the median of the object's flat core
-    (:func:`_interior_plateau`) where that peak lies well below it; without either, the median of the samples above the
+    lies below it); the plateau the most populated histogram peak above it, moved up to the
+    peak of the flat voxels' histogram where that lies on its upper flank
+    (:func:`_flat_plateau`); the median of the object's flat core (:func:`_interior_plateau`)
+    where that peak lies well below it; without either, the median of the samples above the
     threshold (:func:`_half_level`). The iso-level is half-way between the background and the
     plateau. ``spacing`` (dz, dy, dx) is the physical spacing of ``field``'s samples.
     """
@@ -1102,7 +1101,7 @@ def _auto_level(field: np.ndarray, method: str, edge: str, spacing=(1.0, 1.0, 1.
     thr = float(filters.threshold_yen(sample) if method == "yen" else filters.threshold_otsu(sample))
     # The two dominant intensity populations of the blurred image: the background (mode of the
     # class below the threshold) and the object plateau (the most populated histogram peak
-    # above it, the centre of its mode region). Peaks rather than class medians/modes: robust to the many edge voxels of thin
+    # above it). Peaks rather than class medians/modes: robust to the many edge voxels of thin
     # objects, to bright sub-structures (fibres) and to a threshold that cuts through the object.
     edges = _histogram_edges(sample)
     counts, centres = _smoothed_histogram(sample, edges)
@@ -1168,27 +1167,8 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
 
 def _peak_plateau(sub: np.ndarray, background: float, edges: np.ndarray, counts: np.ndarray, peaks: np.ndarray,
                   ok: np.ndarray) -> float:
-    """The plateau (:func:`_flat_plateau`) of the most populated accepted peak, taken at the centre of
-    its mode region (:func:`_mode_run`)."""
-    top = int(peaks[ok][np.argmax(counts[peaks[ok]])])
-    return _flat_plateau(sub, background, edges, counts, _run_centre(counts, *_mode_run(counts, top)))
-
-
-def _mode_run(counts: np.ndarray, top: int) -> tuple[int, int]:
-    """The run of bins ``[lo, hi)`` around the peak ``top`` whose counts lie within the counts' own
-    noise (4 Poisson std: smoothed counts dip together over a few bins) of its count, above or
-    below: its mode region. A fibre-broadened or noisy plateau is a flat-topped hump of near-equal
-    peaks, and the most populated one jumps between statistically identical frames (137-147 in a
-    review's time-lapse, the level with it); the run's centre (:func:`_run_centre`) does not."""
-    off = np.abs(counts - counts[top]) > 4.0 * np.sqrt(max(float(counts[top]), 0.0))  # higher bins are no part of it
-    low = np.flatnonzero(off[:top + 1])
-    high = np.flatnonzero(off[top:])
-    return (int(low[-1]) + 1 if low.size else 0), (top + int(high[0]) if high.size else len(counts))
-
-
-def _run_centre(counts: np.ndarray, lo: int, hi: int) -> int:
-    """The bin at the count-weighted centre of the bins ``[lo, hi)``."""
-    return int(round(float(np.average(np.arange(lo, hi), weights=counts[lo:hi]))))
+    """The plateau of the histogram's most populated accepted peak (:func:`_flat_plateau`)."""
+    return _flat_plateau(sub, background, edges, counts, peaks[ok][np.argmax(counts[peaks[ok]])])
 
 
 def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: float,
@@ -1539,14 +1519,7 @@ def _flat_plateau(sub: np.ndarray, background: float, edges: np.ndarray, counts:
     flat = sub[(grad < FLAT_GRADIENT * np.median(grad[band])) & (sub > half)]
     if not flat.size:
         return peak
-    flat_counts = _smoothed_histogram(flat, edges)[0]
-    flat_top = int(np.argmax(flat_counts))
-    # the centre of its top (the run within 80 % of its count): a few flat voxels' counts are too few
-    # for a mode run's noise band, which would lean into the continuum below the spike
-    low_counts = flat_counts < 0.8 * flat_counts[flat_top]
-    below, beyond = np.flatnonzero(low_counts[:flat_top + 1]), np.flatnonzero(low_counts[flat_top:])
-    flat_top = _run_centre(flat_counts, int(below[-1]) + 1 if below.size else 0,
-                           flat_top + int(beyond[0]) if beyond.size else len(flat_counts))
+    flat_top = int(np.argmax(_smoothed_histogram(flat, edges)[0]))
     if flat_top < top:
         return peak
     # from the upper half-height to the quarter-height its weight fades: no jump where it is crossed

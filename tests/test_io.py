@@ -498,8 +498,13 @@ def test_probability_maps_on_another_scale_are_refused_with_the_fix(tmp_path, rn
             read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape)
         got = read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape, threshold=127.5)
         assert np.count_nonzero(got != inside) <= 0.02 * inside.sum(), name
+    as_float = np.rint(np.clip(ball + rng.normal(0, 3, ball.shape), 0, 255)).astype(np.float32)  # whole numbers
+    write_hyperstack(tmp_path / "p8f.tif", as_float, (1, 1, 1), axes="ZYX")
+    with pytest.raises(NemoError, match=r"float image with values up to .*give mask_threshold"):
+        read_mask(tmp_path / "p8f.tif", 0, 0, as_float.shape)
     for name, data in (("labels", np.where(inside, 7, 0).astype(np.uint16)),
-                       ("float_labels", np.where(inside, 7.0, 0.0).astype(np.float32))):
+                       ("float_labels", np.where(inside, 7.0, 0.0).astype(np.float32)),
+                       ("nan_labels", np.where(inside, 7.0, np.nan).astype(np.float32))):
         write_hyperstack(tmp_path / f"{name}.tif", data, (1, 1, 1), axes="ZYX")
         np.testing.assert_array_equal(read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape), inside)
     masked = np.where(inside, 100 + rng.integers(0, 900, ball.shape), 0).astype(np.uint16)  # intensity, 0 outside

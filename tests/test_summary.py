@@ -87,7 +87,7 @@ def test_frame_summary_counts_the_defects_where_the_fibres_are_faint(frame_files
     older one) counts none."""
     write_table(_defects([0.5, 0.5, 0.5, 0.5], [0.5] * 4, coherency=[1.0, 0.97, 0.74, 0.88]), frame_files["defects"])
     row = frame_summary([frame_files]).iloc[0]
-    assert row["defects_faint"] == 1 and "1 defect(s) where the fibres are faint (coherency 0.74" in row["qc_flags"]
+    assert row["defects_faint"] == 1 and "1 defect(s) where the fibres are faint (coherency 0.74 below" in row["qc_flags"]
     write_table(_defects([0.5, 0.5, 0.5, 0.5], [0.5] * 4), frame_files["defects"])
     row = frame_summary([frame_files]).iloc[0]
     assert row["defects_faint"] == 0 and "faint" not in row["qc_flags"]
@@ -276,7 +276,10 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"regions": None}, CLOSED, []),
     ({"regions": pd.NA}, CLOSED, []),
     ({"defects_faint": 1, "defect_coherency_min": 0.72}, CLOSED,
-     ["1 defect(s) where the fibres are faint (coherency 0.72 of the surface's, below 0.85): a low S there says "
+     ["1 defect(s) where the fibres are faint (coherency 0.72 below 0.85 of the surface's): a low S there says "
+      "little, the position is uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)"]),
+    ({"defects_faint": 2}, CLOSED,  # a row of frames.parquet: the count only
+     ["2 defect(s) where the fibres are faint (coherency below 0.85 of the surface's): a low S there says "
       "little, the position is uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)"]),
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),

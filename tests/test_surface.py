@@ -929,26 +929,6 @@ def test_the_flat_plateau_fades_out_beyond_the_half_height_without_a_jump():
     assert np.abs(np.diff(got)).max() < 3.0, np.c_[flat, got]  # was a jump of ~12 at the half-height
 
 
-def test_the_mode_of_a_flat_topped_histogram_is_its_centre_not_its_noisiest_bin():
-    """A fibre-broadened plateau is a flat-topped hump (Poisson counts of 500 over bins 40-60): its
-    most populated bin falls anywhere on the top from one sample to the next, the centre of its
-    mode region (:func:`_mode_run`) stays within a couple of bins of the middle."""
-    from scipy import ndimage as ndi
-
-    from nemo.surface import _mode_run, _run_centre
-
-    rng = np.random.default_rng(1)
-    mean = np.r_[np.full(40, 50.0), np.full(21, 500.0), np.full(40, 50.0)]
-    argmax, centre = [], []
-    for _ in range(40):
-        counts = ndi.gaussian_filter1d(rng.poisson(mean).astype(np.float64), 1.0)
-        top = int(np.argmax(counts))
-        argmax.append(top)
-        centre.append(_run_centre(counts, *_mode_run(counts, top)))
-    assert np.ptp(argmax) >= 10  # the most populated bin wanders over the top
-    assert np.abs(np.array(centre) - 50).max() <= 3, centre
-
-
 @pytest.mark.parametrize("background, plateau, noise", [(10, 50, 3.0), (5, 30, 2.0), (100, 140, 4.0)])
 def test_auto_level_of_an_unblurred_integer_image_has_no_comb_peaks(background, plateau, noise):
     """Unblurred 8-bit intensities over a range of fewer than 256 levels: equal bins over the
