@@ -144,9 +144,7 @@ def run(args) -> int:
         print(f"{len(cands)} candidate(s), {len(cands) - int(cands['accepted'].sum())} rejected"
               + (f" ({', '.join(f'{k}: {v}' for k, v in rej.items())})" if len(rej) else "")
               + f" -> {cand_out}")
-    if len(df):
-        cols = ["x", "y", "z", "S", "charge", "charge_winding", "charge_curvature", "charge_rounded"]
-        print(df[cols].to_string(float_format=lambda v: f"{v:.3f}", index=False))
+    _print_defects(df)
     p = df.attrs["parameters"]
     if p.get("skipped"):  # a frame without directors, or an object too small for the derived lengths
         print(f"no defect search ({p['skipped']}) -> {out}")
@@ -162,3 +160,17 @@ def run(args) -> int:
         print(f"Euler check: open surface (chi = {check['euler_characteristic']}), "
               f"sum of charges {check['sum_charge']:.3f}: no Poincaré-Hopf constraint")
     return 0
+
+
+def _print_defects(df) -> None:
+    """The defects found, one per line, and those where the fibres are faint."""
+    from nemo.summary import QC_MIN_DEFECT_COHERENCY
+
+    if not len(df):
+        return
+    cols = ["x", "y", "z", "S", "charge", "charge_winding", "charge_curvature", "charge_rounded", "coherency"]
+    print(df[[c for c in cols if c in df]].to_string(float_format=lambda v: f"{v:.3f}", index=False))
+    faint = int((df["coherency"] < QC_MIN_DEFECT_COHERENCY).sum()) if "coherency" in df else 0
+    if faint:
+        print(f"{faint} defect(s) with coherency below {QC_MIN_DEFECT_COHERENCY:g} of the surface's: the fibres there "
+              "are faint, their positions uncertain (flagged in the summary)")
