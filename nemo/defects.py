@@ -1331,9 +1331,7 @@ def refine_with_directors(
     extra = directors(mesh, intensity, centres=near, **{k: director_params[k] for k in keys if k in director_params})
     logger.info("refinement: %d extra directors within %.3g of %d defect(s)", len(extra), rho, len(defects_df))
     refined = find_defects(mesh, order_df, pd.concat([directors_df, extra], ignore_index=True), **find_kwargs)
-    if len(refined) and "coherency" in directors_df:  # the first pass's directors: the extra ones crowd the defects
-        base = directors_df[["x", "y", "z"]].to_numpy(np.float64)
-        good = np.all(np.isfinite(base), axis=1)
-        refined["coherency"] = _local_coherency(cKDTree(base[good]), np.nan_to_num(
-            directors_df["coherency"].to_numpy(np.float64)[good]), refined)
+    if len(refined):  # read on the first pass's directors: the extra ones crowd the defects
+        _, _, coherency, _, tree = _director_fields(mesh, directors_df, 1e-3 * float(np.mean(mesh.edges_unique_length)))
+        refined["coherency"] = _local_coherency(tree, coherency, refined)
     return refined, extra

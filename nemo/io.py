@@ -593,7 +593,7 @@ def _varying(data: np.ndarray) -> float | None:
     """The fraction of neighbouring nonzero voxels (along x, in a sample of whole rows) whose values
     differ, when it exceeds a half over more than 16 values: integers that vary like a probability
     map saved as integers (a label image is constant within each label); else None."""
-    rows = data[:: max(1, data.shape[0] // 16), :: max(1, data.shape[1] // 256)]
+    rows = np.nan_to_num(data[:: max(1, data.shape[0] // 16), :: max(1, data.shape[1] // 256)])  # NaN: background
     left, right = rows[:, :, :-1], rows[:, :, 1:]
     inside = (left != 0) & (right != 0)
     varies = np.count_nonzero(inside & (left != right)) / max(1, np.count_nonzero(inside))
@@ -617,7 +617,7 @@ def _check_not_probabilities(data: np.ndarray, name: str) -> bool:
            "nemo run), or mask_threshold: 0 if every nonzero voxel is object (an intensity image masked to 0 "
            "outside the object)")
     if np.issubdtype(data.dtype, np.floating):
-        if top > 1.0 and (not _whole_numbers(data) or _varying(np.nan_to_num(data)) is not None):
+        if top > 1.0 and (not _whole_numbers(data) or _varying(data) is not None):
             raise NemoError(f"{name} is a float image with values up to {top:.4g}, not a probability map in "
                             f"[0, 1] (which is cut at 0.5) nor a label image: {fix}")
         return top <= 1.0
