@@ -174,7 +174,9 @@ def _layer_columns(tables: Mapping[str, pd.DataFrame]) -> dict:
     row["charge_sum"] = float(df["charge"].sum())
     row["charge_rounded_sum"] = float(df["charge_rounded"].sum())
     faint = df["coherency"].to_numpy(np.float64) if "coherency" in df else np.full(len(df), np.nan)
-    row["defects_faint"] = int(np.count_nonzero(faint < QC_MIN_DEFECT_COHERENCY))
+    # a table from before the column (or a defect without directors in reach) was not measured: NA, not 0
+    row["defects_faint"] = (int(np.count_nonzero(faint < QC_MIN_DEFECT_COHERENCY))
+                            if "coherency" in df or not len(df) else pd.NA)
     row["defect_coherency_min"] = float(np.nanmin(faint)) if np.isfinite(faint).any() else math.nan
     return row
 

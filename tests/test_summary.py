@@ -84,13 +84,15 @@ def test_frame_summary_means_ignore_nan(frame_files):
 def test_frame_summary_counts_the_defects_where_the_fibres_are_faint(frame_files):
     """``defects_faint``: the defects whose coherency (nemo.defects: the directors' median within the
     contour over the surface's) is below 0.85, flagged; a defects table without the column (an
-    older one) counts none."""
+    older one) was not measured: NA, not 0; no defect found is 0."""
     write_table(_defects([0.5, 0.5, 0.5, 0.5], [0.5] * 4, coherency=[1.0, 0.97, 0.74, 0.88]), frame_files["defects"])
     row = frame_summary([frame_files]).iloc[0]
     assert row["defects_faint"] == 1 and "1 defect(s) where the fibres are faint (coherency 0.74 below" in row["qc_flags"]
     write_table(_defects([0.5, 0.5, 0.5, 0.5], [0.5] * 4), frame_files["defects"])
     row = frame_summary([frame_files]).iloc[0]
-    assert row["defects_faint"] == 0 and "faint" not in row["qc_flags"]
+    assert row["defects_faint"] is pd.NA and "faint" not in row["qc_flags"]
+    write_table(_defects([], []), frame_files["defects"])
+    assert frame_summary([frame_files]).iloc[0]["defects_faint"] == 0
 
 
 def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
