@@ -612,6 +612,8 @@ def _check_not_probabilities(data: np.ndarray, name: str) -> bool:
     NemoError
         Such a map, with the fix (``mask_threshold``).
     """
+    if np.issubdtype(data.dtype, np.floating) and not np.isfinite(data).any():
+        raise NemoError(f"{name} is empty: every voxel is NaN or infinite. Check the file and the frame")
     top = float(np.nanmax(data))
     fix = (f"give mask_threshold (e.g. half its range, {0.5 * top:.4g}; `--mask-threshold` for nemo mesh and "
            "nemo run), or mask_threshold: 0 if every nonzero voxel is object (an intensity image masked to 0 "

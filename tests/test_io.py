@@ -507,6 +507,9 @@ def test_probability_maps_on_another_scale_are_refused_with_the_fix(tmp_path, rn
                        ("nan_labels", np.where(inside, 7.0, np.nan).astype(np.float32))):
         write_hyperstack(tmp_path / f"{name}.tif", data, (1, 1, 1), axes="ZYX")
         np.testing.assert_array_equal(read_mask(tmp_path / f"{name}.tif", 0, 0, data.shape), inside)
+    write_hyperstack(tmp_path / "all_nan.tif", np.full(ball.shape, np.nan, np.float32), (1, 1, 1), axes="ZYX")
+    with pytest.raises(NemoError, match=r"all_nan.tif \(t = 0, c = 0\) is empty: every voxel is NaN"):
+        read_mask(tmp_path / "all_nan.tif", 0, 0, ball.shape)
     masked = np.where(inside, 100 + rng.integers(0, 900, ball.shape), 0).astype(np.uint16)  # intensity, 0 outside
     write_hyperstack(tmp_path / "masked.tif", masked, (1, 1, 1), axes="ZYX")
     with pytest.raises(NemoError, match="mask_threshold: 0 if every nonzero voxel is object"):
