@@ -980,8 +980,9 @@ def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, in
     df, extra = _find_and_refine(*args, kwargs)
     search = {"passes": 1, "relaxed_s_threshold": None}
     if p["s_threshold"] is None and _topology_mismatch(df) > TOPOLOGY_TOLERANCE:
+        base = float(df.attrs["parameters"]["s_threshold"])  # the factors apply to the first pass's threshold
         for factor in TOPOLOGY_THRESHOLD_STEPS:  # a missed defect: its S dip was above the threshold
-            relaxed = dict(kwargs, s_threshold=factor * float(df.attrs["parameters"]["s_threshold"]))
+            relaxed = dict(kwargs, s_threshold=factor * base)
             again, extra_again = _find_and_refine(*args, relaxed)
             search["passes"] += 1
             if _topology_mismatch(again) < _topology_mismatch(df):

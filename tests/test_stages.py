@@ -666,6 +666,27 @@ def test_defects_search_again_when_the_charges_miss_chi():
     assert q["topology_search"] == {"passes": 1, "relaxed_s_threshold": None} and len(fixed) == 3
 
 
+def test_the_topology_search_relaxes_the_first_threshold_not_the_last(monkeypatch):
+    """Each relaxed pass multiplies the first pass's threshold by its factor (1.5, then 2 ×), also
+    after a pass that came closer to χ without reaching it (it used to multiply that pass's own,
+    already relaxed threshold: 3 × instead of 2 ×); only a pass closer to χ replaces the result."""
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
+    asked = []
+
+    def search(mesh, order_df, directors_df, p, intensity, director_params, kwargs):  # Σ 0.5, 1.0, 1.5
+        t = kwargs["s_threshold"] or 0.2
+        asked.append(t)
+        df = pd.DataFrame({"charge": [0.5] * len(asked)})
+        df.attrs.update(parameters={"s_threshold": t},
+                        euler_check={"sum_charge": 0.5 * len(asked), "euler_characteristic": 2, "closed": True})
+        return df, None
+
+    monkeypatch.setattr(stages, "_find_and_refine", search)
+    df, _, p = stages._defects_one(mesh, None, None, {}, 10.0, None, None, None)
+    assert asked == pytest.approx([0.2, 0.2 * stages.TOPOLOGY_THRESHOLD_STEPS[0], 0.2 * stages.TOPOLOGY_THRESHOLD_STEPS[1]])
+    assert p["topology_search"] == {"passes": 3, "relaxed_s_threshold": pytest.approx(0.4)} and len(df) == 3
+
+
 def test_a_low_snr_channel_is_warned_about_at_the_mesh_step(rng):
     z, y, x = np.meshgrid(*(np.arange(40),) * 3, indexing="ij")
     ball = np.sqrt((z - 20) ** 2 + (y - 20) ** 2 + (x - 20) ** 2) < 12
