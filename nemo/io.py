@@ -523,8 +523,9 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     from them) or none. It may be
 
     * a binary mask (nonzero = object);
-    * a label image (Cellpose, StarDist, ilastik object export): ``labels`` selects the
-      objects; without it every nonzero label is object;
+    * a label image (Cellpose, StarDist, ilastik object export; also saved as float: whole
+      numbers, NaN background): ``labels`` selects the objects; without it every nonzero label
+      is object;
     * a probability map (ilastik pixel classification, float values in [0, 1]): object where
       the value exceeds ``threshold`` (0.5 for a float image without a threshold). A map on
       another scale (floats beyond 1, or integers that vary from voxel to voxel as no label
@@ -568,6 +569,7 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
             "give a mask of the same size"
         )
     name = f"the mask {path} (t = {mt}, c = {mc})"
+    data = _float_labels(data) if threshold is None else data
     apart = apart if apart is not None and _is_label_image(data) and threshold is None else None
     mask = _select_object(data, labels, threshold, name, warn_touch=apart is None)
     if apart is not None and _varying(data) is None:
@@ -661,6 +663,19 @@ def _warn_if_labels_touch(data: np.ndarray, name: str) -> None:
         warnings.warn(f"{name}: labels touch ({shown}): with every nonzero label as object they are meshed as one "
                       "surface; give mask_labels to select one object, or mesh.keep: all to keep every label apart",
                       NemoWarning, stacklevel=4)
+
+
+def _float_labels(data: np.ndarray) -> np.ndarray:
+    """A label image saved as float (whole numbers that are constant within each label; NaN
+    background) as the integer label image it is, so that ``labels``, the touch warning and the cut
+    between touching labels treat it as one; any other image unchanged. float32 holds whole numbers
+    exactly up to 2**24 only, so int32 is wide enough."""
+    if not np.issubdtype(data.dtype, np.floating) or not np.isfinite(data).any():
+        return data
+    top = float(np.nanmax(np.abs(data)))
+    if top > 2**31 - 1 or not _whole_numbers(data) or _varying(data) is not None:
+        return data
+    return np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0).astype(np.int32)
 
 
 def _is_label_image(data: np.ndarray) -> bool:

@@ -409,12 +409,20 @@ def test_the_masks_channel_picks_the_class_of_a_probability_map(tmp_path):
         read_mask(tmp_path / "classes.tif", 0, 0, ball.shape, channel=2)
 
 
-def test_touching_labels_are_warned_about(tmp_path):
+def _saved_as(labels: np.ndarray, dtype: str) -> np.ndarray:
+    """A label image as saved: integers, or floats with a NaN background (a label image after a float
+    operation in Fiji or numpy)."""
+    return labels if dtype == "uint16" else np.where(labels > 0, labels, np.nan).astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", ["uint16", "float32"])
+def test_touching_labels_are_warned_about(tmp_path, dtype):
     """Two touching cells of a label image merge into one surface when every label is object: warned,
-    naming the pair; a label selection, separate labels and a binary mask are not."""
+    naming the pair; a label selection, separate labels and a binary mask are not. A label image saved
+    as float is a label image."""
     labels = np.zeros((6, 10, 16), np.uint16)
     labels[1:5, 2:8, 2:8], labels[1:5, 2:8, 8:14] = 1, 2  # touching along x
-    write_hyperstack(tmp_path / "touch.tif", labels, (1, 1, 1), axes="ZYX")
+    write_hyperstack(tmp_path / "touch.tif", _saved_as(labels, dtype), (1, 1, 1), axes="ZYX")
     with pytest.warns(NemoWarning, match="labels touch \\(1–2\\).*mask_labels"):
         read_mask(tmp_path / "touch.tif", 0, 0, labels.shape)
     apart = labels.copy()
@@ -428,10 +436,12 @@ def test_touching_labels_are_warned_about(tmp_path):
         read_mask(tmp_path / "binary.tif", 0, 0, labels.shape)
 
 
-def test_touching_labels_are_kept_apart_with_keep_all(tmp_path):
+@pytest.mark.parametrize("dtype", ["uint16", "float32"])
+def test_touching_labels_are_kept_apart_with_keep_all(tmp_path, dtype):
     """``apart`` (mesh.keep: all): the voxels within reach of another label are left out, so labels 1
     and 2 mesh as two objects (at the default blur, 1 × 1 × 1 µm voxels: one voxel each side);
-    nothing else changes and nothing is warned. A binary mask is read as before."""
+    nothing else changes and nothing is warned. A binary mask is read as before; a label image saved
+    as float too."""
     from nemo import stages
     from nemo.io import label_gap
     from nemo.surface import default_mask_sigma
@@ -441,7 +451,7 @@ def test_touching_labels_are_kept_apart_with_keep_all(tmp_path):
 
     labels = np.zeros((12, 16, 30), np.uint16)
     labels[2:10, 3:13, 3:15], labels[2:10, 3:13, 15:27] = 1, 2  # two boxes touching along x
-    write_hyperstack(tmp_path / "touch.tif", labels, (1, 1, 1), axes="ZYX")
+    write_hyperstack(tmp_path / "touch.tif", _saved_as(labels, dtype), (1, 1, 1), axes="ZYX")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         mask = read_mask(tmp_path / "touch.tif", 0, 0, labels.shape, apart=reach)
