@@ -225,10 +225,9 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
                                  final=final, dataset=frame["dataset"], psf=psf_c, deconvolved=sharp)
                for name, layer in layers.items()}
     del volume, sharp
-    for a, b in sections["alignment"] or []:
-        if a in results and b in results:
-            align_frame(a, b, meshes[layers[a]["surface"]], out, written)
-    summary.update(config=sections, mesh=mesh_params, layers=results, files=sorted(written),
+    aligned = [align_frame(a, b, meshes[layers[a]["surface"]], out, written)
+               for a, b in sections["alignment"] or [] if a in results and b in results]
+    summary.update(config=sections, mesh=mesh_params, layers=results, alignment=aligned, files=sorted(written),
                    qc=_quality(out, sections, layers, t, c, frame["seg"]),
                    timings_s=timings, total_s=round(time.perf_counter() - start, 3),
                    peak_rss_mb=round(_peak_rss_mb(), 1))
@@ -463,17 +462,24 @@ def _imported_directors(name, layer, mesh, t: int, c: int, dataset: str | None, 
     return ddf, dp, path
 
 
-def align_frame(a: str, b: str, mesh_a, out: Path, written: list) -> None:
-    """c = cos 2Δθ between the directors of layers a and b (the workflow's align rule)."""
+def align_frame(a: str, b: str, mesh_a, out: Path, written: list) -> dict:
+    """c = cos 2Δθ between the directors of layers a and b, and c_avg between their averaged
+    directors (the workflow's align rule); returns the pair's summary (:func:`nemo.summary.c_avg_means`)."""
     from nemo.order import alignment
+    from nemo.summary import c_avg_means
     from nemo.tables import read_table, write_table
 
     n = len(mesh_a.vertices)
     da = read_table(out / layout.layer_file("directors", a), "directors", n_vertices=n)
     db = read_table(out / layout.layer_file("directors", b), "directors")
-    write_table(alignment(da, db, mesh_a=mesh_a), out / layout.align_file(a, b), command="align",
-                n_vertices=n, max_distance=None)
+    orders = {f"order_{k}": read_table(out / layout.layer_file("order", name), "order") for k, name in (("a", a), ("b", b))}
+    df = alignment(da, db, mesh_a=mesh_a, **orders)
+    write_table(df, out / layout.align_file(a, b), command="align", n_vertices=n, max_distance=None)
     written.append(layout.align_file(a, b))
+    c = df["c"].to_numpy(np.float64)
+    return {"layer_a": a, "layer_b": b, "n": int(np.isfinite(c).sum()),
+            "c_mean": float(np.nanmean(c)) if np.isfinite(c).any() else None,
+            **{k: (None if not np.isfinite(v) else v) for k, v in c_avg_means(df).items()}}
 
 
 def _remove_stale(out: Path, written: list[str]) -> None:

@@ -83,7 +83,7 @@ DEFECT_COLUMNS = ("t", "c", "layer", "object", "x", "y", "z", "charge", "charge_
                   "charge_winding", "charge_curvature")
 #: Columns of alignment.parquet.
 ALIGN_COLUMNS = ("t", "c", "layer_a", "layer_b", "n", "c_mean", "c_median", "c_std",
-                 "fraction_parallel", "fraction_orthogonal")
+                 "fraction_parallel", "fraction_orthogonal", "c_avg_mean", "c_avg_median")
 
 
 def _finite_mean(values) -> float:
@@ -518,6 +518,16 @@ def _with_frame_qc(defects: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def c_avg_means(table: pd.DataFrame) -> dict:
+    """``c_avg_mean`` (weighted by ``weight``) and ``c_avg_median`` of an alignment table (NaN without them)."""
+    if "c_avg" not in table or "weight" not in table:  # a table written before the averaged alignment
+        return {"c_avg_mean": math.nan, "c_avg_median": math.nan}
+    c, w = table["c_avg"].to_numpy(np.float64), table["weight"].to_numpy(np.float64)
+    ok = np.isfinite(c) & np.isfinite(w) & (w > 0)
+    return {"c_avg_mean": float(np.sum(w[ok] * c[ok]) / np.sum(w[ok])) if ok.any() else math.nan,
+            "c_avg_median": float(np.median(c[ok])) if ok.any() else math.nan}
+
+
 def alignment_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     """One row per (t, c, layer pair) from the ``nemo align`` tables.
 
@@ -531,13 +541,16 @@ def alignment_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     DataFrame
         Columns :data:`ALIGN_COLUMNS`: ``n`` directors of A with a partner, mean / median /
         standard deviation of c = cos 2(θ_B − θ_A), and the fractions with c > 0.5 (close to
-        parallel, within 30°) and c < −0.5 (close to orthogonal).
+        parallel, within 30°) and c < −0.5 (close to orthogonal); ``c_avg_mean`` (weighted by S_A ·
+        S_B) and ``c_avg_median`` of the averaged directors' alignment (:func:`nemo.order.alignment`:
+        noise pulls the mean of c towards 0, not c_avg), NaN for a table without it.
     """
     rows = []
     for r in records:
-        c = read_table(r["align"], "align")["c"].to_numpy(dtype=np.float64)
+        table = read_table(r["align"], "align")
+        c = table["c"].to_numpy(dtype=np.float64)
         c = c[np.isfinite(c)]
-        rows.append({
+        rows.append({**c_avg_means(table),
             "t": int(r["t"]), "c": int(r["c"]), "layer_a": str(r["layer_a"]),
             "layer_b": str(r["layer_b"]), "n": int(c.size),
             "c_mean": float(c.mean()) if c.size else math.nan,

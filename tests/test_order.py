@@ -195,6 +195,35 @@ def test_alignment_parallel_orthogonal_and_45(rng):
         np.testing.assert_allclose(alignment(a, flipped, mesh_a=mesh)["c"], expect, atol=1e-9)
 
 
+def test_averaged_alignment_is_not_pulled_to_zero_by_noise(rng):
+    """Two orthogonal layers (θ and θ + 90°) whose directors each carry ±45° of uniform angle noise:
+    each director's c = cos 2Δθ averages to cos 2ε_A · cos 2ε_B ≈ 0.41 of −1 (the mean reads about
+    −0.4, as if the layers met at 57°); c_avg between the order tables' averaged directors reads the
+    90° (its S_A · S_B-weighted mean ≤ −0.95), and both order tables are needed for it."""
+    from nemo.summary import c_avg_means
+
+    mesh = sphere_mesh()
+    p = np.asarray(mesh.vertices)
+    off_poles = np.flatnonzero(np.abs(p[:, 2]) < 0.8 * R)  # parallels and meridians: +1 defects at the poles
+
+    def layer(base, n):  # directors along ``base`` (parallels: 0, meridians: 90°) ± 45° of noise
+        v = np.sort(rng.choice(off_poles, n, replace=False))
+        e = e_phi(p[v])
+        angle = base + rng.uniform(-np.pi / 4, np.pi / 4, n)
+        return directors_table(mesh, v, np.cos(angle)[:, None] * e + np.sin(angle)[:, None] * np.cross(p[v] / R, e))
+
+    a, b = layer(0.0, 1500), layer(np.pi / 2, 1500)
+    oa, ob = (order(mesh, t, radius=8.0, targets=off_poles) for t in (a, b))
+    out = alignment(a, b, mesh_a=mesh, order_a=oa, order_b=ob)
+    assert -0.55 < out["c"].mean() < -0.25, out["c"].mean()
+    assert c_avg_means(out)["c_avg_mean"] <= -0.95 and c_avg_means(out)["c_avg_median"] <= -0.97
+    assert np.all((out["weight"] > 0) & (out["weight"] <= 1))
+    plain = alignment(a, b, mesh_a=mesh)  # without the order tables: the paper's c only
+    assert plain["c_avg"].isna().all() and np.isnan(c_avg_means(plain)["c_avg_mean"])
+    with pytest.raises(NemoError, match="both layers' order tables"):
+        alignment(a, b, mesh_a=mesh, order_a=oa)
+
+
 def test_alignment_checks_normals_and_max_distance():
     def table(x):
         return pd.DataFrame({"vertex": np.arange(len(x)), "x": x, "y": 0.0, "z": 0.0,
@@ -267,6 +296,13 @@ def test_cli_order_and_align(tmp_path, run_cli):
     assert np.allclose(read_table(al, kind="align")["c"], -1.0)
     code, stdout, err = run_cli("align", pa, pa, "-o", al)
     assert code == 0 and "mean c = +1.000" in stdout
+    ob = tmp_path / "order_b.parquet"
+    assert run_cli("order", mpath, pb, "-o", ob, "--radius", "5", "--targets", "directors")[0] == 0
+    code, stdout, err = run_cli("align", pa, pb, "-o", al, "--mesh", mpath, "--order-a", out, "--order-b", ob)
+    assert code == 0 and "averaged directors: c_avg = -1.000" in stdout, stdout + err
+    assert np.allclose(read_table(al, kind="align")["c_avg"], -1.0)
+    code, _, err = run_cli("align", pa, pb, "-o", al, "--order-a", out)
+    assert code == 2 and "both --order-a and --order-b" in err
     code, _, err = run_cli("order", mpath, tmp_path / "nothing.parquet", "-o", out, "--radius", "5")
     assert code == 2 and "not found" in err
     layer = tmp_path / "layer.parquet"

@@ -391,6 +391,17 @@ def test_alignment_summary_statistics(tmp_path):
     assert row["fraction_parallel"] == pytest.approx(0.5)      # 1.0 and 0.8 (> 0.5)
     assert row["fraction_orthogonal"] == pytest.approx(0.25)   # -1.0 (< -0.5)
     assert out["n"].dtype == np.int64
+    assert np.isnan(row["c_avg_mean"]) and np.isnan(row["c_avg_median"])  # a table without c_avg
+
+
+def test_alignment_summary_weights_the_averaged_alignment_by_order(tmp_path):
+    """``c_avg_mean`` is the mean of c_avg weighted by S_A · S_B (``weight``); NaN or zero weights
+    and NaN values are left out; ``c_avg_median`` is unweighted."""
+    write_table(pd.DataFrame({"vertex": range(5), "c": [0.0] * 5, "c_avg": [-1.0, -0.8, 1.0, NAN, 0.5],
+                              "weight": [0.9, 0.5, 0.1, 0.9, 0.0]}), tmp_path / "a.parquet")
+    row = alignment_summary([{"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}]).iloc[0]
+    assert row["c_avg_mean"] == pytest.approx((-0.9 - 0.4 + 0.1) / 1.5)
+    assert row["c_avg_median"] == pytest.approx(-0.8)
 
 
 def test_alignment_summary_needs_a_c_column(tmp_path):
