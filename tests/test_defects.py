@@ -890,3 +890,30 @@ def test_sparse_sampling_of_the_projects_vesicle_field(spacing, noise, preset):
     field = director_field(np.asarray(mesh.vertices), dirs, charges, pole=projection_pole(dirs))
     ddf = sf.vertex_directors(mesh, field, noise, int(noise))
     _sparse_check(mesh, ddf, 50.0 * dirs, charges)
+
+
+@pytest.mark.parametrize("avg, separation, expect", [(20.0, 14.0, [1.0]), (16.0, 16.0, [0.5, 0.5])])
+def test_zeros_of_one_dip_are_enclosed_not_cut_by_the_contour(avg, separation, expect):
+    """Two +½ `separation` µm apart (a +1 split, as an aster splits under a z-PSF) and their χ
+    partner, a +1 at the other pole of a sphere R 60 µm. Averaged over 20 µm the pair's Q-zeros
+    share one dip, 28 µm apart: the default contour (30 µm) around one ran through the other's core
+    and read +½, and the other, inside it, was taken as part of it (Σ 1.5). The contour now clears
+    that core and encloses both: one +1 between them (Σ = χ). A pair resolved by a 16 µm average
+    still reads two +½."""
+    from nemo import stages
+
+    R = 60.0
+    a = separation / (2 * R)
+    pair = np.array([[np.sin(a), 0, np.cos(a)], [-np.sin(a), 0, np.cos(a)]])
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=R)
+    v = np.asarray(mesh.vertices)[::2]
+    n = stereo_field(v, pair, [0.5, 0.5])
+    ddf = pd.DataFrame({"vertex": np.arange(0, len(mesh.vertices), 2), "x": v[:, 0], "y": v[:, 1], "z": v[:, 2],
+                        "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], "coherency": 1.0})
+    odf, _ = stages.order(mesh, ddf, {"radius": avg})
+    df = find_defects(mesh, odf, ddf, avg_radius=avg, refine="none")
+    assert df["charge_rounded"].sum() == pytest.approx(2.0)
+    north = df[df["z"] > 0]
+    assert sorted(north["charge_rounded"]) == expect
+    if expect == [1.0]:  # placed between the two zeros: at the pole
+        assert np.hypot(north["x"], north["y"]).max() < 3.0 and (north["refine"] == "zeros").all()
