@@ -983,7 +983,9 @@ def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, in
         base = float(df.attrs["parameters"]["s_threshold"])  # the factors apply to the first pass's threshold
         for factor in TOPOLOGY_THRESHOLD_STEPS:  # a missed defect: its S dip was above the threshold
             relaxed = dict(kwargs, s_threshold=factor * base)
-            again, extra_again = _find_and_refine(*args, relaxed)
+            with warnings.catch_warnings():  # the user set no threshold: "lower s_threshold" is not theirs to act on
+                warnings.filterwarnings("ignore", message="the contour of a defect must reach", category=NemoWarning)
+                again, extra_again = _find_and_refine(*args, relaxed)
             search["passes"] += 1
             if _topology_mismatch(again) < _topology_mismatch(df):
                 df, extra, search["relaxed_s_threshold"] = again, extra_again, relaxed["s_threshold"]

@@ -669,20 +669,25 @@ def test_defects_search_again_when_the_charges_miss_chi():
 def test_the_topology_search_relaxes_the_first_threshold_not_the_last(monkeypatch):
     """Each relaxed pass multiplies the first pass's threshold by its factor (1.5, then 2 ×), also
     after a pass that came closer to χ without reaching it (it used to multiply that pass's own,
-    already relaxed threshold: 3 × instead of 2 ×); only a pass closer to χ replaces the result."""
+    already relaxed threshold: 3 × instead of 2 ×); only a pass closer to χ replaces the result. A
+    relaxed pass does not pass on nemo.defects' advice to lower s_threshold: the user set none."""
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
     asked = []
 
     def search(mesh, order_df, directors_df, p, intensity, director_params, kwargs):  # Σ 0.5, 1.0, 1.5
         t = kwargs["s_threshold"] or 0.2
         asked.append(t)
+        if kwargs["s_threshold"]:
+            warnings.warn("the contour of a defect must reach S ≥ 1.04 (s_ordered ...): lower s_threshold", NemoWarning)
         df = pd.DataFrame({"charge": [0.5] * len(asked)})
         df.attrs.update(parameters={"s_threshold": t},
                         euler_check={"sum_charge": 0.5 * len(asked), "euler_characteristic": 2, "closed": True})
         return df, None
 
     monkeypatch.setattr(stages, "_find_and_refine", search)
-    df, _, p = stages._defects_one(mesh, None, None, {}, 10.0, None, None, None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        df, _, p = stages._defects_one(mesh, None, None, {}, 10.0, None, None, None)
     assert asked == pytest.approx([0.2, 0.2 * stages.TOPOLOGY_THRESHOLD_STEPS[0], 0.2 * stages.TOPOLOGY_THRESHOLD_STEPS[1]])
     assert p["topology_search"] == {"passes": 3, "relaxed_s_threshold": pytest.approx(0.4)} and len(df) == 3
 
