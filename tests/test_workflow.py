@@ -358,9 +358,10 @@ def test_changing_the_averaging_radius_reruns_only_order_and_below(demo_run, tmp
     counts = _rerun_counts(demo_run, tmp_path, lambda c: c["order"].update(radius=c["order"]["radius"] + 5))
     n = default_config()["datasets"]["demo"]["synthetic"]["frames"] * 2
     assert counts.pop("order") == n and counts.pop("defects") == n
+    assert counts.pop("align") == n // 2  # c_avg reads both layers' order tables
     # the per-frame renders of the first and last frame (report.frames: ends) and the report tables too
-    assert set(counts) <= {"aggregate_frames", "aggregate_defects", "track", "render_summary", "render",
-                           "report_tables", "report_config", "all"}, counts
+    assert set(counts) <= {"aggregate_frames", "aggregate_defects", "aggregate_alignment", "track", "render_summary",
+                           "render", "report_tables", "report_config", "all"}, counts
 
 
 def test_changing_one_layer_reruns_that_layer_only(demo_run, tmp_path):
