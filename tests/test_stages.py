@@ -678,7 +678,7 @@ def test_the_topology_search_relaxes_the_first_threshold_not_the_last(monkeypatc
         t = kwargs["s_threshold"] or 0.2
         asked.append(t)
         if kwargs["s_threshold"]:
-            warnings.warn("the contour of a defect must reach S ≥ 1.04 (s_ordered ...): lower s_threshold", NemoWarning)
+            warnings.warn("the contour of a defect must reach S ≥ 1.04 (s_ordered): lower s_threshold", NemoWarning, stacklevel=2)
         df = pd.DataFrame({"charge": [0.5] * len(asked)})
         df.attrs.update(parameters={"s_threshold": t},
                         euler_check={"sum_charge": 0.5 * len(asked), "euler_characteristic": 2, "closed": True})
