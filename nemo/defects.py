@@ -212,6 +212,7 @@ ZERO_PER_ORDERED = 0.125
 #: through its core (an averaging radius wide, r / 1.5): its winding there is ill-defined.
 CONTOUR_CLEAR_BAND = (0.67, 1.33)
 
+
 def angle_sorted_contour(vertices: np.ndarray, centre: np.ndarray, normal: np.ndarray,
                          idx: np.ndarray, dist: np.ndarray, radius: float, width: float) -> np.ndarray:
     """Fallback contour: vertices with |d − radius| < width/2 sorted counter-clockwise by angle."""
