@@ -412,6 +412,12 @@ def test_nemo_run_with_the_workflow_config_gives_the_workflows_numbers(demo_run,
     assert [q["qc_pass"] for q in qc] == frames["qc_pass"].tolist()
     assert [q["qc_flags"] for q in qc] == frames["qc_flags"].tolist()
     assert proc.stdout.count("quality control (layer ") == len(qc)
+    # and the same alignment summary: alignment.parquet's row of t1 and summary.json's entry
+    row = pd.read_parquet(demo_run / "results" / "demo" / "summary" / "alignment.parquet").query("t == 1").iloc[0]
+    (pair,) = json.loads((out / "summary.json").read_text())["alignment"]
+    assert (pair["layer_a"], pair["layer_b"], pair["n"]) == (row["layer_a"], row["layer_b"], row["n"])
+    for key in ("c_mean", "c_avg_mean", "c_avg_median"):
+        assert pair[key] == pytest.approx(row[key], abs=1e-12), key
 
 
 def _droplets(path: Path, radii, spacing=(1.0, 0.42, 0.42)) -> None:
