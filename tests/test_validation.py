@@ -430,6 +430,7 @@ def test_cli_help_names_every_step(capsys):
 
 
 # ----------------------------------------------------------------------------- CI variant through Snakemake
+@pytest.mark.slow  # ≈ 2.5 min on 2 cores (the default suite stays under ~15 min)
 def test_ci_variant_through_snakemake(tmp_path):
     """config/validation-ci.yaml through the workflow: every case is a dataset analysed by the
     ordinary per-frame rules (≈ 60 s on 2 idle cores)."""

@@ -435,6 +435,7 @@ def _droplets(path: Path, radii, spacing=(1.0, 0.42, 0.42)) -> None:
     tifffile.imwrite(path, np.stack(frames)[:, :, None], imagej=True, metadata={"axes": "TZCYX"})
 
 
+@pytest.mark.slow  # > 1 min on 2 cores (the default suite stays under ~15 min)
 def test_morphology_only_single_wall_uncalibrated_timelapse(tmp_path):
     """A droplet time-lapse with one wall, no layers, spacing from the config, the default split
     (auto) and thickness: every frame meshed, measured and summarised (area, volume, H of the
@@ -929,6 +930,7 @@ def test_several_objects_through_the_workflow_and_nemo_run(tmp_path, write_two_v
         pd.testing.assert_frame_equal(read_table(frame / name), read_table(tmp_path / "run" / name))
 
 
+@pytest.mark.slow  # > 1 min on 2 cores (the default suite stays under ~15 min)
 def test_each_channel_is_deconvolved_by_its_own_psf(tmp_path):
     """datasets.NAME.psf as one PSF per channel: the deconvolve, mesh and peel jobs of each channel
     get that channel's PSF (dry run), a channel with null is not deconvolved, and a list without
@@ -971,6 +973,7 @@ def test_the_masks_channel_reaches_the_mesh_job(tmp_path):
     assert mesh and all("--mask-channel 1" in line for line in mesh), proc.stdout[-3000:]
 
 
+@pytest.mark.slow  # > 1 min on 2 cores (the default suite stays under ~15 min)
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
     """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
     mesh and both peels use that one deconvolution (their provenance records the same run),
