@@ -120,6 +120,11 @@ def bench_default_radius(mesh, R: float, args) -> None:
     print(f"{'':58s} fit {df.attrs['fit']}, median H = {np.nanmedian(df['H']):.5f} 1/µm (1/R = {1 / R:.5f})")
     timed("the same without the averaging over the surface (smooth=0)",  # the averaging's share (session 12)
           lambda: curvature(mesh, radius, n_samples=args.samples, rng=0, smooth=0), args.repeat)
+    df1, _ = timed("one radius, one width (local_fraction=0, adaptive=False: before session 25)",
+                   lambda: curvature(mesh, radius, n_samples=args.samples, rng=0, local_fraction=0, adaptive=False),
+                   args.repeat)
+    print(f"{'':58s} local fits at the default: {df.attrs['local_fits']} of {len(df)} vertices; median H "
+          f"{np.nanmedian(df1['H']):.5f} 1/µm with one radius and width")
 
 
 if __name__ == "__main__":

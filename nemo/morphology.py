@@ -131,6 +131,21 @@ DEFAULT_SMOOTH = 0.35
 OUTLIER_CLIP = 3.0
 #: ... and at most this many radii (a width beyond the radius averages the shape away).
 MAX_SMOOTH = 2.0
+#: Adaptive averaging (``curvature(adaptive=True)``): the width per vertex and per quantity is
+#: the widest of ``smooth × radius × 2^(j/2)`` for these j (narrow to wide) whose average agrees
+#: with every narrower one's within :data:`ADAPT_AGREEMENT` × their noise (the intersection of
+#: confidence intervals, Katkovnik's LPA-ICI): a peak of curvature (an ellipsoid's tip) keeps a
+#: narrow width, a uniform stretch (a torus's tube) gets a wider one (docs/validation.md
+#: "Curvature at the most curved tips").
+ADAPT_STEPS = (-2, -1, 0, 1)
+#: ... agreement within this many noise standard deviations of each width's average.
+ADAPT_AGREEMENT = 2.0
+#: Default fitting radius per vertex at most this fraction of its radius of curvature 1/|k|max
+#: (from the fits at the radius): a more curved vertex is refitted at the largest radius ×
+#: 2^(−k/4) below that, down to :data:`RIM_MIN_EDGES` mean edges (the quartic fit of a circle
+#: whose radius is close to the fitting radius reads it 4.5 % flat; a torus's tube, an elongated
+#: object's poles).
+DEFAULT_LOCAL_FRACTION = 0.65
 #: The walk's heat kernel is one Chebyshev series up to this mean number of steps, a product
 #: of shorter ones beyond (the series agrees with the steps within 1e-5 up to ~700).
 SERIES_MAX_STEPS = 350.0
@@ -726,6 +741,8 @@ def curvature(
     fit: FitKind = "auto",
     smooth: float = DEFAULT_SMOOTH,
     warn_large: Literal["radius", "mesh"] | None = "radius",
+    local_fraction: float = DEFAULT_LOCAL_FRACTION,
+    adaptive: bool = True,
 ) -> pd.DataFrame:
     """Mean and Gaussian curvature at every vertex from local quadric fits.
 
@@ -776,6 +793,16 @@ def curvature(
         (``"mesh"``: the smallest radius :func:`default_radius` allows, a few edges, is already
         that large). None: no such warning (a radius :func:`default_radius` chose above its
         floor already weighs the wall's roughness against the shape's change).
+    local_fraction : float
+        A vertex whose radius of curvature 1/|k|max (from the fits at ``radius``) is below
+        ``radius / local_fraction`` is refitted at the largest radius ``radius`` × 2^(−k/4) under
+        ``local_fraction`` / |k|max, down to :data:`RIM_MIN_EDGES` mean edges (its
+        ``fit_radius``; default :data:`DEFAULT_LOCAL_FRACTION`); 0 = ``radius`` everywhere.
+        ``df.attrs["local_fits"]`` counts those vertices.
+    adaptive : bool
+        Average each vertex's H and K at the widest of ``smooth × radius × 2^(j/2)``
+        (:data:`ADAPT_STEPS`) whose value agrees with the narrower ones within their noise
+        (:func:`_agreeing_width`; default); False: at ``smooth × radius`` everywhere.
 
     Returns
     -------
@@ -807,6 +834,10 @@ def curvature(
     if not (math.isfinite(smooth) and 0 <= smooth <= MAX_SMOOTH):
         raise NemoError(f"curvature smoothing must be a fraction of the radius in [0, {MAX_SMOOTH:g}] "
                         f"(0 = none, default {DEFAULT_SMOOTH}), got {smooth}")
+    local_fraction = float(local_fraction)
+    if not (math.isfinite(local_fraction) and 0 <= local_fraction <= 2):
+        raise NemoError(f"curvature local_fraction (of the local radius of curvature) must be in [0, 2] "
+                        f"(0 = one radius everywhere, default {DEFAULT_LOCAL_FRACTION}), got {local_fraction}")
     rng = _as_rng(rng)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     n_vert = len(vertices)
@@ -827,18 +858,23 @@ def curvature(
 
     with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
         H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
-    smallest = max(RIM_MIN_EDGES * mean_edge_length(mesh), RIM_MIN_FRACTION * radius)
-    band = _rim_band_fits(vertices, normals, tree, d_rim, near_rim, radius, fit, per_sample, smallest, unit,
+    floors = (max(RIM_MIN_EDGES * mean_edge_length(mesh), RIM_MIN_FRACTION * radius), RIM_MIN_EDGES * mean_edge_length(mesh))
+    limit = _band_limits(H, K, d_rim, near_rim, radius, floors, local_fraction)
+    band = _rim_band_fits(vertices, normals, tree, limit, near_rim, radius, fit, per_sample, floors, unit,
                           k_interp, rng, float(mesh.area) / n_vert)
     H, K = _clip_to_interior(np.stack([H, K], axis=1), np.stack([band["H"], band["K"]], axis=1), near_rim)
     scatter = np.full(2, np.nan)
     if smooth > 0:
-        sigma = _capped_width(mesh, smooth * radius)
-        with step(f"curvature: averaging H and K over the surface (σ = {sigma:.3g} {unit})"):
-            HK, scatter = _robust_average(mesh, np.stack([H, K], axis=1), sigma, normals, near_rim)
+        widest = 2.0 ** (max(ADAPT_STEPS) / 2.0) if adaptive else 1.0  # the widest width within the cap
+        sigma = _capped_width(mesh, smooth * radius * widest) / widest
+        with step(f"curvature: averaging H and K over the surface (σ = {sigma:.3g} {unit}"
+                  f"{', adaptive' if adaptive else ''})"):
+            HK, scatter = _robust_average(mesh, np.stack([H, K], axis=1), sigma, normals, near_rim, adaptive)
         H, K = HK[:, 0], HK[:, 1]
     df = _curvature_table(H, K, idx, out, d1, d2, samples, normals, keep_fitted=not smooth)
     _apply_rim_band(df, band, near_rim, radius, keep_fitted=not smooth)
+    df.attrs.update(local_fraction=local_fraction, adaptive=bool(adaptive),
+                    local_fits=int((~near_rim & np.isfinite(band["H"])).sum()))
     df.attrs.update(fit=fit, radius=radius, n_samples=int(n), k_interp=int(k_interp),
                     rim_vertices=int(df["H"][near_rim].isna().sum()), rim_band=int(near_rim.sum()),
                     rim_fits=dict(band["kinds"]),
@@ -847,18 +883,34 @@ def curvature(
     return df
 
 
+def _band_limits(H: np.ndarray, K: np.ndarray, d_rim: np.ndarray, near_rim: np.ndarray, radius: float,
+                 floors: tuple[float, float], local_fraction: float) -> np.ndarray:
+    """The largest fitting radius per vertex (N,) for :func:`_rim_band_fits`: ``radius`` off the band,
+    the distance to the rim near it (NaN below the rim's floor ``floors[0]``: no fit), at most
+    ``local_fraction`` / |k|max (not below the curvature's floor ``floors[1]``) where H, K say so."""
+    limit = np.where(near_rim, np.where(d_rim >= floors[0], d_rim, np.nan), radius)
+    if local_fraction > 0:
+        k_max = np.abs(H) + np.sqrt(np.maximum(H * H - K, 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            curved = np.maximum(local_fraction / k_max, floors[1])
+        limit = np.where(curved < radius, np.minimum(limit, curved), limit)  # NaN (no rim fit) stays NaN
+    return limit
+
+
 def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
 def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, normals: np.ndarray,
-                    noisier: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    noisier: np.ndarray | None = None, adaptive: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The debiased average of :func:`smooth_on_surface` (N, C), robust to outlying fits.
 
     A first pass gives the residual of each value; values beyond :data:`OUTLIER_CLIP` robust
     standard deviations (1.4826 × the median |residual|, per column) are clipped there, and a
     second pass averages the clipped values. A few wild fits on a rough wall (K of −100 / R²)
-    would otherwise spread over the kernel's width.
+    would otherwise spread over the kernel's width. ``adaptive``: the second pass at the widths
+    σ × 2^(j/2) of :data:`ADAPT_STEPS`, each value the widest that agrees with the narrower
+    ones (:func:`_agreeing_width`).
 
     Returns
     -------
@@ -877,26 +929,90 @@ def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, nor
     typical = residual if noisier is None or noisier.all() else residual[~noisier]
     scatter = 1.4826 * np.nanmedian(typical, axis=0)
     bound = OUTLIER_CLIP * scatter
-    return _diffuse(walk, np.clip(values, first - bound, first + bound), sigma, debias=True)[0], scatter
+    clipped = np.clip(values, first - bound, first + bound)
+    if not adaptive:
+        return _diffuse(walk, clipped, sigma, debias=True)[0], scatter
+    noise = clipped - first
+    noise -= np.nanmedian(noise if noisier is None or noisier.all() else noise[~noisier], axis=0)
+    widths = [sigma * 2.0 ** (j / 2.0) for j in ADAPT_STEPS]
+    both = _diffuse_widths(walk, np.concatenate([clipped, noise], axis=1), widths)
+    c = values.shape[1]
+    spread = np.stack([1.4826 * np.nanmedian(np.abs(a[:, c:] - np.nanmedian(a[:, c:], axis=0)), axis=0) for a in both])
+    return _agreeing_width(np.stack([a[:, :c] for a in both]), spread)[0], scatter
+
+
+def _diffuse_widths(walk: tuple[csr_matrix, float], values: np.ndarray, sigmas: list[float]) -> list[np.ndarray]:
+    """Debiased averages 2 G_σ f − G_√2σ f (N, C) for each σ of ``sigmas``, ascending by √2 each.
+
+    Each width's G_√2σ is the next one's G_σ, so the kernels are τ_0 × 2^k: one Chebyshev
+    series for them all (:func:`_heat_series`) when the widest is short enough, else a chain
+    (G_2τ = G_τ G_τ, each a product of series of at most :data:`SERIES_MAX_STEPS` steps).
+    """
+    transition, spread = walk
+    if spread == 0.0:
+        return [values.copy() for _ in sigmas]
+    taus = [s**2 / (0.5 * spread) for s in sigmas] + [sigmas[-1] ** 2 / (0.25 * spread)]
+    c = values.shape[1]
+    usable = np.isfinite(values)
+    state = np.concatenate([np.where(usable, values, 0.0), usable], axis=1).astype(np.float32)
+    if taus[-1] <= 2.0 * SERIES_MAX_STEPS:
+        kernels = _heat_series(transition, state, tuple(taus))[0]
+    else:
+        kernels, done = [], 0.0
+        for tau in taus:  # a handful of widths
+            n = math.ceil((tau - done) / SERIES_MAX_STEPS)
+            for _ in range(n):
+                (state,), _ = _heat_series(transition, state, ((tau - done) / n,))
+            kernels.append(state)
+            done = tau
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratios = [kernel[:, :c].astype(np.float64) / kernel[:, c:] for kernel in kernels]
+    return [np.where(usable, 2.0 * a - b, np.nan) for a, b in zip(ratios[:-1], ratios[1:])]
+
+
+def _agreeing_width(averages: np.ndarray, noise: np.ndarray,
+                    agreement: float = ADAPT_AGREEMENT) -> tuple[np.ndarray, np.ndarray]:
+    """Per value, the widest average whose interval ± ``agreement`` × noise meets every narrower one's.
+
+    Parameters
+    ----------
+    averages : ndarray, shape (L, N, C)
+        Averages at L widths, narrow to wide.
+    noise : ndarray, shape (L, C)
+        Standard deviation of each width's average (its smoothed noise).
+
+    Returns
+    -------
+    chosen : ndarray, shape (N, C)
+    level : ndarray of int, shape (N, C)
+        Index of the width chosen.
+    """
+    low = np.maximum.accumulate(averages - agreement * noise[:, None, :], axis=0)
+    high = np.minimum.accumulate(averages + agreement * noise[:, None, :], axis=0)
+    level = np.maximum(np.logical_and.accumulate(low <= high, axis=0).sum(axis=0) - 1, 0)
+    return np.take_along_axis(averages, level[None], axis=0)[0], level
 
 
 #: Columns of the curvature table set to NaN where the fit's neighbourhood reaches an open rim.
 _RIM_NAN = ("H", "K", "k1", "k2", "d1x", "d1y", "d1z", "d2x", "d2y", "d2z")
 
 
-def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_rim: np.ndarray,
-                   near_rim: np.ndarray, radius: float, fit: str, per_sample: float, min_radius: float,
+def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, limit: np.ndarray,
+                   near_rim: np.ndarray, radius: float, fit: str, per_sample: float, min_radius: tuple[float, ...],
                    unit: str, k_interp: int, rng: np.random.Generator, vertex_area: float) -> dict:
-    """Fits for the vertices whose ball of ``radius`` holds a vertex of the open rim.
+    """Fits for the vertices whose ball of ``radius`` holds a vertex of the open rim, and for
+    the vertices more curved than that radius allows (:func:`_band_limits`).
 
-    Each is assigned the largest radius of the ladder ``radius`` × 2^(−k/4) (ending at
-    ``min_radius``) below its distance to the rim (``d_rim``, Euclidean): that ball holds no rim
-    vertex, so a fit sees the surface on every side (smaller and noisier than the interior's,
-    not one-sided and biased). :data:`RIM_SAMPLES_PER_DISC` vertices per fitting disc of each
+    Each is assigned the largest radius of the ladder ``radius`` × 2^(−k/4) (with the floors
+    ``min_radius`` as rungs: the rim's, the curvature's) below its ``limit`` (NaN: no fit; off the
+    band: ``radius`` or more): near the rim its distance to the rim (Euclidean), so the ball holds
+    no rim vertex and a fit sees the surface on every side (smaller and noisier than the
+    interior's, not one-sided and biased); on a curved stretch a fraction of its radius of
+    curvature. :data:`RIM_SAMPLES_PER_DISC` vertices per fitting disc of each
     rung are fitted (a rung whose balls hold fewer than :data:`AUTO_QUARTIC_NEIGHBOURS`
     neighbours fits the quadratic instead of the quartic) and interpolated to the band's other
     vertices (:func:`_idw` from the band's samples only). Vertices closer to the rim than
-    ``min_radius`` keep NaN, and so do degenerate fits (warned). One batch of fits per rung.
+    its floor keep NaN, and so do degenerate fits (warned). One batch of fits per rung.
     The rungs' sample count is independent of the interior's ``n_samples`` / ``fraction``:
     the band's fits are smaller and each needs its own density.
 
@@ -914,9 +1030,11 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
     band["samples"], band["k1"], band["k2"] = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     band["kinds"] = {}
     rungs = radius * 2.0 ** (-np.arange(1, 64) / 4.0)
-    rungs = np.r_[rungs[rungs > min_radius], min_radius]  # the last rung: the smallest radius itself
-    rung = np.searchsorted(-rungs, -d_rim, side="right")  # the first (largest) rung below d_rim
-    todo = near_rim & (rung < len(rungs)) & np.isfinite(normals[:, 0])
+    rungs = np.unique(np.r_[rungs[rungs > min(min_radius)], min_radius])[::-1]  # the floors themselves are rungs
+    finite = np.isfinite(limit) & (near_rim | (limit < radius))
+    rung = np.searchsorted(-rungs, -np.where(finite, limit, 0.0), side="right")  # the first (largest) rung below
+    above_floor = np.r_[rungs, 0.0][rung] >= np.where(near_rim, min_radius[0], min(min_radius))  # a rim fit: its own floor
+    todo = finite & (rung < len(rungs)) & above_floor & np.isfinite(normals[:, 0])
     fits = []
     for k in np.unique(rung[todo]):  # a loop over the ladder's rungs (at most ~20)
         members = np.flatnonzero(todo & (rung == k))
@@ -940,8 +1058,8 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
         band["samples"], band["k1"], band["k2"] = f["where"], f["k1"], f["k2"]
     if near_rim.any():
         logger.info("curvature: %d of %d vertices lie within the radius %g of the open rim: %d fitted at radii "
-                    "%.3g-%g %s (%d fits), %d NaN", int(near_rim.sum()), n, radius, int(todo.sum()),
-                    min_radius, radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
+                    "%.3g-%g %s (%d fits), %d NaN", int(near_rim.sum()), n, radius, int((todo & near_rim).sum()),
+                    min_radius[0], radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
     failed = int(np.count_nonzero(~np.isfinite(band["k1"])))
     if failed:
         warnings.warn(f"curvature: {failed} of {len(band['samples'])} fits near the open rim were degenerate "
@@ -950,19 +1068,20 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, d_r
     if near_rim.all() and not np.isfinite(band["H"]).any():
         warnings.warn(
             f"curvature: every vertex lies within the fitting radius {radius:g} of the surface's open rim, and "
-            f"within {min_radius:.3g} (the smallest fit near it): every H and K is NaN; use a smaller radius",
+            f"within {min_radius[0]:.3g} (the smallest fit near it): every H and K is NaN; use a smaller radius",
             NemoWarning, stacklevel=3)
     return band
 
 
 def _clip_to_interior(interior: np.ndarray, band: np.ndarray, near_rim: np.ndarray) -> tuple[np.ndarray, ...]:
-    """H and K (N,): the interior's values off the rim band, the band's on it, clipped to the
-    interior's 1st-99th percentile range widened by that range on each side.
+    """H and K (N,): the interior's values off the band, the band's on it (a curved vertex whose
+    smaller fit failed keeps the interior's), the rim band's clipped to the interior's 1st-99th
+    percentile range widened by that range on each side.
 
     A small fit near a mesh defect at the rim can read H of −600 / R; the robust average's first
     pass is not robust to it and would carry it up to two radii into the interior.
     """
-    values = np.where(near_rim[:, None], band, interior)
+    values = np.where(near_rim[:, None] | np.isfinite(band), band, interior)
     inside = interior[~near_rim]
     if near_rim.any() and np.isfinite(inside).any():
         lo, hi = np.nanpercentile(inside, [1, 99], axis=0)
@@ -977,7 +1096,7 @@ def _apply_rim_band(df: pd.DataFrame, band: dict, near_rim: np.ndarray, radius: 
     their fitted principal values unless averaged); ``fit_radius`` is ``radius`` off the band;
     a band vertex without a fit is NaN.
     """
-    fitted = near_rim & np.isfinite(band["H"])
+    fitted = np.isfinite(band["H"])
     for axis, c in enumerate("xyz"):
         df.loc[fitted, f"d1{c}"] = band["d1"][fitted, axis]
         df.loc[fitted, f"d2{c}"] = band["d2"][fitted, axis]
@@ -985,7 +1104,7 @@ def _apply_rim_band(df: pd.DataFrame, band: dict, near_rim: np.ndarray, radius: 
         df.loc[band["samples"], "k1"], df.loc[band["samples"], "k2"] = band["k1"], band["k2"]
     df.loc[band["samples"], "sampled"] = True
     df.loc[near_rim & ~fitted, list(_RIM_NAN)] = np.nan
-    df["fit_radius"] = np.where(near_rim, band["fit_radius"], radius)
+    df["fit_radius"] = np.where(near_rim | fitted, band["fit_radius"], radius)
 
 
 def _check_curvature_args(radius: float, n_samples: int | None, fraction: float | None, fit: str,

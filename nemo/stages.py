@@ -573,9 +573,10 @@ def curvature(mesh: trimesh.Trimesh, params: dict | None = None) -> tuple[pd.Dat
     p = curvature_defaults(mesh, params)
     df = fit_curvature(mesh, float(p["radius"]), n_samples=p["samples"], fraction=p["fraction"],
                        k_interp=int(p["k_interp"]), rng=int(p["seed"]), fit=p["fit"], smooth=float(p["smooth"]),
-                       warn_large=_large_radius_advice(p))
+                       warn_large=_large_radius_advice(p), local_fraction=float(p["local_fraction"]),
+                       adaptive=bool(p["adaptive"]))
 
-    p.update(fit_used=df.attrs.get("fit"), n_fitted=df.attrs.get("n_samples"),
+    p.update(fit_used=df.attrs.get("fit"), n_fitted=df.attrs.get("n_samples"), local_fits=df.attrs.get("local_fits"),
              fit_scatter_H=df.attrs.get("fit_scatter_H"), fit_scatter_K=df.attrs.get("fit_scatter_K"))
     return df, p
 

@@ -386,8 +386,12 @@ case("curvature:odd.mesh_space", "curvature", "{odd.mesh_space}", "-o", "{out}/c
      outputs=[_out("{out}/c d ✓.parquet", "table:curvature")])
 for label, opts in {"--radius 0": ["--radius", "0"], "--radius -1": ["--radius", "-1"], "--radius nan": ["--radius", "nan"],
                     "--seed -1": ["--seed", "-1"], "--samples 0": ["--samples", "0"], "--fraction 2": ["--fraction", "2"],
-                    "--k-interp 0": ["--k-interp", "0"], "--seed 1.5": ["--seed", "1.5"]}.items():
+                    "--k-interp 0": ["--k-interp", "0"], "--seed 1.5": ["--seed", "1.5"],
+                    "--local-fraction 3": ["--local-fraction", "3"], "--local-fraction -1": ["--local-fraction", "-1"],
+                    "--local-fraction nan": ["--local-fraction", "nan"]}.items():
     case(f"curvature:{label}", "curvature", "{mesh.inner}", "-o", "{out}/c.parquet", *opts, expect="error")
+case("curvature:--no-adaptive --local-fraction 0", "curvature", "{mesh.inner}", "-o", "{out}/c.parquet", "--no-adaptive",
+     "--local-fraction", "0", outputs=CURV_OUT)
 for label, opts in {"--radius inf": ["--radius", "inf"], "--radius 1e308": ["--radius", "1e308"],
                     "--radius 1e-308": ["--radius", "1e-308"], "--samples 1e9": ["--samples", "1000000000"],
                     "--fraction 1e-300": ["--fraction", "1e-300"], "--k-interp 10**9": ["--k-interp", str(10**9)]}.items():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 
 from nemo.cli.common import add_common, non_negative, output_path, positive, seed
@@ -12,8 +14,11 @@ Mean curvature H and Gaussian curvature K at every vertex: a surface z(ξ, η) i
 least squares to the neighbours within --radius of a random subset of vertices, in the frame
 of the vertex normal; the results are interpolated to all vertices by inverse-distance weights
 over the --k-interp nearest fitted vertices, then averaged over the surface (a diffusion along
-the mesh of width --smooth × radius, which averages out the fits' noise). Outward normals: a
-sphere of radius R has H = +1/R and K = +1/R² (units 1/µm, 1/µm²).
+the mesh of width --smooth × radius, which averages out the fits' noise; per vertex the widest of
+0.5-1.41 × that width that agrees with the narrower ones, so a tip's peak is not flattened:
+--adaptive). A vertex more curved than the radius allows (its radius of curvature below
+radius / --local-fraction) is refitted at a smaller radius. Outward normals: a sphere of radius
+R has H = +1/R and K = +1/R² (units 1/µm, 1/µm²).
 
 Fits (--fit): 'quadric' is the paper's z = aξ² + bη² + cξη; 'quadratic' adds linear and
 constant terms (insensitive to normal errors); 'quartic' fits all terms up to 4th order
@@ -30,7 +35,8 @@ a one-sided one.
 
 example:
   nemo curvature inner.ply -o inner.curvature.parquet --radius 10
-  nemo curvature inner.ply -o curv.parquet --radius 10 --samples 20000 --seed 1"""
+  nemo curvature inner.ply -o curv.parquet --radius 10 --samples 20000 --seed 1
+  nemo curvature inner.ply -o paper.parquet --radius 10 --fit quadric --smooth 0 --local-fraction 0   # the paper"""
 
 
 def add_arguments(parser) -> None:
@@ -55,6 +61,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--smooth", type=non_negative, metavar="F",
                         help="width of the averaging of H and K over the surface after the fits, as a "
                              "fraction of the radius, 0 to 2 (default 0.35; 0 = the fitted values, as in the paper)")
+    parser.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=None,
+                        help="average each vertex at the widest of --smooth x radius x 2^(-1, -1/2, 0, 1/2) that "
+                             "agrees with the narrower ones within their noise (default); --no-adaptive: one width")
+    parser.add_argument("--local-fraction", type=non_negative, metavar="F",
+                        help="fit each vertex at most F x its radius of curvature (from the fits at --radius): "
+                             "a tip or a thin tube is refitted at a smaller radius, down to 6 mean edges "
+                             "(default 0.65; 0 = --radius everywhere)")
     parser.add_argument("--seed", type=seed, metavar="S", help="random seed of the sample (default 0)")
     add_common(parser, output_help="output table (.parquet)")
 

@@ -183,7 +183,7 @@ wildcard_constraints:
 
 # ----------------------------------------------------------------------------- options
 #: Boolean keys whose command-line option is on by default: False is spelled ``--no-KEY``.
-NEGATABLE = ("refine",)
+NEGATABLE = ("adaptive", "refine")
 
 
 def cli_opts(options, skip=()):
