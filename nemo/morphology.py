@@ -135,17 +135,22 @@ MAX_SMOOTH = 2.0
 #: the widest of ``smooth × radius × 2^(j/2)`` for these j (narrow to wide) whose average agrees
 #: with every narrower one's within :data:`ADAPT_AGREEMENT` × their noise (the intersection of
 #: confidence intervals, Katkovnik's LPA-ICI): a peak of curvature (an ellipsoid's tip) keeps a
-#: narrow width, a uniform stretch (a torus's tube) gets a wider one (docs/validation.md
-#: "Curvature at the most curved tips").
-ADAPT_STEPS = (-2, -1, 0, 1)
+#: narrower width. Never wider than ``smooth × radius``: a wider step (j = 1) helped the protocol's
+#: torus and noisy ellipsoids but flattened a sharp-tipped one (docs/validation.md "Curvature at
+#: the most curved tips").
+ADAPT_STEPS = (-2, -1, 0)
 #: ... agreement within this many noise standard deviations of each width's average.
 ADAPT_AGREEMENT = 2.0
-#: Default fitting radius per vertex at most this fraction of its radius of curvature 1/|k|max
-#: (from the fits at the radius): a more curved vertex is refitted at the largest radius ×
-#: 2^(−k/4) below that, down to :data:`RIM_MIN_EDGES` mean edges (the quartic fit of a circle
-#: whose radius is close to the fitting radius reads it 4.5 % flat; a torus's tube, an elongated
-#: object's poles).
-DEFAULT_LOCAL_FRACTION = 0.65
+#: ``curvature(local_fraction=f)``: a fitting radius per vertex of at most f × its radius of
+#: curvature 1/|k|max (from the fits at the radius): a more curved vertex is refitted at the
+#: largest radius × 2^(−k/4) below that, down to the rim band's floor (:data:`RIM_MIN_EDGES` mean
+#: edges and :data:`RIM_MIN_FRACTION` × the radius). The quartic fit of a circle whose radius is
+#: close to the fitting radius reads it 4.5 % flat (a torus's tube, an elongated object's poles).
+#: Off by default: on a rough wall (a small ball at SNR 5) the fits' noise calls for smaller fits
+#: where none is needed, and those are noise (docs/validation.md, "Curvature at the most curved tips").
+DEFAULT_LOCAL_FRACTION = 0.0
+#: ... the fraction measured there (the torus's tube at SNR 10: H 3.7 → 1.7 %).
+LOCAL_FRACTION = 0.65
 #: The walk's heat kernel is one Chebyshev series up to this mean number of steps, a product
 #: of shorter ones beyond (the series agrees with the steps within 1e-5 up to ~700).
 SERIES_MAX_STEPS = 350.0
@@ -796,7 +801,8 @@ def curvature(
     local_fraction : float
         A vertex whose radius of curvature 1/|k|max (from the fits at ``radius``) is below
         ``radius / local_fraction`` is refitted at the largest radius ``radius`` × 2^(−k/4) under
-        ``local_fraction`` / |k|max, down to :data:`RIM_MIN_EDGES` mean edges (its
+        ``local_fraction`` / |k|max, down to :data:`RIM_MIN_EDGES` mean edges and
+        :data:`RIM_MIN_FRACTION` × ``radius`` (its
         ``fit_radius``; default :data:`DEFAULT_LOCAL_FRACTION`); 0 = ``radius`` everywhere.
         ``df.attrs["local_fits"]`` counts those vertices.
     adaptive : bool
@@ -858,18 +864,19 @@ def curvature(
 
     with step(f"curvature: interpolating {n} samples to {n_vert} vertices (k = {k_interp})"):
         H, K, idx = _idw(vertices, normals, samples, np.stack([out["H"], out["K"]], axis=1), k_interp)
-    floors = (max(RIM_MIN_EDGES * mean_edge_length(mesh), RIM_MIN_FRACTION * radius), RIM_MIN_EDGES * mean_edge_length(mesh))
-    limit = _band_limits(H, K, d_rim, near_rim, radius, floors, local_fraction)
-    band = _rim_band_fits(vertices, normals, tree, limit, near_rim, radius, fit, per_sample, floors, unit,
+    smallest = max(RIM_MIN_EDGES * mean_edge_length(mesh), RIM_MIN_FRACTION * radius)
+    limit = _band_limits(H, K, d_rim, near_rim, radius, smallest, local_fraction)
+    band = _rim_band_fits(vertices, normals, tree, limit, near_rim, radius, fit, per_sample, smallest, unit,
                           k_interp, rng, float(mesh.area) / n_vert)
     H, K = _clip_to_interior(np.stack([H, K], axis=1), np.stack([band["H"], band["K"]], axis=1), near_rim)
     scatter = np.full(2, np.nan)
     if smooth > 0:
         widest = 2.0 ** (max(ADAPT_STEPS) / 2.0) if adaptive else 1.0  # the widest width within the cap
         sigma = _capped_width(mesh, smooth * radius * widest) / widest
+        walk = _surface_walk(mesh, normals)
         with step(f"curvature: averaging H and K over the surface (σ = {sigma:.3g} {unit}"
                   f"{', adaptive' if adaptive else ''})"):
-            HK, scatter = _robust_average(mesh, np.stack([H, K], axis=1), sigma, normals, near_rim, adaptive)
+            HK, scatter = _robust_average(walk, np.stack([H, K], axis=1), sigma, near_rim, adaptive)
         H, K = HK[:, 0], HK[:, 1]
     df = _curvature_table(H, K, idx, out, d1, d2, samples, normals, keep_fitted=not smooth)
     _apply_rim_band(df, band, near_rim, radius, keep_fitted=not smooth)
@@ -884,15 +891,16 @@ def curvature(
 
 
 def _band_limits(H: np.ndarray, K: np.ndarray, d_rim: np.ndarray, near_rim: np.ndarray, radius: float,
-                 floors: tuple[float, float], local_fraction: float) -> np.ndarray:
+                 smallest: float, local_fraction: float) -> np.ndarray:
     """The largest fitting radius per vertex (N,) for :func:`_rim_band_fits`: ``radius`` off the band,
-    the distance to the rim near it (NaN below the rim's floor ``floors[0]``: no fit), at most
-    ``local_fraction`` / |k|max (not below the curvature's floor ``floors[1]``) where H, K say so."""
-    limit = np.where(near_rim, np.where(d_rim >= floors[0], d_rim, np.nan), radius)
+    the distance to the rim near it (NaN below ``smallest``: no fit), at most ``local_fraction`` /
+    |k|max where H, K say so, not below ``smallest`` (on a noisy wall the radius grew with the
+    noise, and much smaller fits are noise; a noisy |k|max would call for them)."""
+    limit = np.where(near_rim, np.where(d_rim >= smallest, d_rim, np.nan), radius)
     if local_fraction > 0:
         k_max = np.abs(H) + np.sqrt(np.maximum(H * H - K, 0.0))
         with np.errstate(divide="ignore", invalid="ignore"):
-            curved = np.maximum(local_fraction / k_max, floors[1])
+            curved = np.maximum(local_fraction / k_max, smallest)
         limit = np.where(curved < radius, np.minimum(limit, curved), limit)  # NaN (no rim fit) stays NaN
     return limit
 
@@ -901,7 +909,7 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, normals: np.ndarray,
+def _robust_average(walk: tuple[csr_matrix, float], values: np.ndarray, sigma: float,
                     noisier: np.ndarray | None = None, adaptive: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The debiased average of :func:`smooth_on_surface` (N, C), robust to outlying fits.
 
@@ -921,7 +929,6 @@ def _robust_average(mesh: trimesh.Trimesh, values: np.ndarray, sigma: float, nor
         (on the validation's ellipsoid, H: 0.7 % of |H| noise-free, 2.9 % at SNR 10, 4.0 % at
         SNR 5, where the fits alone err by 0.4, 2.4 and 3.6 %).
     """
-    walk = _surface_walk(mesh, normals)
     first = _diffuse(walk, values, sigma, debias=True)[0]
     residual = np.abs(values - first)
     if not np.isfinite(residual).any():
@@ -998,13 +1005,13 @@ _RIM_NAN = ("H", "K", "k1", "k2", "d1x", "d1y", "d1z", "d2x", "d2y", "d2z")
 
 
 def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, limit: np.ndarray,
-                   near_rim: np.ndarray, radius: float, fit: str, per_sample: float, min_radius: tuple[float, ...],
+                   near_rim: np.ndarray, radius: float, fit: str, per_sample: float, min_radius: float,
                    unit: str, k_interp: int, rng: np.random.Generator, vertex_area: float) -> dict:
     """Fits for the vertices whose ball of ``radius`` holds a vertex of the open rim, and for
     the vertices more curved than that radius allows (:func:`_band_limits`).
 
-    Each is assigned the largest radius of the ladder ``radius`` × 2^(−k/4) (with the floors
-    ``min_radius`` as rungs: the rim's, the curvature's) below its ``limit`` (NaN: no fit; off the
+    Each is assigned the largest radius of the ladder ``radius`` × 2^(−k/4) (ending at
+    ``min_radius``) at or below its ``limit`` (NaN: no fit; off the
     band: ``radius`` or more): near the rim its distance to the rim (Euclidean), so the ball holds
     no rim vertex and a fit sees the surface on every side (smaller and noisier than the
     interior's, not one-sided and biased); on a curved stretch a fraction of its radius of
@@ -1012,7 +1019,7 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, lim
     rung are fitted (a rung whose balls hold fewer than :data:`AUTO_QUARTIC_NEIGHBOURS`
     neighbours fits the quadratic instead of the quartic) and interpolated to the band's other
     vertices (:func:`_idw` from the band's samples only). Vertices closer to the rim than
-    its floor keep NaN, and so do degenerate fits (warned). One batch of fits per rung.
+    ``min_radius`` keep NaN, and so do degenerate fits (warned). One batch of fits per rung.
     The rungs' sample count is independent of the interior's ``n_samples`` / ``fraction``:
     the band's fits are smaller and each needs its own density.
 
@@ -1030,11 +1037,10 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, lim
     band["samples"], band["k1"], band["k2"] = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     band["kinds"] = {}
     rungs = radius * 2.0 ** (-np.arange(1, 64) / 4.0)
-    rungs = np.unique(np.r_[rungs[rungs > min(min_radius)], min_radius])[::-1]  # the floors themselves are rungs
+    rungs = np.r_[rungs[rungs > min_radius], min_radius]  # the last rung: the smallest radius itself
     finite = np.isfinite(limit) & (near_rim | (limit < radius))
-    rung = np.searchsorted(-rungs, -np.where(finite, limit, 0.0), side="right")  # the first (largest) rung below
-    above_floor = np.r_[rungs, 0.0][rung] >= np.where(near_rim, min_radius[0], min(min_radius))  # a rim fit: its own floor
-    todo = finite & (rung < len(rungs)) & above_floor & np.isfinite(normals[:, 0])
+    rung = np.searchsorted(-rungs, -np.where(finite, limit, 0.0), side="left")  # the first (largest) rung ≤ limit
+    todo = finite & (rung < len(rungs)) & np.isfinite(normals[:, 0])
     fits = []
     for k in np.unique(rung[todo]):  # a loop over the ladder's rungs (at most ~20)
         members = np.flatnonzero(todo & (rung == k))
@@ -1059,7 +1065,7 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, lim
     if near_rim.any():
         logger.info("curvature: %d of %d vertices lie within the radius %g of the open rim: %d fitted at radii "
                     "%.3g-%g %s (%d fits), %d NaN", int(near_rim.sum()), n, radius, int((todo & near_rim).sum()),
-                    min_radius[0], radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
+                    min_radius, radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
     failed = int(np.count_nonzero(~np.isfinite(band["k1"])))
     if failed:
         warnings.warn(f"curvature: {failed} of {len(band['samples'])} fits near the open rim were degenerate "
@@ -1068,7 +1074,7 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, lim
     if near_rim.all() and not np.isfinite(band["H"]).any():
         warnings.warn(
             f"curvature: every vertex lies within the fitting radius {radius:g} of the surface's open rim, and "
-            f"within {min_radius[0]:.3g} (the smallest fit near it): every H and K is NaN; use a smaller radius",
+            f"within {min_radius:.3g} (the smallest fit near it): every H and K is NaN; use a smaller radius",
             NemoWarning, stacklevel=3)
     return band
 
@@ -1093,15 +1099,20 @@ def _apply_rim_band(df: pd.DataFrame, band: dict, near_rim: np.ndarray, radius: 
     """Put the rim band's fits (:func:`_rim_band_fits`) into the curvature table (in place).
 
     Its vertices take the directions of their nearest band sample (the samples their own, and
-    their fitted principal values unless averaged); ``fit_radius`` is ``radius`` off the band;
-    a band vertex without a fit is NaN.
+    their fitted principal values unless averaged; ``sampled`` marks the band's samples there);
+    ``fit_radius`` is ``radius`` off the band; a rim band vertex without a fit is NaN.
     """
     fitted = np.isfinite(band["H"])
     for axis, c in enumerate("xyz"):
         df.loc[fitted, f"d1{c}"] = band["d1"][fitted, axis]
         df.loc[fitted, f"d2{c}"] = band["d2"][fitted, axis]
-    if keep_fitted and len(band["samples"]):
-        df.loc[band["samples"], "k1"], df.loc[band["samples"], "k2"] = band["k1"], band["k2"]
+    if keep_fitted:  # principal values of the band's H, K (an interior sample refitted smaller: not its first fit's)
+        H, K = df["H"].to_numpy()[fitted], df["K"].to_numpy()[fitted]
+        disc = np.sqrt(np.maximum(H * H - K, 0.0))
+        df.loc[fitted, "k1"], df.loc[fitted, "k2"] = H + disc, H - disc
+        if len(band["samples"]):
+            df.loc[band["samples"], "k1"], df.loc[band["samples"], "k2"] = band["k1"], band["k2"]
+    df.loc[fitted, "sampled"] = False
     df.loc[band["samples"], "sampled"] = True
     df.loc[near_rim & ~fitted, list(_RIM_NAN)] = np.nan
     df["fit_radius"] = np.where(near_rim | fitted, band["fit_radius"], radius)

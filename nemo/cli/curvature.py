@@ -15,9 +15,9 @@ least squares to the neighbours within --radius of a random subset of vertices, 
 of the vertex normal; the results are interpolated to all vertices by inverse-distance weights
 over the --k-interp nearest fitted vertices, then averaged over the surface (a diffusion along
 the mesh of width --smooth × radius, which averages out the fits' noise; per vertex the widest of
-0.5-1.41 × that width that agrees with the narrower ones, so a tip's peak is not flattened:
---adaptive). A vertex more curved than the radius allows (its radius of curvature below
-radius / --local-fraction) is refitted at a smaller radius. Outward normals: a sphere of radius
+0.5-1 × that width that agrees with the narrower ones, so a tip's peak is less flattened:
+--adaptive). With --local-fraction F, a vertex more curved than the radius allows (its radius
+of curvature below radius / F) is refitted at a smaller radius. Outward normals: a sphere of radius
 R has H = +1/R and K = +1/R² (units 1/µm, 1/µm²).
 
 Fits (--fit): 'quadric' is the paper's z = aξ² + bη² + cξη; 'quadratic' adds linear and
@@ -62,12 +62,12 @@ def add_arguments(parser) -> None:
                         help="width of the averaging of H and K over the surface after the fits, as a "
                              "fraction of the radius, 0 to 2 (default 0.35; 0 = the fitted values, as in the paper)")
     parser.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=None,
-                        help="average each vertex at the widest of --smooth x radius x 2^(-1, -1/2, 0, 1/2) that "
+                        help="average each vertex at the widest of --smooth x radius x (1/2, 1/sqrt(2), 1) that "
                              "agrees with the narrower ones within their noise (default); --no-adaptive: one width")
     parser.add_argument("--local-fraction", type=non_negative, metavar="F",
-                        help="fit each vertex at most F x its radius of curvature (from the fits at --radius): "
-                             "a tip or a thin tube is refitted at a smaller radius, down to 6 mean edges "
-                             "(default 0.65; 0 = --radius everywhere)")
+                        help="fit each vertex at most F x its radius of curvature (from the fits at --radius, averaged): "
+                             "a tip or a thin tube is refitted at a smaller radius, down to 6 mean edges and half "
+                             "--radius (default 0 = --radius everywhere; 0.65 suits a smooth wall with tips or thin tubes)")
     parser.add_argument("--seed", type=seed, metavar="S", help="random seed of the sample (default 0)")
     add_common(parser, output_help="output table (.parquet)")
 
