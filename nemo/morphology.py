@@ -147,10 +147,9 @@ ADAPT_AGREEMENT = 2.0
 #: edges and :data:`RIM_MIN_FRACTION` × the radius). The quartic fit of a circle whose radius is
 #: close to the fitting radius reads it 4.5 % flat (a torus's tube, an elongated object's poles).
 #: Off by default: on a rough wall (a small ball at SNR 5) the fits' noise calls for smaller fits
-#: where none is needed, and those are noise (docs/validation.md, "Curvature at the most curved tips").
+#: where none is needed, and those are noise (docs/validation.md, "Curvature at the most curved
+#: tips", which measures f = 0.65).
 DEFAULT_LOCAL_FRACTION = 0.0
-#: ... the fraction measured there (the torus's tube at SNR 10: H 3.7 → 1.7 %).
-LOCAL_FRACTION = 0.65
 #: The walk's heat kernel is one Chebyshev series up to this mean number of steps, a product
 #: of shorter ones beyond (the series agrees with the steps within 1e-5 up to ~700).
 SERIES_MAX_STEPS = 350.0
@@ -302,28 +301,39 @@ def _diffuse(walk: tuple[csr_matrix, float], values: np.ndarray, sigma: float,
     products : int
         Products with the transition matrix.
     """
-    transition, spread = walk
-    if spread == 0.0:
+    if walk[1] == 0.0:
         return values.copy(), 0
-    tau = sigma**2 / (0.5 * spread)
+    tau = sigma**2 / (0.5 * walk[1])
     flat = values.reshape(len(values), -1)
-    c = flat.shape[1]
-    usable = np.isfinite(flat)
-    state = np.concatenate([np.where(usable, flat, 0.0), usable], axis=1).astype(np.float32)  # values, weights
-    n = math.ceil(tau / SERIES_MAX_STEPS)
-    if n == 1:  # one series, an accumulator per width
-        kernels, products = _heat_series(transition, state, (tau, 2.0 * tau) if debias else (tau,))
+    ratios, products = _kernel_averages(walk, flat, (tau, 2.0 * tau) if debias else (tau,),
+                                        SERIES_MAX_STEPS * (2.0 if debias else 1.0))  # G_√2σ = G_σ G_σ
+    smoothed = 2.0 * ratios[0] - ratios[1] if debias else ratios[0]
+    return np.where(np.isfinite(flat), smoothed, np.nan).reshape(values.shape), products
+
+
+def _kernel_averages(walk: tuple[csr_matrix, float], values: np.ndarray, taus: tuple[float, ...],
+                     longest: float) -> tuple[list[np.ndarray], int]:
+    """G_τ f (N, C) for each τ of ``taus`` (ascending; NaN takes no part: the same kernel on the
+    values and on their weights, then divided) and the number of products: one Chebyshev series
+    with an accumulator per τ when the last is at most ``longest`` steps, else a chain (G_τ' =
+    G_(τ'−τ) G_τ, each a product of series of at most :data:`SERIES_MAX_STEPS` steps)."""
+    transition = walk[0]
+    c = values.shape[1]
+    usable = np.isfinite(values)
+    state = np.concatenate([np.where(usable, values, 0.0), usable], axis=1).astype(np.float32)  # values, weights
+    if taus[-1] <= longest:
+        kernels, products = _heat_series(transition, state, tuple(taus))
     else:
-        kernels, products = [], 0
-        for _ in range(2 if debias else 1):  # G_√2σ = G_σ G_σ
+        kernels, products, done = [], 0, 0.0
+        for tau in taus:  # a handful of widths
+            n = math.ceil((tau - done) / SERIES_MAX_STEPS)
             for _ in range(n):
-                (state,), k = _heat_series(transition, state, (tau / n,))
+                (state,), k = _heat_series(transition, state, ((tau - done) / n,))
                 products += k
             kernels.append(state)
+            done = tau
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratios = [kernel[:, :c].astype(np.float64) / kernel[:, c:] for kernel in kernels]
-    smoothed = 2.0 * ratios[0] - ratios[1] if debias else ratios[0]
-    return np.where(usable, smoothed, np.nan).reshape(values.shape), products
+        return [kernel[:, :c].astype(np.float64) / kernel[:, c:] for kernel in kernels], products
 
 
 def _heat_series(transition: csr_matrix, state: np.ndarray, taus: tuple[float, ...]) -> tuple[list, int]:
@@ -933,14 +943,14 @@ def _robust_average(walk: tuple[csr_matrix, float], values: np.ndarray, sigma: f
     residual = np.abs(values - first)
     if not np.isfinite(residual).any():
         return first, np.full(values.shape[1], np.nan)
-    typical = residual if noisier is None or noisier.all() else residual[~noisier]
-    scatter = 1.4826 * np.nanmedian(typical, axis=0)
+    typical = slice(None) if noisier is None or noisier.all() else ~noisier  # rows whose spread is the fits' noise
+    scatter = 1.4826 * np.nanmedian(residual[typical], axis=0)
     bound = OUTLIER_CLIP * scatter
     clipped = np.clip(values, first - bound, first + bound)
     if not adaptive:
         return _diffuse(walk, clipped, sigma, debias=True)[0], scatter
     noise = clipped - first
-    noise -= np.nanmedian(noise if noisier is None or noisier.all() else noise[~noisier], axis=0)
+    noise -= np.nanmedian(noise[typical], axis=0)
     widths = [sigma * 2.0 ** (j / 2.0) for j in ADAPT_STEPS]
     both = _diffuse_widths(walk, np.concatenate([clipped, noise], axis=1), widths)
     c = values.shape[1]
@@ -951,29 +961,14 @@ def _robust_average(walk: tuple[csr_matrix, float], values: np.ndarray, sigma: f
 def _diffuse_widths(walk: tuple[csr_matrix, float], values: np.ndarray, sigmas: list[float]) -> list[np.ndarray]:
     """Debiased averages 2 G_σ f − G_√2σ f (N, C) for each σ of ``sigmas``, ascending by √2 each.
 
-    Each width's G_√2σ is the next one's G_σ, so the kernels are τ_0 × 2^k: one Chebyshev
-    series for them all (:func:`_heat_series`) when the widest is short enough, else a chain
-    (G_2τ = G_τ G_τ, each a product of series of at most :data:`SERIES_MAX_STEPS` steps).
+    Each width's G_√2σ is the next one's G_σ, so the kernels are τ_0 × 2^k, computed together
+    (:func:`_kernel_averages`: one series, or a chain when the widest is long).
     """
-    transition, spread = walk
-    if spread == 0.0:
+    if walk[1] == 0.0:
         return [values.copy() for _ in sigmas]
-    taus = [s**2 / (0.5 * spread) for s in sigmas] + [sigmas[-1] ** 2 / (0.25 * spread)]
-    c = values.shape[1]
+    taus = [s**2 / (0.5 * walk[1]) for s in sigmas] + [sigmas[-1] ** 2 / (0.25 * walk[1])]
+    ratios = _kernel_averages(walk, values, tuple(taus), 2.0 * SERIES_MAX_STEPS)[0]
     usable = np.isfinite(values)
-    state = np.concatenate([np.where(usable, values, 0.0), usable], axis=1).astype(np.float32)
-    if taus[-1] <= 2.0 * SERIES_MAX_STEPS:
-        kernels = _heat_series(transition, state, tuple(taus))[0]
-    else:
-        kernels, done = [], 0.0
-        for tau in taus:  # a handful of widths
-            n = math.ceil((tau - done) / SERIES_MAX_STEPS)
-            for _ in range(n):
-                (state,), _ = _heat_series(transition, state, ((tau - done) / n,))
-            kernels.append(state)
-            done = tau
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratios = [kernel[:, :c].astype(np.float64) / kernel[:, c:] for kernel in kernels]
     return [np.where(usable, 2.0 * a - b, np.nan) for a, b in zip(ratios[:-1], ratios[1:])]
 
 

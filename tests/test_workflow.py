@@ -973,6 +973,17 @@ def test_the_masks_channel_reaches_the_mesh_job(tmp_path):
     assert mesh and all("--mask-channel 1" in line for line in mesh), proc.stdout[-3000:]
 
 
+def test_curvature_options_reach_the_curvature_job(tmp_path):
+    """curvature.adaptive: false and curvature.local_fraction reach `nemo curvature` (dry run):
+    --no-adaptive (the option is on by default) and --local-fraction."""
+    cfg = {"datasets": {"one": {"path": "one.tif", "synthetic": {"radius": 30, "spacing": [2, 1, 1], "seed": 3}}},
+           "curvature": {"adaptive": False, "local_fraction": 0.65}, "alignment": [],
+           "report": {"summary": False, "frames": False}}
+    proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    jobs = [line for line in proc.stdout.splitlines() if " curvature " in line and " -o " in line]
+    assert jobs and all("--no-adaptive" in line and "--local-fraction 0.65" in line for line in jobs), proc.stdout[-3000:]
+
+
 @pytest.mark.slow  # > 1 min on 2 cores (the default suite stays under ~15 min)
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
     """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
