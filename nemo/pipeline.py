@@ -225,29 +225,45 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
                                  final=final, dataset=frame["dataset"], psf=psf_c, deconvolved=sharp)
                for name, layer in layers.items()}
     del volume, sharp
-    aligned = [align_frame(a, b, meshes[layers[a]["surface"]], out, written)
-               for a, b in sections["alignment"] or [] if a in results and b in results]
-    summary.update(config=sections, mesh=mesh_params, layers=results, alignment=aligned, files=sorted(written),
-                   qc=_quality(out, sections, layers, t, c, frame["seg"]),
+    pairs = [(a, b) for a, b in sections["alignment"] or [] if a in results and b in results]
+    for a, b in pairs:
+        align_frame(a, b, meshes[layers[a]["surface"]], out, written)
+    frames = _frame_rows(out, sections, layers, t, c, frame["seg"])
+    summary.update(config=sections, mesh=mesh_params, layers=results, files=sorted(written),
+                   alignment=_alignment_rows(out, pairs, t, c, frames), qc=_quality(frames),
                    timings_s=timings, total_s=round(time.perf_counter() - start, 3),
                    peak_rss_mb=round(_peak_rss_mb(), 1))
     atomic.write_json(out / layout.SUMMARY_JSON, summary)
     return summary
 
 
-def _quality(out: Path, sections: dict, layers: dict, t: int, c: int, seg: int) -> list[dict]:
-    """The frame's quality control, as the workflow's ``frames.parquet`` has it: one record per
-    layer (per surface without layers) and object, with ``qc_pass`` and ``qc_flags``
-    (:func:`nemo.summary.frame_summary` on the files just written)."""
+def _frame_rows(out: Path, sections: dict, layers: dict, t: int, c: int, seg: int):
+    """The frame's rows of the workflow's ``frames.parquet`` (:func:`nemo.summary.frame_summary` on the
+    files just written): one per layer (per surface without layers) and object."""
     from nemo.summary import frame_summary
 
     records = [layout.frame_record(sections, t, c, name, str(out), str(out)) for name in layers]
     if not sections["layers"]:
         records = [layout.frame_record(sections, t, seg, "", str(out), surface=surface)
                    for surface in sections["surfaces"]]
-    rows = frame_summary(records)
+    return frame_summary(records)
+
+
+def _quality(frames) -> list[dict]:
+    """The frame's quality control, as the workflow's ``frames.parquet`` has it: one record per
+    layer (per surface without layers) and object, with ``qc_pass`` and ``qc_flags``."""
     return [{"layer": r.layer, "surface": r.surface, "object": int(r.object), "qc_pass": bool(r.qc_pass),
-             "qc_flags": str(r.qc_flags)} for r in rows.itertuples()]
+             "qc_flags": str(r.qc_flags)} for r in frames.itertuples()]
+
+
+def _alignment_rows(out: Path, pairs: list, t: int, c: int, frames) -> list[dict]:
+    """The frame's rows of the workflow's ``alignment.parquet`` (:func:`nemo.summary.alignment_summary`),
+    NaN as None."""
+    from nemo.summary import alignment_summary
+
+    records = [{"t": t, "c": c, "layer_a": a, "layer_b": b, "align": out / layout.align_file(a, b)} for a, b in pairs]
+    rows = alignment_summary(records, frames).to_dict("records")
+    return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()} for r in rows]
 
 
 def _deconvolved(volume, info, psf, timed, needed: bool):
@@ -462,11 +478,10 @@ def _imported_directors(name, layer, mesh, t: int, c: int, dataset: str | None, 
     return ddf, dp, path
 
 
-def align_frame(a: str, b: str, mesh_a, out: Path, written: list) -> dict:
+def align_frame(a: str, b: str, mesh_a, out: Path, written: list) -> None:
     """c = cos 2Δθ between the directors of layers a and b, and c_avg between their averaged
-    directors (the workflow's align rule); returns the pair's summary (:func:`nemo.summary.c_avg_means`)."""
+    directors (the workflow's align rule), written to the frame's ``align_A_B.parquet``."""
     from nemo.order import alignment
-    from nemo.summary import c_avg_means
     from nemo.tables import read_table, write_table
 
     n = len(mesh_a.vertices)
@@ -476,10 +491,6 @@ def align_frame(a: str, b: str, mesh_a, out: Path, written: list) -> dict:
     df = alignment(da, db, mesh_a=mesh_a, **orders)
     write_table(df, out / layout.align_file(a, b), command="align", n_vertices=n, max_distance=None)
     written.append(layout.align_file(a, b))
-    c = df["c"].to_numpy(np.float64)
-    return {"layer_a": a, "layer_b": b, "n": int(np.isfinite(c).sum()),
-            "c_mean": float(np.nanmean(c)) if np.isfinite(c).any() else None,
-            **{k: (None if not np.isfinite(v) else v) for k, v in c_avg_means(df).items()}}
 
 
 def _remove_stale(out: Path, written: list[str]) -> None:

@@ -9,7 +9,8 @@ these functions collect the per-frame tables into ``results/{dataset}/summary/``
   defects, their total charge and the frame's quality control (``qc_pass``, ``qc_flags``);
 * :func:`collect_defects` -> the defects of all frames with ``t``, ``c``, ``layer`` columns
   (``nemo track`` then adds ``track_id``);
-* :func:`alignment_summary` -> ``alignment.parquet``: one row per (t, c, layer pair).
+* :func:`alignment_summary` -> ``alignment.parquet``: one row per (t, c, layer pair), with the pair's
+  quality control (:func:`alignment_flags`).
 
 Every input is described by a *record*: a dict of the frame's keys (``t``, ``c``, ``layer``...)
 and the paths of its files. Nothing here recomputes science; it reads tables and averages.
@@ -83,7 +84,11 @@ DEFECT_COLUMNS = ("t", "c", "layer", "object", "x", "y", "z", "charge", "charge_
                   "charge_winding", "charge_curvature")
 #: Columns of alignment.parquet.
 ALIGN_COLUMNS = ("t", "c", "layer_a", "layer_b", "n", "c_mean", "c_median", "c_std",
-                 "fraction_parallel", "fraction_orthogonal", "c_avg_mean", "c_avg_median")
+                 "fraction_parallel", "fraction_orthogonal", "c_avg_mean", "c_avg_median", "qc_pass", "qc_flags")
+#: Lowest fraction of layer A's directors compared with a director of B that passes (the others have
+#: no valid director or no partner within ``max_distance``): below it the pair's statistics describe
+#: a part of the surface only.
+QC_MIN_ALIGN_COMPARED = 0.5
 
 
 def _finite_mean(values) -> float:
@@ -116,6 +121,11 @@ def _read_measure(path: str | Path) -> dict:
 
 def _num(value) -> float:
     return float(value) if value is not None else math.nan
+
+
+def _value(value) -> float:
+    """A table cell as a float: NaN for None, NaN and NA."""
+    return math.nan if value is None or pd.isna(value) else float(value)
 
 
 #: Per-frame tables a record may name, with their kind (:mod:`nemo.tables`).
@@ -279,12 +289,7 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
                      "(set layers.NAME.range to include it)")
     if not directed:  # no order and no defects follow from it
         return flags
-    coherency, floor = row.get("coherency_median", math.nan), row.get("coherency_noise", math.nan)
-    if np.isfinite(coherency) and coherency < QC_MIN_COHERENCY:
-        flags.append(f"median director coherency {coherency:.2f}: hardly any orientation")
-    elif np.isfinite(coherency) and np.isfinite(floor) and coherency < floor:
-        flags.append(f"median director coherency {coherency:.2f}, below white noise's {floor:.2f} with these "
-                     "patches: no texture to orient (noise, or no fibres at that depth)")
+    flags += _coherency_flags(row)
     faint = row.get("defects_faint")
     if faint is not None and not pd.isna(faint) and faint > 0:
         lowest = row.get("defect_coherency_min", math.nan)
@@ -297,6 +302,17 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
     if searched and closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
         flags.append(f"Σ charge {charge:.2f} ≠ χ {chi:.0f} ({row['n_defects']} defects)")
     return flags
+
+
+def _coherency_flags(row: Mapping) -> list[str]:
+    """A layer whose directors show hardly any orientation, or less than white noise does."""
+    coherency, floor = _value(row.get("coherency_median")), _value(row.get("coherency_noise"))
+    if np.isfinite(coherency) and coherency < QC_MIN_COHERENCY:
+        return [f"median director coherency {coherency:.2f}: hardly any orientation"]
+    if np.isfinite(coherency) and np.isfinite(floor) and coherency < floor:
+        return [f"median director coherency {coherency:.2f}, below white noise's {floor:.2f} with these "
+                "patches: no texture to orient (noise, or no fibres at that depth)"]
+    return []
 
 
 def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
@@ -528,13 +544,16 @@ def c_avg_means(table: pd.DataFrame) -> dict:
             "c_avg_median": float(np.median(c[ok])) if ok.any() else math.nan}
 
 
-def alignment_summary(records: Iterable[Mapping]) -> pd.DataFrame:
+def alignment_summary(records: Iterable[Mapping], frames: pd.DataFrame | None = None) -> pd.DataFrame:
     """One row per (t, c, layer pair) from the ``nemo align`` tables.
 
     Parameters
     ----------
     records : iterable of mapping
         Each with keys ``t``, ``c``, ``layer_a``, ``layer_b`` and ``align`` (path).
+    frames : DataFrame, optional
+        ``frames.parquet`` (:func:`frame_summary`) of the same frames, for the two layers' part of
+        the pair's quality control (:func:`alignment_flags`); without it only the pair's own part.
 
     Returns
     -------
@@ -543,22 +562,74 @@ def alignment_summary(records: Iterable[Mapping]) -> pd.DataFrame:
         standard deviation of c = cos 2(θ_B − θ_A), and the fractions with c > 0.5 (close to
         parallel, within 30°) and c < −0.5 (close to orthogonal); ``c_avg_mean`` (weighted by S_A ·
         S_B) and ``c_avg_median`` of the averaged directors' alignment (:func:`nemo.order.alignment`:
-        noise pulls the mean of c towards 0, not c_avg), NaN for a table without it.
+        noise pulls the mean of c towards 0, not c_avg), NaN for a table without it; ``qc_pass``
+        and ``qc_flags``.
     """
+    by_layer = {} if frames is None else {key: group.to_dict("records")
+                                          for key, group in frames.groupby(["t", "c", "layer"], sort=False)}
     rows = []
     for r in records:
         table = read_table(r["align"], "align")
         c = table["c"].to_numpy(dtype=np.float64)
         c = c[np.isfinite(c)]
-        rows.append({**c_avg_means(table),
-            "t": int(r["t"]), "c": int(r["c"]), "layer_a": str(r["layer_a"]),
-            "layer_b": str(r["layer_b"]), "n": int(c.size),
-            "c_mean": float(c.mean()) if c.size else math.nan,
-            "c_median": float(np.median(c)) if c.size else math.nan,
-            "c_std": float(c.std()) if c.size else math.nan,
-            "fraction_parallel": float((c > 0.5).mean()) if c.size else math.nan,
-            "fraction_orthogonal": float((c < -0.5).mean()) if c.size else math.nan,
-        })
+        t, ch, a, b = int(r["t"]), int(r["c"]), str(r["layer_a"]), str(r["layer_b"])
+        row = {**c_avg_means(table), "t": t, "c": ch, "layer_a": a, "layer_b": b, "n": int(c.size),
+               "c_mean": float(c.mean()) if c.size else math.nan,
+               "c_median": float(np.median(c)) if c.size else math.nan,
+               "c_std": float(c.std()) if c.size else math.nan,
+               "fraction_parallel": float((c > 0.5).mean()) if c.size else math.nan,
+               "fraction_orthogonal": float((c < -0.5).mean()) if c.size else math.nan}
+        flags = alignment_flags({**row, "compared": c.size / max(len(table), 1)},
+                                {name: by_layer.get((t, ch, name), []) for name in (a, b)})
+        rows.append({**row, "qc_pass": not flags, "qc_flags": "; ".join(flags)})
     out = pd.DataFrame(rows, columns=list(ALIGN_COLUMNS))
-    out = out.astype({"t": "int64", "c": "int64", "n": "int64"})
+    out = out.astype({"t": "int64", "c": "int64", "n": "int64", "qc_pass": "bool", "qc_flags": "str"})
     return out.sort_values(["t", "c", "layer_a", "layer_b"], kind="stable").reset_index(drop=True)
+
+
+def alignment_flags(pair: Mapping, layer_rows: Mapping[str, list[Mapping]]) -> list[str]:
+    """Reasons to distrust one row of ``alignment.parquet`` (empty list: it passes).
+
+    The pair is as good as the two fields it compares: a layer whose segmented channel is empty or
+    below :data:`QC_MIN_SNR`, or whose directors show no more orientation than white noise, makes
+    both c and c_avg noise (a review's Hydra layers at 90°, SNR 4: c_avg −0.27). A layer's other
+    flags (its Σ charge, faint defects, thickness) say nothing of the alignment and are left out.
+
+    Parameters
+    ----------
+    pair : mapping
+        The pair's row so far (``layer_a``, ``layer_b``, ``n``) and ``compared``, the fraction of
+        A's directors compared with one of B.
+    layer_rows : mapping
+        Each layer's rows of ``frames.parquet`` at the pair's (t, c), one per object; a layer
+        without rows is not checked.
+
+    Returns
+    -------
+    list of str
+        Human-readable reasons, e.g. ``"layer endo: median director coherency 0.44, below white
+        noise's 0.54 …"``.
+    """
+    if not pair["n"]:
+        return ["no director of A was compared with one of B (a layer without directors?)"]
+    flags = []
+    if pair["compared"] < QC_MIN_ALIGN_COMPARED:
+        flags.append(f"only {100 * pair['compared']:.0f} % of layer {pair['layer_a']}'s directors compared with "
+                     f"one of layer {pair['layer_b']}")
+    for name in dict.fromkeys((pair["layer_a"], pair["layer_b"])):
+        rows = layer_rows.get(name) or []
+        for row in rows:
+            where = f"layer {name}" + (f" object {row['object']}" if len(rows) > 1 else "")
+            flags += [f"{where}: {flag}" for flag in _field_flags(row)]
+    return flags
+
+
+def _field_flags(row: Mapping) -> list[str]:
+    """The flags of a frame's row (:func:`quality_flags`) that make its director field noise."""
+    snr = _value(row.get("snr"))
+    if np.isfinite(snr) and snr < QC_MIN_SNR:
+        return [f"low signal-to-noise ratio {snr:.1f} in the segmented channel"]
+    n = row.get("n_directors")
+    if n is None or pd.isna(n) or not n:
+        return ["no directors"]
+    return _coherency_flags(row)

@@ -381,8 +381,10 @@ def test_alignment_summary_statistics(tmp_path):
     assert out["t"].tolist() == [0, 1]
     empty, row = out.iloc[0], out.iloc[1]
     assert empty["n"] == 0
-    for key in ALIGN_COLUMNS[5:]:
+    for key in ALIGN_COLUMNS[5:-2]:
         assert np.isnan(empty[key]), key
+    assert not empty["qc_pass"] and "no director of A was compared" in empty["qc_flags"]
+    assert row["qc_pass"] and row["qc_flags"] == ""  # 4 of 5 compared; no frames given: no layer checked
     # finite c = [1, -1, 0, 0.8]
     assert row["n"] == 4
     assert row["c_mean"] == pytest.approx(0.2)
@@ -402,6 +404,44 @@ def test_alignment_summary_weights_the_averaged_alignment_by_order(tmp_path):
     row = alignment_summary([{"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}]).iloc[0]
     assert row["c_avg_mean"] == pytest.approx((-0.9 - 0.4 + 0.1) / 1.5)
     assert row["c_avg_median"] == pytest.approx(-0.8)
+
+
+def _layer_row(layer, **values):
+    """A row of frames.parquet at t 0, c 0 that passes the alignment's checks unless ``values`` say otherwise."""
+    return {"t": 0, "c": 0, "layer": layer, "object": 0, "snr": 12.0, "n_directors": 900, "coherency_median": 0.7,
+            "coherency_noise": 0.5, "charge_sum": 2.0, **values}
+
+
+@pytest.mark.parametrize("bad, flag", [
+    ({"coherency_median": 0.44, "coherency_noise": 0.54}, "layer b: median director coherency 0.44, below white noise's"),
+    ({"coherency_median": 0.1}, "layer b: median director coherency 0.10: hardly any orientation"),
+    ({"snr": 2.1}, "layer b: low signal-to-noise ratio 2.1"),
+    ({"n_directors": 0}, "layer b: no directors"),
+    ({"n_directors": pd.NA}, "layer b: no directors"),
+])
+def test_alignment_fails_with_a_layer_whose_field_is_noise(tmp_path, bad, flag):
+    """The pair fails when either layer's field is noise (its frame row's SNR, director count or
+    coherency); the layer's flags that do not concern its field (Σ charge ≠ χ) are not the pair's."""
+    write_table(pd.DataFrame({"vertex": range(4), "c": [-1.0, -0.9, -1.0, -0.8]}), tmp_path / "a.parquet")
+    record = {"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}
+    frames = pd.DataFrame([_layer_row("a", charge_sum=1.0, qc_pass=False, qc_flags="Σ charge 1.00 ≠ χ 2"),
+                           _layer_row("b"), _layer_row("b", t=1, snr=1.0)])  # another frame's row is not this pair's
+    good = alignment_summary([record], frames).iloc[0]
+    assert good["qc_pass"] and good["qc_flags"] == ""
+    frames.loc[1, list(bad)] = pd.Series(bad)
+    row = alignment_summary([record], frames).iloc[0]
+    assert not row["qc_pass"] and row["qc_flags"].startswith(flag), row["qc_flags"]
+    assert row["c_mean"] == pytest.approx(-0.925)  # the statistics are the same
+
+
+def test_alignment_fails_when_few_directors_are_compared_and_names_the_object(tmp_path):
+    write_table(pd.DataFrame({"vertex": range(4), "c": [-1.0, NAN, NAN, NAN]}), tmp_path / "a.parquet")
+    frames = pd.DataFrame([_layer_row("a"), _layer_row("b"), _layer_row("b", object=1, coherency_median=0.05)])
+    row = alignment_summary([{"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}],
+                            frames).iloc[0]
+    flags = row["qc_flags"].split("; ")
+    assert flags[0] == "only 25 % of layer a's directors compared with one of layer b"
+    assert flags[1].startswith("layer b object 1: median director coherency 0.05") and len(flags) == 2
 
 
 def test_alignment_summary_needs_a_c_column(tmp_path):

@@ -382,6 +382,7 @@ def test_changing_tracking_reruns_only_tracking(demo_run, tmp_path):
 def test_nemo_run_with_the_workflow_config_gives_the_workflows_numbers(demo_run, tmp_path):
     """The same config file through snakemake and through `nemo run`: identical per-frame tables."""
     from nemo import layout
+    from nemo.summary import ALIGN_COLUMNS
     from nemo.tables import read_table
 
     out = tmp_path / "run"
@@ -415,9 +416,12 @@ def test_nemo_run_with_the_workflow_config_gives_the_workflows_numbers(demo_run,
     # and the same alignment summary: alignment.parquet's row of t1 and summary.json's entry
     row = pd.read_parquet(demo_run / "results" / "demo" / "summary" / "alignment.parquet").query("t == 1").iloc[0]
     (pair,) = json.loads((out / "summary.json").read_text())["alignment"]
-    assert (pair["layer_a"], pair["layer_b"], pair["n"]) == (row["layer_a"], row["layer_b"], row["n"])
-    for key in ("c_mean", "c_avg_mean", "c_avg_median"):
+    assert set(pair) == set(ALIGN_COLUMNS)
+    for key in ("t", "c", "layer_a", "layer_b", "n", "qc_pass", "qc_flags"):
+        assert pair[key] == row[key], key
+    for key in ("c_mean", "c_median", "c_std", "fraction_parallel", "fraction_orthogonal", "c_avg_mean", "c_avg_median"):
         assert pair[key] == pytest.approx(row[key], abs=1e-12), key
+    assert f"alignment {pair['layer_a']} / {pair['layer_b']}: c_avg" in proc.stdout
 
 
 def _droplets(path: Path, radii, spacing=(1.0, 0.42, 0.42)) -> None:

@@ -74,8 +74,20 @@ def run(args) -> int:
         print(f"  {len(res['defects'])} defect(s), sum of charges {chk['sum_charge']:.3f} vs chi = "
               f"{chk['euler_characteristic']}{'' if chk['closed'] else ' (open surface)'}")
     _print_qc(summary["qc"])
+    for pair in summary["alignment"]:
+        print(_alignment_line(pair))
     print(f"done in {summary['total_s']:.1f} s, peak memory {summary['peak_rss_mb']:.0f} MB -> {args.output}")
     return 0
+
+
+def _alignment_line(pair: dict) -> str:
+    """One layer pair's alignment and its quality control (a row of the workflow's alignment.parquet)."""
+    def signed(value) -> str:
+        return "n/a" if value is None else f"{value:+.3f}"
+
+    qc = "pass" if pair["qc_pass"] else "FAIL: " + pair["qc_flags"]
+    return (f"alignment {pair['layer_a']} / {pair['layer_b']}: c_avg {signed(pair['c_avg_mean'])} (averaged directors, "
+            f"S-weighted), mean c {signed(pair['c_mean'])} over {pair['n']} directors; quality control: {qc}")
 
 
 #: Most quality-control rows printed one by one (more: counted per layer, the rows in summary.json).

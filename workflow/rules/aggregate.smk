@@ -64,6 +64,7 @@ rule aggregate_defects:
 rule aggregate_alignment:
     input:
         lambda wc: [r["align"] for r in align_records(wc.dataset)],
+        frames=summary_path("frames.parquet"),
     output:
         summary_path("alignment.parquet"),
     log:

@@ -16,8 +16,8 @@ KINDS = {"frames": frame_summary, "defects": collect_defects, "alignment": align
 with open(sm.log[0], "w") as log:
     sys.stderr = log
     kind = sm.params.kind
-    if kind == "defects":  # each defect with its frame's quality control
-        table = collect_defects(sm.params.records, pd.read_parquet(sm.input.frames))
+    if kind in ("defects", "alignment"):  # each defect, each layer pair with its frames' quality control
+        table = KINDS[kind](sm.params.records, pd.read_parquet(sm.input.frames))
     else:
         table = KINDS[kind](sm.params.records)
     write_table(table, sm.output[0], command=f"workflow aggregate {kind}", dataset=sm.wildcards.dataset,
