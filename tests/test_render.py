@@ -276,6 +276,25 @@ def test_spherical_map_directors_follow_the_field(demo):
 # ------------------------------------------------------------------------------ figures
 
 
+def test_alignment_figure_shows_the_averaged_alignment_beside_c(demo):
+    """With the order tables' c_avg and weight (nemo align --order-a/--order-b), the histogram also
+    draws c_avg (S_A·S_B-weighted) and its title gives the weighted mean; without them, c alone."""
+    def histogram(fig):
+        (ax,) = [a for a in fig.axes if a.get_ylabel() == "probability density"]
+        return ax
+
+    fr = load_frame(demo["frames"][0]["dir"])
+    plain = histogram(alignment_figure(fr, ("a", "b")))
+    assert plain.get_title().startswith("mean c = ") and "c_avg" not in plain.get_title()
+    assert plain.get_legend() is None
+    df = fr.align[("a", "b")]
+    n = len(df)
+    fr.align[("a", "b")] = df.assign(c_avg=np.r_[np.full(n - 1, -0.9), 1.0], weight=np.r_[np.full(n - 1, 0.5), 0.0])
+    hist = histogram(alignment_figure(fr, ("a", "b")))
+    assert hist.get_title().endswith("c_avg = -0.90")  # the zero-weight +1 left out
+    assert [t.get_text() for t in hist.get_legend().get_texts()] == ["c per director", "c_avg (S-weighted)"]
+
+
 def test_colour_bar_labels_have_units(demo):
     fr = load_frame(demo["frames"][0]["dir"])
     fig = morphology_figure(fr.surfaces["inner"])

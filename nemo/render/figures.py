@@ -37,6 +37,7 @@ from nemo.render.style import (
     robust_limits,
     unit_text,
 )
+from nemo.summary import c_avg_means
 
 
 def _figure(ncols: int = 1, width: float = 6.0, height: float = 4.2):
@@ -251,11 +252,20 @@ def alignment_figure(frame: Frame, pair: tuple[str, str], n_polar: int = 120):
     ax_m.set_title(f"alignment {pair[0]} vs {pair[1]}", fontsize=10)
     c = df["c"].to_numpy(float)
     c = c[np.isfinite(c)]
-    ax_h.hist(c, bins=np.linspace(-1, 1, 41), density=True, color="tab:purple", alpha=0.85)
+    bins = np.linspace(-1, 1, 41)
+    ax_h.hist(c, bins=bins, density=True, color="tab:purple", alpha=0.85, label="c per director")
     if c.size:
         ax_h.axvline(float(c.mean()), color="k", ls="--", lw=1)
+    averaged = c_avg_means(df)["c_avg_mean"]
+    if np.isfinite(averaged):  # with the order tables: c between the averaged directors, S_A·S_B-weighted
+        ok = np.isfinite(df["c_avg"].to_numpy(float)) & (df["weight"].to_numpy(float) > 0)
+        ax_h.hist(df["c_avg"].to_numpy(float)[ok], bins=bins, weights=df["weight"].to_numpy(float)[ok],
+                  density=True, histtype="step", color="tab:orange", lw=1.5, label="c_avg (S-weighted)")
+        ax_h.axvline(averaged, color="tab:orange", ls="--", lw=1)
+        ax_h.legend(fontsize=8, loc="upper center")
     ax_h.set_xlim(-1, 1)
     ax_h.set_xlabel(field_label("c"))
     ax_h.set_ylabel("probability density")
-    ax_h.set_title(f"mean c = {c.mean():+.2f} (n = {c.size})" if c.size else "no values", fontsize=10)
+    title = f"mean c = {c.mean():+.2f} (n = {c.size})" if c.size else "no values"
+    ax_h.set_title(title + (f", c_avg = {averaged:+.2f}" if np.isfinite(averaged) else ""), fontsize=10)
     return fig
