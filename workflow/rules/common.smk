@@ -182,7 +182,8 @@ wildcard_constraints:
 
 
 # ----------------------------------------------------------------------------- options
-#: Boolean keys whose command-line option is on by default: False is spelled ``--no-KEY``.
+#: Boolean keys whose command-line option is --KEY / --no-KEY (the command may default them otherwise): False is
+#: spelled ``--no-KEY``, so a config's false always reaches the command.
 NEGATABLE = ("adaptive", "refine")
 
 
