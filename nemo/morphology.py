@@ -1478,6 +1478,67 @@ def check_same_object(mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh) -> None:
         )
 
 
+#: Fewest rim vertices of a surface on a face of the meshes' bounding box for that face to count as
+#: where the image's border cut it (``mesh.border: open`` puts the rim exactly on the border plane;
+#: a torn wall's hole may touch the box at a vertex or two).
+CUT_MIN_RIM_VERTICES = 3
+
+
+def beyond_view(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh, missed: np.ndarray,
+                direction: Literal["outward", "inward", "nearest"] = "outward") -> np.ndarray:
+    """Which missed thickness rays left the field of view where the image's border cut ``mesh_to``.
+
+    A surface cut by the border (``mesh.border: open``) has its rim on the border's planes, the
+    faces of the two meshes' bounding box. A ray from near the rim that leaves the box through such
+    a face would have met the other wall beyond the image: its NaN is the field of view's, not a
+    hole in the wall (a ray that leaves through an uncut face is). Without a cut, none is.
+
+    Parameters
+    ----------
+    mesh_from, mesh_to : trimesh.Trimesh
+        The surfaces of :func:`thickness`.
+    missed : ndarray of bool, shape (N,)
+        The rays to classify (e.g. the vertices of ``mesh_from`` with a NaN thickness).
+    direction : {"outward", "inward", "nearest"}
+        As in :func:`thickness` (``"nearest"``: either direction left through a cut).
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True where a ray in ``missed`` leaves the box through a cut face.
+    """
+    out = np.zeros(len(mesh_from.vertices), dtype=bool)
+    missed = np.asarray(missed, dtype=bool)
+    cut, lo, hi = _cut_faces(mesh_from, mesh_to)
+    if not missed.any() or not cut.any():
+        return out
+    origins = np.asarray(mesh_from.vertices, dtype=np.float64)[missed]
+    normals = vertex_normals(mesh_from)[missed]
+    signs = {"outward": (1.0,), "inward": (-1.0,), "nearest": (1.0, -1.0)}[direction]
+    rows = np.arange(len(origins))
+    for sign in signs:
+        dirs = sign * normals
+        with np.errstate(divide="ignore", invalid="ignore"):  # an axis the ray runs along: never left through
+            t = np.where(dirs > 0, (hi - origins) / dirs, np.where(dirs < 0, (lo - origins) / dirs, np.inf))
+        t = np.where(np.isfinite(t), t, np.inf)
+        axis = np.argmin(t, axis=1)
+        side = (dirs[rows, axis] > 0).astype(int)
+        out[np.flatnonzero(missed)] |= cut[axis, side] & np.isfinite(t[rows, axis])
+    return out
+
+
+def _cut_faces(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """((3, 2) bool: the bounding-box faces (x, y, z; low, high) holding at least
+    :data:`CUT_MIN_RIM_VERTICES` of ``mesh_to``'s rim vertices, the box's low and high corners)."""
+    both = np.vstack([np.asarray(mesh_from.vertices), np.asarray(mesh_to.vertices)])
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    ends = rim(np.asarray(mesh_to.faces), len(mesh_to.vertices))["vertices"]
+    on_rim = np.asarray(mesh_to.vertices, dtype=np.float64)[ends]
+    tol = 1e-6 * max(float(np.linalg.norm(hi - lo)), 1e-300)
+    cut = np.stack([(np.abs(on_rim - lo) <= tol).sum(axis=0), (np.abs(on_rim - hi) <= tol).sum(axis=0)], axis=1)
+    return cut >= CUT_MIN_RIM_VERTICES, lo, hi
+
+
 def _warn_misses(d: np.ndarray, direction: str) -> None:
     """Warn when most rays found no surface: a thickness of mostly NaN is no measurement."""
     missed = float(np.mean(np.isnan(d))) if len(d) else 1.0

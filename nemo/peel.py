@@ -224,6 +224,38 @@ def peel(
     return intensity
 
 
+def leaves_image(shape: tuple[int, int, int], spacing: tuple[float, float, float], vertices: np.ndarray,
+                 normals: np.ndarray, d_min: float, d_max: float, shift: np.ndarray | None = None) -> np.ndarray:
+    """Which vertices' sampling segments of :func:`peel` leave the image box ``[0, (n − 1) d]``.
+
+    The box is convex, so a segment stays inside it when both its ends do.
+
+    Parameters
+    ----------
+    shape : (Z, Y, X)
+        The image's shape.
+    spacing : (dz, dy, dx)
+    vertices, normals : ndarray, shape (N, 3)
+        Physical x, y, z and the direction of increasing depth, as given to :func:`peel`.
+    d_min, d_max : float
+        The depth range; ``shift`` (N,) the per-vertex offset, as in :func:`peel`.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        False also where a normal or the shift is not finite (no segment).
+    """
+    box = (np.asarray(shape, dtype=np.float64) - 1.0)[::-1] * np.asarray(spacing, dtype=np.float64)[::-1]  # x, y, z
+    unit = unit_vectors(np.asarray(normals, dtype=np.float64))
+    offset = np.zeros(len(vertices)) if shift is None else np.asarray(shift, dtype=np.float64)
+    out = np.zeros(len(vertices), dtype=bool)
+    for depth in (d_min, d_max):
+        end = np.asarray(vertices, dtype=np.float64) + (depth + offset)[:, None] * unit
+        with np.errstate(invalid="ignore"):
+            out |= np.any((end < 0.0) | (end > box), axis=1)
+    return out & np.isfinite(unit).all(axis=1) & np.isfinite(offset)
+
+
 def _check_peel_args(volume, spacing, vertices, normals, d_min, d_max, n_samples, reduce, interp, shift):
     """The arrays of :func:`peel` as float64 (volume as given), refused when shapes or options are bad.
 

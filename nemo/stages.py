@@ -595,7 +595,10 @@ def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
 
     An object whose two surfaces are the same one (one wall, ``mesh.split: auto``) has no
     thickness: NaN at its vertices, with a warning, and ``one_wall`` (its labels) in the section.
+    ``beyond_view`` marks the rays that met nothing because they left the field of view where the
+    image's border cut the surface (:func:`nemo.morphology.beyond_view`; their count in the section).
     """
+    from nemo.morphology import beyond_view
     from nemo.morphology import thickness as ray_thickness
 
     p = nconfig.section("thickness", params)
@@ -610,7 +613,11 @@ def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
     else:
         d = ray_thickness(mesh_from, mesh_to, direction=p["direction"], max_distance=p["max_distance"])
         d[one_wall] = np.nan
-    return _labelled(pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d}), mesh_from), p
+    outside = np.zeros(len(d), dtype=bool) if one_wall.all() else beyond_view(
+        mesh_from, mesh_to, np.isnan(d) & ~one_wall, p["direction"])
+    p["beyond_view"] = int(outside.sum())
+    df = pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d, "beyond_view": outside})
+    return _labelled(df, mesh_from), p
 
 
 def _one_wall(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh) -> tuple[np.ndarray, list]:
@@ -650,10 +657,12 @@ def peel(
     per-vertex thickness when the layer's ``shift`` fraction is non-zero; ``psf`` the PSF the
     image is deconvolved by first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does), or
     ``deconvolved`` (that volume and its record, already made) is peeled instead.
-    Returns the layer table (vertex, intensity), the resolved layer (with ``deconvolution``,
-    the deconvolution's record) and, with ``return_profile``, the samples and their depths.
+    Returns the layer table (vertex, intensity, beyond_view: NaN because the samples leave the
+    image), the resolved layer (with ``deconvolution``, the deconvolution's record) and, with
+    ``return_profile``, the samples and their depths.
     """
     from nemo.mesh import vertex_normals
+    from nemo.peel import leaves_image
     from nemo.peel import peel as sample
 
     p = nconfig.section("layer", params)
@@ -673,7 +682,12 @@ def peel(
     if constant:  # kept, so the frame's other steps and summaries go on; directors skip it, the QC flags it
         warnings.warn(f"{constant}; its directors will be skipped", NemoWarning, stacklevel=2)
     _check_texture_depth(volume, spacing, mesh, normals, dmin, dmax, p)
-    df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity}), mesh)
+    # NaN where the samples leave the image: on a surface cut by the border, the field of view's (quality control)
+    outside = np.isnan(intensity) & leaves_image(volume.shape, spacing, np.asarray(mesh.vertices), normals, dmin,
+                                                 dmax, offset)
+    p["beyond_view"] = int(outside.sum())
+    df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity,
+                                 "beyond_view": outside}), mesh)
     return (df, p, result[1], result[2]) if return_profile else (df, p)
 
 

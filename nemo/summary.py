@@ -166,11 +166,21 @@ def _directors_params(r: Mapping, label: int) -> dict:
     return params
 
 
+def _beyond_view(table: pd.DataFrame) -> np.ndarray:
+    """The table's ``beyond_view`` (NaN because the field of view ends there: :func:`nemo.stages.peel`,
+    :func:`nemo.stages.thickness`); all False for a table without it."""
+    if "beyond_view" not in table:
+        return np.zeros(len(table), dtype=bool)
+    return table["beyond_view"].fillna(False).to_numpy(dtype=bool)
+
+
 def _layer_columns(tables: Mapping[str, pd.DataFrame]) -> dict:
     # an imported layer (directors_from) has no peeled intensity
     intensity = tables["layer_table"]["intensity"] if "layer_table" in tables else None
     row = {"intensity_mean": _finite_mean(intensity) if intensity is not None else math.nan,
            "peel_nan_fraction": _nan_fraction(intensity) if intensity is not None else math.nan}
+    if intensity is not None:  # the quality control's: the vertices whose samples stay in the image
+        row["peel_nan_in_view"] = _nan_fraction(intensity[~_beyond_view(tables["layer_table"])])
     d = tables["directors"]
     row["n_directors"] = len(d)
     row["coherency_mean"] = _finite_mean(d["coherency"])
@@ -200,6 +210,9 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         The row's columns so far (``euler_characteristic``, ``charge_sum``, ``n_defects``,
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
         ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed;
+        ``thickness_valid_in_view`` and ``peel_nan_in_view``, the same over the vertices whose ray or
+        samples stay in the field of view (on a surface cut by the image's border the others have no
+        thickness or intensity because the view ends there, not because the wall or image lacks it);
         ``directors_skipped``, why the directors step gave none (a layer without directors gets that
         flag and the peel's, not the order, coherency and charge flags that follow from it);
         ``defects_skipped``, why the defect search did not run (no charge sum to check); ``texture``,
@@ -247,9 +260,10 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     missing = row.get("curvature_nan_fraction", math.nan)
     if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:
         flags.append(f"no curvature at {100 * missing:.0f} % of vertices (the fit radius reaches the rim)")
-    valid = row.get("thickness_valid", math.nan)
+    valid = row.get("thickness_valid_in_view", row.get("thickness_valid", math.nan))
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID and row.get("walls") != 1:  # one wall: no thickness
-        flags.append(f"thickness found at {100 * valid:.0f} % of vertices")
+        cut = row.get("thickness_valid_in_view", valid) != row.get("thickness_valid", valid)
+        flags.append(f"thickness found at {100 * valid:.0f} % of vertices" + (" in view" if cut else ""))
     return flags + (_layer_flags(row, closed, chi) if "n_directors" in row else [])
 
 
@@ -281,6 +295,8 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
     for key, what in (("peel_nan_fraction", "no layer intensity (samples outside the image?)"),
                       ("order_nan_fraction", "no order value (no tangent plane or director in reach)")):
         value = row.get(key, math.nan)
+        if key == "peel_nan_fraction" and not closed:  # cut by the border: samples beyond it are the view's
+            value, what = row.get("peel_nan_in_view", value), "no layer intensity within the field of view (NaN voxels?)"
         if np.isfinite(value) and value > QC_MAX_NAN_FRACTION and (directed or key == "peel_nan_fraction"):
             flags.append(f"{100 * value:.0f} % of vertices have {what}")
     texture = row.get("texture") or {}
@@ -458,6 +474,8 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["thickness_mean"] = _finite_mean(th)
         row["thickness_median"] = _finite_median(th)
         row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
+        in_view = th[~_beyond_view(tables["thickness"])]  # the quality control's: rays that stay in view
+        row["thickness_valid_in_view"] = float(np.isfinite(in_view).mean()) if in_view.size else math.nan
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
         directors = _directors_params(r, label)

@@ -19,8 +19,9 @@ import trimesh
 from skimage.measure import marching_cubes
 
 from nemo.errors import NemoError, NemoWarning
+from nemo.geometry import rim
 from nemo.mesh import load_mesh, make_mesh, save_mesh
-from nemo.morphology import curvature, measure, thickness, vertex_areas
+from nemo.morphology import beyond_view, curvature, measure, thickness, vertex_areas
 from nemo.tables import read_provenance, read_table
 
 ISO = (1.0, 1.0, 1.0)
@@ -621,6 +622,50 @@ def test_thickness_misses_and_max_distance():
     assert np.isfinite(thickness(inner, outer, max_distance=5.1)).all()
     dn = thickness(outer, inner, "nearest", max_distance=4.9)
     assert np.isnan(dn).all()
+
+
+def _cut_below(mesh, z0):
+    """The part of ``mesh`` above z = ``z0`` with its rim put on that plane, as ``mesh.border: open``
+    leaves a surface cut by the image's border."""
+    part = mesh.submesh([np.flatnonzero(mesh.triangles_center[:, 2] > z0)], append=True)
+    verts = np.array(part.vertices)
+    verts[rim(np.asarray(part.faces), len(verts))["vertices"], 2] = z0
+    return make_mesh(verts, part.faces, unit="um", orient_outward=False)
+
+
+def test_rays_that_leave_the_view_through_the_cut_are_told_from_a_hole():
+    """A shell (R 20 / 26 µm) cut 5 µm below its centre: an inner vertex whose radial ray meets the
+    outer sphere below the cut (u_z < −5/26) misses because the view ends there; a hole in the outer
+    wall (a cone of 15° about a diagonal) makes misses that are not the view's."""
+    c = np.zeros(3)
+    inner, outer = (_cut_below(sphere_mesh(r, ISO, c), -5.0) for r in (20.0, 26.0))
+    v = np.asarray(inner.vertices)
+    u_z = v[:, 2] / np.linalg.norm(v, axis=1)
+    d = thickness(inner, outer)
+    missed = np.isnan(d)
+    beyond = beyond_view(inner, outer, missed)
+    below = u_z < -5.0 / 26.0 - 0.01
+    assert below.sum() > 100 and missed[below].all() and beyond[below].all()
+    assert not missed[u_z > -5.0 / 26.0 + 0.01].any() and not beyond[~missed].any()
+    # a hole: its rim is not on a face of the box, so those misses are the wall's
+    axis = np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0)
+    centres = outer.triangles_center
+    keep = centres @ axis < np.cos(np.radians(15.0)) * np.linalg.norm(centres, axis=1)
+    torn = make_mesh(*_faces_kept(outer, keep), unit="um", orient_outward=False)
+    d_torn = thickness(inner, torn)
+    hole = np.isnan(d_torn) & ~missed
+    assert hole.sum() > 20
+    beyond_torn = beyond_view(inner, torn, np.isnan(d_torn))
+    assert not beyond_torn[hole].any() and beyond_torn[below].all()
+    # both directions, and a surface without a cut
+    assert beyond_view(inner, outer, missed, "nearest")[below].all()
+    whole = sphere_mesh(20.0, ISO, c)
+    assert not beyond_view(whole, sphere_mesh(26.0, ISO, c), np.ones(len(whole.vertices), bool)).any()
+
+
+def _faces_kept(mesh, keep):
+    part = mesh.submesh([np.flatnonzero(keep)], append=True)
+    return np.asarray(part.vertices), np.asarray(part.faces)
 
 
 def test_thickness_touching_and_self():

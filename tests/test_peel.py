@@ -12,7 +12,7 @@ from scipy import ndimage
 from nemo.errors import NemoError, NemoWarning
 from nemo.io import write_hyperstack
 from nemo.mesh import load_mesh, make_mesh, save_mesh, vertex_normals
-from nemo.peel import peel, sample_depths
+from nemo.peel import leaves_image, peel, sample_depths
 from nemo.tables import read_table, write_table
 
 R = 20.0        # sphere radius (µm)
@@ -328,3 +328,23 @@ def test_a_layer_that_misses_the_texture_is_warned_about_and_flagged():
     assert quality_flags(row, {}) == []
     row["texture"] = {"outside": True, "peak_depth": 7.0}
     assert [f for f in quality_flags(row, {}) if "texture peaks at depth 7" in f]
+
+
+def test_leaves_image_is_where_peel_samples_outside_the_image():
+    """:func:`leaves_image` names exactly the vertices whose segments peel finds partly outside the
+    image (random points and directions in and near an anisotropic box; a shift; no normal)."""
+    rng = np.random.default_rng(3)
+    shape, spacing = (12, 20, 30), (2.0, 1.0, 1.0)
+    box = (np.array(shape) - 1.0)[::-1] * np.array(spacing)[::-1]  # x, y, z
+    vertices = rng.uniform(0.05, 0.95, (4000, 3)) * box
+    normals = rng.normal(size=(4000, 3))
+    normals[:5] = 0.0  # no normal: NaN intensity, but no segment to leave the image
+    shift = rng.uniform(-2.0, 2.0, 4000)
+    volume = rng.uniform(1.0, 2.0, shape)
+    for d_min, d_max, sh, n in ((0.0, 6.0, None, 5), (-4.0, 3.0, shift, 5), (2.0, 2.0, shift, 1)):
+        out = leaves_image(shape, spacing, vertices, normals, d_min, d_max, sh)
+        with pytest.warns(NemoWarning):
+            nan = np.isnan(peel(volume, spacing, vertices, normals, d_min, d_max, n_samples=n, shift=sh))
+        assert 200 < out.sum() < 3900
+        np.testing.assert_array_equal(out, nan & np.isfinite(normals).all(axis=1) & (np.abs(normals).sum(axis=1) > 0))
+

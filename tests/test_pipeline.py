@@ -405,6 +405,32 @@ def test_run_frame_of_a_droplet_at_the_defaults(ball_and_labels, monkeypatch):
     assert np.nanmedian(H) * (3 * m["volume"] / (4 * math.pi)) ** (1 / 3) == pytest.approx(1.0, abs=0.03)
 
 
+def test_a_shell_cut_by_the_field_of_view_passes_where_its_rays_and_samples_leave_the_image(tmp_path):
+    """A shell (R 16 / 22 µm) whose lower part the image's bottom plane cuts (its centre 6 µm above
+    it): near the rim the thickness rays and the layer's samples leave the image (no thickness, no
+    intensity there: ``beyond_view``) and the frame's quality control does not count them; the
+    thickness in view is the wall's 6 µm."""
+    from scipy.ndimage import gaussian_filter
+
+    from nemo.io import write_hyperstack
+
+    z, y, x = np.indices((36, 56, 56), dtype=float)
+    r = np.sqrt((x - 27.5) ** 2 + (y - 27.5) ** 2 + (z - 6.0) ** 2)
+    shell = (r >= 16.0) & (r <= 22.0)
+    image = 20.0 + gaussian_filter(200.0 * shell, 1.0)
+    write_hyperstack(tmp_path / "cap.tif", image.astype(np.float32), (1, 1, 1), axes="ZYX")
+    cfg = {"datasets": {"d": {"path": str(tmp_path / "cap.tif")}}, "curvature": None,
+           "layers": {"wall": {"surface": "inner", "range": [0.0, 5.0]}}}
+    summary = run_frame(None, tmp_path / "out", cfg, dataset="d")
+    th = read_table(tmp_path / "out" / "thickness.parquet")
+    layer = read_table(tmp_path / "out" / "layer_wall.parquet")
+    assert th["beyond_view"].mean() > 0.05 and layer["beyond_view"].mean() > 0.05
+    assert th["thickness"][~th["beyond_view"]].notna().all() and layer["intensity"][~layer["beyond_view"]].notna().all()
+    assert th["thickness"].median() == pytest.approx(6.0, abs=0.3)
+    (qc,) = summary["qc"]
+    assert "thickness found" not in qc["qc_flags"] and "no layer intensity" not in qc["qc_flags"], qc["qc_flags"]
+
+
 def test_run_frame_with_user_surfaces_per_time_point(ball_and_labels):
     import trimesh
 
