@@ -917,7 +917,8 @@ def _warn_wide_average(mesh: trimesh.Trimesh, radius: float) -> None:
     size = object_radius(mesh)
     if radius > WIDE_AVERAGE * size:
         warnings.warn(f"the default averaging radius {radius:.3g} is {radius / size:.2g} × the object's radius "
-                      f"{size:.3g} ({ORDER_PER_PATCH:g} × the directors' patch, at least {PATCH_MIN_EDGES:g} mesh "
+                      f"{size:.3g} (of the sphere of its area; {ORDER_PER_PATCH:g} × the directors' patch, at least "
+                      f"{PATCH_MIN_EDGES:g} mesh "
                       "edges): S is averaged over much of the object and its defects' positions and charges are "
                       "uncertain; a finer mesh (smaller voxels or mesh.step) or a smaller order.radius helps",
                       NemoWarning, stacklevel=3)
