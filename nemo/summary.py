@@ -152,10 +152,23 @@ def _objects(m: Mapping) -> list[tuple[int, Mapping]]:
 
 
 def _layer_texture(r: Mapping) -> dict:
-    """The peel's texture check (``nemo.stages.peel``: where the texture peaks around the layer)."""
+    """The peel's texture check (``nemo.stages.peel``: where the texture peaks around the layer), with
+    the layer's ``range``."""
     if not r.get("layer_table"):
         return {}
-    return (read_provenance(r["layer_table"]).get("parameters") or {}).get("texture") or {}
+    params = read_provenance(r["layer_table"]).get("parameters") or {}
+    return {**params["texture"], "range": params.get("range")} if params.get("texture") else {}
+
+
+def _texture_hint(texture: Mapping) -> str:
+    """For a layer without orientation: where the image's texture peaks, when outside the layer's range
+    but not by enough for its own flag (a fibre layer at 4-8 µm under the default range [0, 5]:
+    1.03-1.17 × the range's strongest, an independent review)."""
+    depth, span = texture.get("peak_depth"), texture.get("range")
+    if texture.get("outside") or depth is None or not span or span[0] <= depth <= span[1]:
+        return ""
+    return (f" (the image's texture peaks at depth {depth:.3g}, outside the layer's range [{span[0]:g}, "
+            f"{span[1]:g}]: check layers.NAME.range)")
 
 
 def _directors_params(r: Mapping, label: int) -> dict:
@@ -305,7 +318,7 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
                      "(set layers.NAME.range to include it)")
     if not directed:  # no order and no defects follow from it
         return flags
-    flags += _coherency_flags(row)
+    flags += [flag + _texture_hint(texture) for flag in _coherency_flags(row)]
     faint = row.get("defects_faint")
     if faint is not None and not pd.isna(faint) and faint > 0:
         lowest = row.get("defect_coherency_min", math.nan)

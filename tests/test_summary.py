@@ -266,6 +266,17 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
      ["median director coherency 0.35, below white noise's 0.51 with these patches: no texture to orient "
       "(noise, or no fibres at that depth)"]),
     ({"coherency_median": 0.8, "coherency_noise": 0.51}, CLOSED, []),
+    # no orientation, and the image's texture peaks beyond the layer's range (not by enough for its own flag)
+    ({"coherency_median": 0.35, "coherency_noise": 0.51,
+      "texture": {"peak_depth": 6.2, "outside": False, "range": [0.0, 5.0]}}, CLOSED,
+     ["median director coherency 0.35, below white noise's 0.51 with these patches: no texture to orient "
+      "(noise, or no fibres at that depth) (the image's texture peaks at depth 6.2, outside the layer's range "
+      "[0, 5]: check layers.NAME.range)"]),
+    ({"coherency_median": 0.35, "coherency_noise": 0.51,
+      "texture": {"peak_depth": 4.2, "outside": False, "range": [0.0, 5.0]}}, CLOSED,
+     ["median director coherency 0.35, below white noise's 0.51 with these patches: no texture to orient "
+      "(noise, or no fibres at that depth)"]),
+    ({"texture": {"peak_depth": 6.2, "outside": False, "range": [0.0, 5.0]}}, CLOSED, []),  # oriented: no advice
     ({"curvature_nan_fraction": 0.5}, CLOSED, []),
     ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
