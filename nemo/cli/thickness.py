@@ -54,6 +54,8 @@ def run(args) -> int:
         print(f"  median |d| = {np.median(a):.4g} {u}, mean |d| = {a.mean():.4g} {u}, "
               f"range [{np.nanmin(d):.4g}, {np.nanmax(d):.4g}] {u}")
     print(f"  NaN (no hit{' within ' + format(args.max_distance, 'g') + ' ' + u if args.max_distance else ''}): "
-          f"{n_nan} of {len(d)} vertices ({100 * n_nan / max(len(d), 1):.1f} %)")
+          f"{n_nan} of {len(d)} vertices ({100 * n_nan / max(len(d), 1):.1f} %)"
+          + (f", {params['beyond_view']} of them beyond the field of view (their ray left the image where its "
+             "border cut the surface)" if params["beyond_view"] else ""))
     print(f"  -> {out}")
     return 0
