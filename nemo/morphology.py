@@ -1486,12 +1486,14 @@ CUT_MIN_RIM_VERTICES = 3
 
 def beyond_view(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh, missed: np.ndarray,
                 direction: Literal["outward", "inward", "nearest"] = "outward") -> np.ndarray:
-    """Which missed thickness rays left the field of view where the image's border cut ``mesh_to``.
+    """Which missed thickness rays left the field of view where the image's border cut the wall.
 
     A surface cut by the border (``mesh.border: open``) has its rim on the border's planes, the
-    faces of the two meshes' bounding box. A ray from near the rim that leaves the box through such
-    a face would have met the other wall beyond the image: its NaN is the field of view's, not a
-    hole in the wall (a ray that leaves through an uncut face is). Without a cut, none is.
+    faces of the two meshes' bounding box. A ray that met nothing and leaves the box through such a
+    face while still on its origin's side of ``mesh_to`` (within the wall: the side of the nearest
+    point of ``mesh_to``, by its face normal) would have met the other wall beyond the image: its NaN
+    is the field of view's. A ray through a hole in ``mesh_to`` leaves the box on the far side of it,
+    and one that leaves through a face without the rim is the wall's too. Without a cut, none is.
 
     Parameters
     ----------
@@ -1505,7 +1507,7 @@ def beyond_view(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh, missed: np
     Returns
     -------
     ndarray of bool, shape (N,)
-        True where a ray in ``missed`` leaves the box through a cut face.
+        True where a ray in ``missed`` leaves the box through a cut face within the wall.
     """
     out = np.zeros(len(mesh_from.vertices), dtype=bool)
     missed = np.asarray(missed, dtype=bool)
@@ -1514,6 +1516,7 @@ def beyond_view(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh, missed: np
         return out
     origins = np.asarray(mesh_from.vertices, dtype=np.float64)[missed]
     normals = vertex_normals(mesh_from)[missed]
+    start = _side_of(mesh_to, origins)
     signs = {"outward": (1.0,), "inward": (-1.0,), "nearest": (1.0, -1.0)}[direction]
     rows = np.arange(len(origins))
     for sign in signs:
@@ -1522,9 +1525,18 @@ def beyond_view(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh, missed: np
             t = np.where(dirs > 0, (hi - origins) / dirs, np.where(dirs < 0, (lo - origins) / dirs, np.inf))
         t = np.where(np.isfinite(t), t, np.inf)
         axis = np.argmin(t, axis=1)
-        side = (dirs[rows, axis] > 0).astype(int)
-        out[np.flatnonzero(missed)] |= cut[axis, side] & np.isfinite(t[rows, axis])
+        through = cut[axis, (dirs[rows, axis] > 0).astype(int)] & np.isfinite(t[rows, axis])
+        if through.any():
+            ends = origins[through] + t[rows, axis][through, None] * dirs[through]
+            through[through] = _side_of(mesh_to, ends) == start[through]
+        out[np.flatnonzero(missed)] |= through
     return out
+
+
+def _side_of(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """Per point (P, 3): True on the side of ``mesh`` its normals point to (by the nearest point's face)."""
+    closest, _, triangle = trimesh.proximity.closest_point(mesh, points)
+    return np.einsum("ij,ij->i", points - closest, np.asarray(mesh.face_normals)[triangle]) > 0.0
 
 
 def _cut_faces(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

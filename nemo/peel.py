@@ -225,10 +225,12 @@ def peel(
 
 
 def leaves_image(shape: tuple[int, int, int], spacing: tuple[float, float, float], vertices: np.ndarray,
-                 normals: np.ndarray, d_min: float, d_max: float, shift: np.ndarray | None = None) -> np.ndarray:
-    """Which vertices' sampling segments of :func:`peel` leave the image box ``[0, (n − 1) d]``.
+                 normals: np.ndarray, depths: np.ndarray, shift: np.ndarray | None = None) -> np.ndarray:
+    """Which vertices' sampling segments of :func:`peel` leave the image.
 
-    The box is convex, so a segment stays inside it when both its ends do.
+    The image box is convex, so a segment stays inside it when its first and last samples do;
+    they are computed and tested as :func:`peel` does (voxel indices within ``[0, n − 1]``), so a
+    vertex on the box's face reads the same in both.
 
     Parameters
     ----------
@@ -237,22 +239,24 @@ def leaves_image(shape: tuple[int, int, int], spacing: tuple[float, float, float
     spacing : (dz, dy, dx)
     vertices, normals : ndarray, shape (N, 3)
         Physical x, y, z and the direction of increasing depth, as given to :func:`peel`.
-    d_min, d_max : float
-        The depth range; ``shift`` (N,) the per-vertex offset, as in :func:`peel`.
+    depths : ndarray, shape (S,)
+        The sampled depths (:func:`sample_depths`); ``shift`` (N,) the per-vertex offset, as in :func:`peel`.
 
     Returns
     -------
     ndarray of bool, shape (N,)
         False also where a normal or the shift is not finite (no segment).
     """
-    box = (np.asarray(shape, dtype=np.float64) - 1.0)[::-1] * np.asarray(spacing, dtype=np.float64)[::-1]  # x, y, z
+    upper = np.asarray(shape, dtype=np.float64) - 1.0
+    sp = np.asarray(spacing, dtype=np.float64)
     unit = unit_vectors(np.asarray(normals, dtype=np.float64))
     offset = np.zeros(len(vertices)) if shift is None else np.asarray(shift, dtype=np.float64)
+    depths = np.asarray(depths, dtype=np.float64)
     out = np.zeros(len(vertices), dtype=bool)
-    for depth in (d_min, d_max):
-        end = np.asarray(vertices, dtype=np.float64) + (depth + offset)[:, None] * unit
+    for depth in (depths[0], depths[-1]):
+        idx = (np.asarray(vertices, dtype=np.float64) + (depth + offset)[:, None] * unit)[:, ::-1] / sp
         with np.errstate(invalid="ignore"):
-            out |= np.any((end < 0.0) | (end > box), axis=1)
+            out |= ~np.all((idx >= 0.0) & (idx <= upper), axis=1)
     return out & np.isfinite(unit).all(axis=1) & np.isfinite(offset)
 
 

@@ -425,12 +425,14 @@ def layer_frame(name, layer, volume, info, meshes, sections, out: Path, written:
         dir_path = save("directors", ddf, parameters=dp, points=points)
         lp, intensity = None, None  # no layer table, no refinement pass (as the workflow's rules)
     else:
-        shift = None
+        shift = shift_out = None
         if layer["shift"]:
-            shift = field_on_vertices(read_table(out / layout.THICKNESS, "thickness", n_vertices=n), "thickness",
-                                      n, layout.THICKNESS, exact=True)
+            th = read_table(out / layout.THICKNESS, "thickness", n_vertices=n)
+            shift = field_on_vertices(th, "thickness", n, layout.THICKNESS, exact=True)
+            shift_out = field_on_vertices(th, "beyond_view", n, layout.THICKNESS) == 1.0 if "beyond_view" in th else None
         with timed("peel"):
-            ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift, psf=psf, deconvolved=deconvolved)
+            ldf, lp = stages.peel(volume, info.spacing, mesh, layer, shift=shift, psf=psf, deconvolved=deconvolved,
+                                  shift_beyond_view=shift_out)
         layer_path = save("layer", ldf, parameters=lp)
         intensity = field_on_vertices(read_table(layer_path, "layer", n_vertices=n), "intensity", n, layer_path,
                                       exact=True)

@@ -650,19 +650,22 @@ def peel(
     return_profile: bool = False,
     psf: tuple[float, float, float] | None = None,
     deconvolved: tuple[np.ndarray, dict] | None = None,
+    shift_beyond_view: np.ndarray | None = None,
 ):
     """One intensity per vertex over a depth range along the normals (method note §4).
 
     ``params`` is one layer of the ``layers`` section (``range`` required); ``shift`` the
     per-vertex thickness when the layer's ``shift`` fraction is non-zero; ``psf`` the PSF the
     image is deconvolved by first (:func:`nemo.psf.deconvolve`, as :func:`mesh` does), or
-    ``deconvolved`` (that volume and its record, already made) is peeled instead.
+    ``deconvolved`` (that volume and its record, already made) is peeled instead;
+    ``shift_beyond_view`` (N,) marks the vertices whose shift is NaN because their thickness ray left
+    the field of view (the thickness table's ``beyond_view``): their NaN intensity is the view's too.
     Returns the layer table (vertex, intensity, beyond_view: NaN because the samples leave the
     image), the resolved layer (with ``deconvolution``, the deconvolution's record) and, with
     ``return_profile``, the samples and their depths.
     """
     from nemo.mesh import vertex_normals
-    from nemo.peel import leaves_image
+    from nemo.peel import leaves_image, sample_depths
     from nemo.peel import peel as sample
 
     p = nconfig.section("layer", params)
@@ -683,8 +686,11 @@ def peel(
         warnings.warn(f"{constant}; its directors will be skipped", NemoWarning, stacklevel=2)
     _check_texture_depth(volume, spacing, mesh, normals, dmin, dmax, p)
     # NaN where the samples leave the image: on a surface cut by the border, the field of view's (quality control)
-    outside = np.isnan(intensity) & leaves_image(volume.shape, spacing, np.asarray(mesh.vertices), normals, dmin,
-                                                 dmax, offset)
+    outside = leaves_image(volume.shape, spacing, np.asarray(mesh.vertices), normals,
+                           sample_depths(dmin, dmax, int(p["samples"])), offset)
+    if offset is not None and shift_beyond_view is not None:
+        outside |= np.asarray(shift_beyond_view, dtype=bool) & ~np.isfinite(offset)
+    outside &= np.isnan(intensity)
     p["beyond_view"] = int(outside.sum())
     df = _labelled(pd.DataFrame({"vertex": np.arange(len(intensity), dtype=np.int64), "intensity": intensity,
                                  "beyond_view": outside}), mesh)

@@ -152,23 +152,10 @@ def _objects(m: Mapping) -> list[tuple[int, Mapping]]:
 
 
 def _layer_texture(r: Mapping) -> dict:
-    """The peel's texture check (``nemo.stages.peel``: where the texture peaks around the layer), with
-    the layer's ``range``."""
+    """The peel's texture check (``nemo.stages.peel``: where the texture peaks around the layer)."""
     if not r.get("layer_table"):
         return {}
-    params = read_provenance(r["layer_table"]).get("parameters") or {}
-    return {**params["texture"], "range": params.get("range")} if params.get("texture") else {}
-
-
-def _texture_hint(texture: Mapping) -> str:
-    """For a layer without orientation: where the image's texture peaks, when outside the layer's range
-    but not by enough for its own flag (a fibre layer at 4-8 µm under the default range [0, 5]:
-    1.03-1.17 × the range's strongest, an independent review)."""
-    depth, span = texture.get("peak_depth"), texture.get("range")
-    if texture.get("outside") or depth is None or not span or span[0] <= depth <= span[1]:
-        return ""
-    return (f" (the image's texture peaks at depth {depth:.3g}, outside the layer's range [{span[0]:g}, "
-            f"{span[1]:g}]: check layers.NAME.range)")
+    return (read_provenance(r["layer_table"]).get("parameters") or {}).get("texture") or {}
 
 
 def _directors_params(r: Mapping, label: int) -> dict:
@@ -273,9 +260,10 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     missing = row.get("curvature_nan_fraction", math.nan)
     if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:
         flags.append(f"no curvature at {100 * missing:.0f} % of vertices (the fit radius reaches the rim)")
-    valid = row.get("thickness_valid_in_view", row.get("thickness_valid", math.nan))
+    valid, every = _value(row.get("thickness_valid_in_view")), _value(row.get("thickness_valid"))
+    cut = np.isfinite(valid) and valid != every  # some rays left the field of view (none in view: all count)
+    valid = valid if np.isfinite(valid) else every
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID and row.get("walls") != 1:  # one wall: no thickness
-        cut = row.get("thickness_valid_in_view", valid) != row.get("thickness_valid", valid)
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices" + (" in view" if cut else ""))
     return flags + (_layer_flags(row, closed, chi) if "n_directors" in row else [])
 
@@ -318,7 +306,7 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
                      "(set layers.NAME.range to include it)")
     if not directed:  # no order and no defects follow from it
         return flags
-    flags += [flag + _texture_hint(texture) for flag in _coherency_flags(row)]
+    flags += _coherency_flags(row)
     faint = row.get("defects_faint")
     if faint is not None and not pd.isna(faint) and faint > 0:
         lowest = row.get("defect_coherency_min", math.nan)
@@ -649,6 +637,8 @@ def alignment_flags(pair: Mapping, layer_rows: Mapping[str, list[Mapping]]) -> l
                      f"one of layer {pair['layer_b']}")
     for name in dict.fromkeys((pair["layer_a"], pair["layer_b"])):
         rows = layer_rows.get(name) or []
+        directed = [row for row in rows if not pd.isna(row.get("n_directors")) and row.get("n_directors")]
+        rows = directed or rows  # an object without directors (a speck) adds nothing to the pair
         for row in rows:
             where = f"layer {name}" + (f" object {row['object']}" if len(rows) > 1 else "")
             flags += [f"{where}: {flag}" for flag in _field_flags(row)]

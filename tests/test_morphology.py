@@ -624,21 +624,33 @@ def test_thickness_misses_and_max_distance():
     assert np.isnan(dn).all()
 
 
-def _cut_below(mesh, z0):
-    """The part of ``mesh`` above z = ``z0`` with its rim put on that plane, as ``mesh.border: open``
-    leaves a surface cut by the image's border."""
-    part = mesh.submesh([np.flatnonzero(mesh.triangles_center[:, 2] > z0)], append=True)
+def _cut(mesh, k, lo=-np.inf, hi=np.inf):
+    """The part of ``mesh`` between ``lo`` and ``hi`` along axis ``k`` with its rim put on those planes,
+    as ``mesh.border: open`` leaves a surface cut by the image's border."""
+    centre = mesh.triangles_center[:, k]
+    part = mesh.submesh([np.flatnonzero((centre > lo) & (centre < hi))], append=True)
     verts = np.array(part.vertices)
-    verts[rim(np.asarray(part.faces), len(verts))["vertices"], 2] = z0
+    on_rim = rim(np.asarray(part.faces), len(verts))["vertices"]
+    verts[on_rim, k] = np.where(np.abs(verts[on_rim, k] - lo) < np.abs(verts[on_rim, k] - hi), lo, hi)
     return make_mesh(verts, part.faces, unit="um", orient_outward=False)
+
+
+def _torn(mesh, axis, degrees):
+    """``mesh`` without its faces within ``degrees`` of the direction ``axis`` (from the origin)."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    centres = mesh.triangles_center
+    keep = centres @ axis < np.cos(np.radians(degrees)) * np.linalg.norm(centres, axis=1)
+    return make_mesh(*_faces_kept(mesh, keep), unit="um", orient_outward=False)
 
 
 def test_rays_that_leave_the_view_through_the_cut_are_told_from_a_hole():
     """A shell (R 20 / 26 µm) cut 5 µm below its centre: an inner vertex whose radial ray meets the
-    outer sphere below the cut (u_z < −5/26) misses because the view ends there; a hole in the outer
-    wall (a cone of 15° about a diagonal) makes misses that are not the view's."""
+    outer sphere below the cut (u_z < −5/26) misses because the view ends there. A hole in the outer
+    wall makes misses that are not the view's: one whose rays leave through an uncut face, and one
+    beside a cut (the shell cut at x = ±15 µm, a hole towards (0.5, 0, 0.6)), whose rays leave
+    through the cut face but from outside the wall."""
     c = np.zeros(3)
-    inner, outer = (_cut_below(sphere_mesh(r, ISO, c), -5.0) for r in (20.0, 26.0))
+    inner, outer = (_cut(sphere_mesh(r, ISO, c), 2, lo=-5.0) for r in (20.0, 26.0))
     v = np.asarray(inner.vertices)
     u_z = v[:, 2] / np.linalg.norm(v, axis=1)
     d = thickness(inner, outer)
@@ -647,20 +659,23 @@ def test_rays_that_leave_the_view_through_the_cut_are_told_from_a_hole():
     below = u_z < -5.0 / 26.0 - 0.01
     assert below.sum() > 100 and missed[below].all() and beyond[below].all()
     assert not missed[u_z > -5.0 / 26.0 + 0.01].any() and not beyond[~missed].any()
-    # a hole: its rim is not on a face of the box, so those misses are the wall's
-    axis = np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0)
-    centres = outer.triangles_center
-    keep = centres @ axis < np.cos(np.radians(15.0)) * np.linalg.norm(centres, axis=1)
-    torn = make_mesh(*_faces_kept(outer, keep), unit="um", orient_outward=False)
+    torn = _torn(outer, [1.0, 1.0, 1.0], 15.0)  # its rays leave through the upper faces: no rim there
     d_torn = thickness(inner, torn)
     hole = np.isnan(d_torn) & ~missed
-    assert hole.sum() > 20
     beyond_torn = beyond_view(inner, torn, np.isnan(d_torn))
-    assert not beyond_torn[hole].any() and beyond_torn[below].all()
-    # both directions, and a surface without a cut
+    assert hole.sum() > 20 and not beyond_torn[hole].any() and beyond_torn[below].all()
     assert beyond_view(inner, outer, missed, "nearest")[below].all()
     whole = sphere_mesh(20.0, ISO, c)
     assert not beyond_view(whole, sphere_mesh(26.0, ISO, c), np.ones(len(whole.vertices), bool)).any()
+    # a hole beside the cut: its rays leave through the cut face, but outside the wall
+    inner, outer = (_cut(sphere_mesh(r, ISO, c), 0, lo=-15.0, hi=15.0) for r in (20.0, 26.0))
+    missed = np.isnan(thickness(inner, outer))
+    torn = _torn(outer, [0.5, 0.0, 0.6], 12.0)
+    d_torn = thickness(inner, torn)
+    hole = np.isnan(d_torn) & ~missed
+    beyond_torn = beyond_view(inner, torn, np.isnan(d_torn))
+    assert missed.sum() > 500 and beyond_torn[missed].all()
+    assert hole.sum() > 10 and not beyond_torn[hole].any()
 
 
 def _faces_kept(mesh, keep):

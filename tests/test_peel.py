@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -342,9 +344,17 @@ def test_leaves_image_is_where_peel_samples_outside_the_image():
     shift = rng.uniform(-2.0, 2.0, 4000)
     volume = rng.uniform(1.0, 2.0, shape)
     for d_min, d_max, sh, n in ((0.0, 6.0, None, 5), (-4.0, 3.0, shift, 5), (2.0, 2.0, shift, 1)):
-        out = leaves_image(shape, spacing, vertices, normals, d_min, d_max, sh)
+        out = leaves_image(shape, spacing, vertices, normals, sample_depths(d_min, d_max, n), sh)
         with pytest.warns(NemoWarning):
             nan = np.isnan(peel(volume, spacing, vertices, normals, d_min, d_max, n_samples=n, shift=sh))
         assert 200 < out.sum() < 3900
         np.testing.assert_array_equal(out, nan & np.isfinite(normals).all(axis=1) & (np.abs(normals).sum(axis=1) > 0))
+    # a vertex on the box's high face, sampled inwards: (n − 1) d / d can exceed n − 1 in floating point
+    shape, spacing = (7, 7, 7), (0.1, 0.1, 0.1)
+    on_face = np.array([[(7 - 1) * 0.1, 0.3, 0.3], [0.3, 0.3, 0.3]])  # and one inside
+    inwards = np.array([[-1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NemoWarning)
+        nan = np.isnan(peel(np.ones(shape), spacing, on_face, inwards, 0.0, 0.2, n_samples=3))
+    np.testing.assert_array_equal(leaves_image(shape, spacing, on_face, inwards, sample_depths(0.0, 0.2, 3)), nan)
 

@@ -420,15 +420,18 @@ def test_a_shell_cut_by_the_field_of_view_passes_where_its_rays_and_samples_leav
     image = 20.0 + gaussian_filter(200.0 * shell, 1.0)
     write_hyperstack(tmp_path / "cap.tif", image.astype(np.float32), (1, 1, 1), axes="ZYX")
     cfg = {"datasets": {"d": {"path": str(tmp_path / "cap.tif")}}, "curvature": None,
-           "layers": {"wall": {"surface": "inner", "range": [0.0, 5.0]}}}
+           "layers": {"wall": {"surface": "inner", "range": [0.0, 5.0]},  # and one shifted by half the thickness:
+                      "mid": {"surface": "inner", "range": [0.0, 1.0], "shift": 0.5}}}  # NaN where it is NaN
     summary = run_frame(None, tmp_path / "out", cfg, dataset="d")
     th = read_table(tmp_path / "out" / "thickness.parquet")
-    layer = read_table(tmp_path / "out" / "layer_wall.parquet")
-    assert th["beyond_view"].mean() > 0.05 and layer["beyond_view"].mean() > 0.05
-    assert th["thickness"][~th["beyond_view"]].notna().all() and layer["intensity"][~layer["beyond_view"]].notna().all()
+    assert th["beyond_view"].mean() > 0.05 and th["thickness"][~th["beyond_view"]].notna().all()
     assert th["thickness"].median() == pytest.approx(6.0, abs=0.3)
-    (qc,) = summary["qc"]
-    assert "thickness found" not in qc["qc_flags"] and "no layer intensity" not in qc["qc_flags"], qc["qc_flags"]
+    for name in ("wall", "mid"):
+        layer = read_table(tmp_path / "out" / f"layer_{name}.parquet")
+        assert layer["beyond_view"].mean() > 0.05 and layer["intensity"][~layer["beyond_view"]].notna().all(), name
+    assert len(summary["qc"]) == 2
+    for qc in summary["qc"]:
+        assert "thickness found" not in qc["qc_flags"] and "no layer intensity" not in qc["qc_flags"], qc["qc_flags"]
 
 
 def test_run_frame_with_user_surfaces_per_time_point(ball_and_labels):

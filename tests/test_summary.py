@@ -266,17 +266,9 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
      ["median director coherency 0.35, below white noise's 0.51 with these patches: no texture to orient "
       "(noise, or no fibres at that depth)"]),
     ({"coherency_median": 0.8, "coherency_noise": 0.51}, CLOSED, []),
-    # no orientation, and the image's texture peaks beyond the layer's range (not by enough for its own flag)
-    ({"coherency_median": 0.35, "coherency_noise": 0.51,
-      "texture": {"peak_depth": 6.2, "outside": False, "range": [0.0, 5.0]}}, CLOSED,
-     ["median director coherency 0.35, below white noise's 0.51 with these patches: no texture to orient "
-      "(noise, or no fibres at that depth) (the image's texture peaks at depth 6.2, outside the layer's range "
-      "[0, 5]: check layers.NAME.range)"]),
-    ({"coherency_median": 0.35, "coherency_noise": 0.51,
-      "texture": {"peak_depth": 4.2, "outside": False, "range": [0.0, 5.0]}}, CLOSED,
-     ["median director coherency 0.35, below white noise's 0.51 with these patches: no texture to orient "
-      "(noise, or no fibres at that depth)"]),
-    ({"texture": {"peak_depth": 6.2, "outside": False, "range": [0.0, 5.0]}}, CLOSED, []),  # oriented: no advice
+    # every ray left the field of view: no thickness in view, all count
+    ({"thickness_valid": 0.0, "thickness_valid_in_view": NAN}, {"n_components": 1, "n_boundary_loops": 1},
+     ["thickness found at 0 % of vertices"]),
     ({"curvature_nan_fraction": 0.5}, CLOSED, []),
     ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
@@ -456,7 +448,8 @@ def test_alignment_fails_with_a_layer_whose_field_is_noise(tmp_path, bad, flag):
 
 def test_alignment_fails_when_few_directors_are_compared_and_names_the_object(tmp_path):
     write_table(pd.DataFrame({"vertex": range(4), "c": [-1.0, NAN, NAN, NAN]}), tmp_path / "a.parquet")
-    frames = pd.DataFrame([_layer_row("a"), _layer_row("b"), _layer_row("b", object=1, coherency_median=0.05)])
+    frames = pd.DataFrame([_layer_row("a"), _layer_row("b"), _layer_row("b", object=1, coherency_median=0.05),
+                           _layer_row("b", object=2, n_directors=0)])  # a speck without directors: not the pair's
     row = alignment_summary([{"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}],
                             frames).iloc[0]
     flags = row["qc_flags"].split("; ")

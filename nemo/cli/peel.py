@@ -55,14 +55,17 @@ def add_arguments(parser) -> None:
     add_common(parser, frame=True, output_help="layer table (.parquet)", deconvolved=True)
 
 
-def _read_shift(spec: str, n_vertices: int) -> np.ndarray:
+def _read_shift(spec: str, n_vertices: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The --shift field and, from a thickness table, its ``beyond_view`` (rays that left the view)."""
     from nemo.tables import field_on_vertices, read_table
 
     path, sep, column = spec.rpartition(":")
     if not sep or not path or not column:
         raise NemoError(f"--shift {spec!r}: write it as FIELDS.parquet:COLUMN")
     df = read_table(path, columns=("vertex", column), n_vertices=n_vertices)
-    return field_on_vertices(df, column, n_vertices, path, exact=True)
+    values = field_on_vertices(df, column, n_vertices, path, exact=True)
+    beyond = field_on_vertices(df, "beyond_view", n_vertices, path) == 1.0 if "beyond_view" in df else None
+    return values, beyond
 
 
 def _check_same_psf(mesh, psf, mesh_path, c: int) -> None:
@@ -97,7 +100,7 @@ def run(args) -> int:
     if dmax < dmin:
         raise NemoError(f"--range {dmin:g} {dmax:g}: DMIN must not exceed DMAX")
     mesh = load_mesh(args.mesh)
-    shift = _read_shift(args.shift, len(mesh.vertices)) if args.shift else None
+    shift, shift_out = _read_shift(args.shift, len(mesh.vertices)) if args.shift else (None, None)
     fraction = (1.0 if args.shift_fraction is None else args.shift_fraction) if args.shift else 0.0
     layer = {"range": [dmin, dmax], "samples": args.samples, "reduce": args.reduce, "interp": args.interp,
              "inward": args.inward, "shift": fraction}
@@ -111,7 +114,7 @@ def run(args) -> int:
     deconvolved = deconvolved_for(args, volume, info.spacing)
     with step(f"peeling {len(mesh.vertices)} vertices in [{dmin:g}, {dmax:g}]"):
         result = stages.peel(volume, info.spacing, mesh, layer, shift=shift, return_profile=args.profile,
-                             psf=args.psf, deconvolved=deconvolved)
+                             psf=args.psf, deconvolved=deconvolved, shift_beyond_view=shift_out)
     df, params = result[:2]
     prov = dict(
         command="peel", image=str(args.image), mesh=str(args.mesh), n_vertices=len(mesh.vertices),
