@@ -1539,8 +1539,8 @@ def _sides(mesh: trimesh.Trimesh):
     """A function of points (P, 3): True on the side of ``mesh`` its normals point to, by the nearest
     vertex and its normal (the nearest triangle's search costs ~1 ms and ~1 MB per point on a fine
     mesh a wall's thickness away; the points tested here lie well off the surface)."""
-    tree, normals = cKDTree(np.asarray(mesh.vertices, dtype=np.float64)), vertex_normals(mesh)
     verts = np.asarray(mesh.vertices, dtype=np.float64)
+    tree, normals = cKDTree(verts), vertex_normals(mesh)
 
     def side(points: np.ndarray) -> np.ndarray:
         nearest = tree.query(points)[1]

@@ -119,10 +119,6 @@ def _read_measure(path: str | Path) -> dict:
     return data
 
 
-def _num(value) -> float:
-    return float(value) if value is not None else math.nan
-
-
 def _value(value) -> float:
     """A table cell as a float: NaN for None, NaN and NA."""
     return math.nan if value is None or pd.isna(value) else float(value)
@@ -456,15 +452,15 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
     """One row of ``frames.parquet``: the record ``r``, the surface's measure ``m``, the object's ``mo``."""
     centre = mo.get("centre") or [math.nan] * 3
     row = {"t": int(r["t"]), "c": int(r["c"]), "layer": str(r["layer"]),
-           "surface": str(r["surface"]), "area": _num(mo.get("area")),
-           "volume": _num(mo.get("volume")),
-           "euler_characteristic": _num(mo.get("euler_characteristic")),
+           "surface": str(r["surface"]), "area": _value(mo.get("area")),
+           "volume": _value(mo.get("volume")),
+           "euler_characteristic": _value(mo.get("euler_characteristic")),
            "closed": not mo.get("n_boundary_loops"),
            "n_objects": m.get("n_objects"), "walls": value_for(m.get("walls"), label),
-           "regions": value_for(m.get("regions"), label), "snr": _num(m.get("snr")),
-           "saturated": _num(m.get("saturated")),
-           "centre_x": _num(centre[0]), "centre_y": _num(centre[1]), "centre_z": _num(centre[2]),
-           "H_mean": _num(mo.get("mean_H")), "K_mean": _num(mo.get("mean_K"))}
+           "regions": value_for(m.get("regions"), label), "snr": _value(m.get("snr")),
+           "saturated": _value(m.get("saturated")),
+           "centre_x": _value(centre[0]), "centre_y": _value(centre[1]), "centre_z": _value(centre[2]),
+           "H_mean": _value(mo.get("mean_H")), "K_mean": _value(mo.get("mean_K"))}
     if "curvature" in tables:
         cur = tables["curvature"]
         row["H_fit_mean"] = _finite_mean(cur["H"])
@@ -480,7 +476,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
         directors = _directors_params(r, label)
-        row["coherency_noise"] = _num(directors.get("coherency_noise"))  # NaN: imported directors, older tables
+        row["coherency_noise"] = _value(directors.get("coherency_noise"))  # NaN: imported directors, older tables
         row["directors_skipped"] = directors.get("skipped")
         row["texture"] = _layer_texture(r)
     no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why
