@@ -207,15 +207,17 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         ``thickness_valid``, ``n_directors``, ``S_mean``, ``peel_nan_fraction``,
         ``order_nan_fraction``, ``coherency_median``, ``coherency_noise`` where computed;
         ``thickness_valid_in_view`` and ``peel_nan_in_view``, the same over the vertices whose ray or
-        samples stay in the field of view (on a surface cut by the image's border the others have no
-        thickness or intensity because the view ends there, not because the wall or image lacks it);
+        samples stay in the field of view, and ``thickness_beyond_view``, how many rays left it (on a
+        surface cut by the image's border the others have no thickness or intensity because the view
+        ends there, not because the wall or image lacks it);
         ``directors_skipped``, why the directors step gave none (a layer without directors gets that
         flag and the peel's, not the order, coherency and charge flags that follow from it);
         ``defects_skipped``, why the defect search did not run (no charge sum to check); ``texture``,
         the peel's check of where the texture peaks, :func:`nemo.peel.texture_profile`).
     measure : mapping
         The surface's ``nemo measure --json`` record (``n_components``,
-        ``n_boundary_loops``, ``n_objects``, ``saturated``).
+        ``n_boundary_loops``, ``rim_loops`` (boundary loops on the image's border), ``n_objects``,
+        ``saturated``).
 
     Returns
     -------
@@ -257,11 +259,12 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:
         flags.append(f"no curvature at {100 * missing:.0f} % of vertices (the fit radius reaches the rim)")
     valid, every = _value(row.get("thickness_valid_in_view")), _value(row.get("thickness_valid"))
-    cut = np.isfinite(valid) and valid != every  # some rays left the field of view (none in view: all count)
-    valid = valid if np.isfinite(valid) else every
+    cut = np.isfinite(valid) and bool(row.get("thickness_beyond_view"))  # some rays left the view, some stayed
+    valid = valid if cut else every  # none left it, or none stayed: every ray counts
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID and row.get("walls") != 1:  # one wall: no thickness
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices" + (" in view" if cut else ""))
-    return flags + (_layer_flags(row, closed, chi) if "n_directors" in row else [])
+    cut_by_border = bool(measure.get("rim_loops")) if "rim_loops" in measure else not closed  # older records
+    return flags + (_layer_flags(row, closed, chi, cut_by_border) if "n_directors" in row else [])
 
 
 def _mask_flags(measure: Mapping) -> list[str]:
@@ -282,9 +285,10 @@ def _looks_empty(row: Mapping) -> bool:
     return bool(np.isfinite(snr) and snr < QC_EMPTY_SNR)
 
 
-def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
+def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) -> list[str]:
     """The layer's part of :func:`quality_flags` (peel, directors, order, defects). A layer without
-    directors keeps the peel's flags (causes) and drops the order and charge flags (consequences)."""
+    directors keeps the peel's flags (causes) and drops the order and charge flags (consequences);
+    a surface cut by the image's border (``cut_by_border``) counts only the samples in view."""
     flags = []
     if not row["n_directors"] or not np.isfinite(row["S_mean"]):
         flags.append(f"no directors: {row['directors_skipped']}" if row.get("directors_skipped") else "no directors")
@@ -292,7 +296,7 @@ def _layer_flags(row: Mapping, closed: bool, chi: float) -> list[str]:
     for key, what in (("peel_nan_fraction", "no layer intensity (samples outside the image?)"),
                       ("order_nan_fraction", "no order value (no tangent plane or director in reach)")):
         value = row.get(key, math.nan)
-        if key == "peel_nan_fraction" and not closed:  # cut by the border: samples beyond it are the view's
+        if key == "peel_nan_fraction" and cut_by_border:  # samples beyond the border are the view's
             value, what = row.get("peel_nan_in_view", value), "no layer intensity within the field of view (NaN voxels?)"
         if np.isfinite(value) and value > QC_MAX_NAN_FRACTION and (directed or key == "peel_nan_fraction"):
             flags.append(f"{100 * value:.0f} % of vertices have {what}")
@@ -473,6 +477,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["thickness_valid"] = float(np.isfinite(th).mean()) if th.size else math.nan
         in_view = th[~_beyond_view(tables["thickness"])]  # the quality control's: rays that stay in view
         row["thickness_valid_in_view"] = float(np.isfinite(in_view).mean()) if in_view.size else math.nan
+        row["thickness_beyond_view"] = int(th.size - in_view.size)
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
         directors = _directors_params(r, label)

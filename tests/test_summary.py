@@ -247,13 +247,19 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"thickness_valid": 0.0, "walls": 1}, CLOSED, []),  # one wall (split: auto): no thickness to find
     ({"thickness_valid": 0.0, "walls": 2}, CLOSED, ["thickness found at 0 % of vertices"]),
     # cut by the border: the rays and samples that leave the field of view are not counted
-    ({"thickness_valid": 0.8, "thickness_valid_in_view": 1.0, "peel_nan_fraction": 0.12, "peel_nan_in_view": 0.0},
-     {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 1}, []),
-    ({"thickness_valid": 0.7, "thickness_valid_in_view": 0.85, "peel_nan_fraction": 0.2, "peel_nan_in_view": 0.1},
-     {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 1},
+    ({"thickness_valid": 0.8, "thickness_valid_in_view": 1.0, "thickness_beyond_view": 200, "peel_nan_fraction": 0.12,
+      "peel_nan_in_view": 0.0}, {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 1}, []),
+    ({"thickness_valid": 0.7, "thickness_valid_in_view": 0.85, "thickness_beyond_view": 150, "peel_nan_fraction": 0.2,
+      "peel_nan_in_view": 0.1}, {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 1},
      ["thickness found at 85 % of vertices in view",
       "10 % of vertices have no layer intensity within the field of view (NaN voxels?)"]),
+    # no ray in view found the other wall: the flag still says it counts those in view
+    ({"thickness_valid": 0.0, "thickness_valid_in_view": 0.0, "thickness_beyond_view": 300},
+     {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 1}, ["thickness found at 0 % of vertices in view"]),
     ({"peel_nan_fraction": 0.12, "peel_nan_in_view": 0.0}, CLOSED,  # closed: every vertex counts
+     ["12 % of vertices have no layer intensity (samples outside the image?)"]),
+    # open through holes only, not cut by the border: every vertex counts
+    ({"peel_nan_fraction": 0.12, "peel_nan_in_view": 0.0}, {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 0},
      ["12 % of vertices have no layer intensity (samples outside the image?)"]),
     ({"n_directors": 0, "S_mean": NAN}, CLOSED, ["no directors"]),
     ({"peel_nan_fraction": 0.05, "order_nan_fraction": 0.0, "coherency_median": 0.2}, CLOSED, []),
