@@ -638,12 +638,24 @@ def alignment_flags(pair: Mapping, layer_rows: Mapping[str, list[Mapping]]) -> l
                      f"one of layer {pair['layer_b']}")
     for name in dict.fromkeys((pair["layer_a"], pair["layer_b"])):
         rows = layer_rows.get(name) or []
-        directed = [row for row in rows if not pd.isna(row.get("n_directors")) and row.get("n_directors")]
-        rows = directed or rows  # an object without directors (a speck) adds nothing to the pair
-        for row in rows:
+        for row in _pair_objects(rows):
             where = f"layer {name}" + (f" object {row['object']}" if len(rows) > 1 else "")
             flags += [f"{where}: {flag}" for flag in _field_flags(row)]
     return flags
+
+
+def _pair_objects(rows: list[Mapping]) -> list[Mapping]:
+    """A layer's object rows whose field the pair depends on: an object without directors is left
+    out when others have them and its area is below :data:`nemo.surface.OBJECT_MIN_AREA` of the
+    largest of theirs (a speck adds nothing to the pair; a large object without any does)."""
+    from nemo.surface import OBJECT_MIN_AREA
+
+    directed = [row for row in rows if not pd.isna(row.get("n_directors")) and row.get("n_directors")]
+    if not directed:
+        return rows
+    largest = max((_value(row.get("area")) for row in directed), default=math.nan)
+    return [row for row in rows if any(row is d for d in directed)
+            or _value(row.get("area")) >= OBJECT_MIN_AREA * largest]  # an area unknown (NaN): as a speck
 
 
 def _field_flags(row: Mapping) -> list[str]:

@@ -456,11 +456,17 @@ def test_alignment_fails_when_few_directors_are_compared_and_names_the_object(tm
     write_table(pd.DataFrame({"vertex": range(4), "c": [-1.0, NAN, NAN, NAN]}), tmp_path / "a.parquet")
     frames = pd.DataFrame([_layer_row("a"), _layer_row("b"), _layer_row("b", object=1, coherency_median=0.05),
                            _layer_row("b", object=2, n_directors=0)])  # a speck without directors: not the pair's
-    row = alignment_summary([{"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}],
-                            frames).iloc[0]
+    record = {"t": 0, "c": 0, "layer_a": "a", "layer_b": "b", "align": tmp_path / "a.parquet"}
+    row = alignment_summary([record], frames).iloc[0]
     flags = row["qc_flags"].split("; ")
     assert flags[0] == "only 25 % of layer a's directors compared with one of layer b"
     assert flags[1].startswith("layer b object 1: median director coherency 0.05") and len(flags) == 2
+    # by area: a speck without directors is left out, a large object without any is the pair's concern
+    frames["area"] = [900.0, 900.0, 850.0, 40.0]
+    assert alignment_summary([record], frames).iloc[0]["qc_flags"] == row["qc_flags"]
+    frames.loc[3, "area"] = 400.0
+    flags = alignment_summary([record], frames).iloc[0]["qc_flags"].split("; ")
+    assert flags[-1] == "layer b object 2: no directors" and len(flags) == 3
 
 
 def test_alignment_summary_needs_a_c_column(tmp_path):
