@@ -531,10 +531,14 @@ def collect_defects(records: Iterable[Mapping], frames: pd.DataFrame | None = No
         df.insert(0, "t", int(r["t"]))
         parts.append(df)
     if not parts or all(p.empty for p in parts):
+        # the columns a table with defects has (an empty dataset concatenates with others)
         empty = pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else "float64")
-                              for c in DEFECT_COLUMNS}).astype({"t": "int64", "c": "int64"})
-        return empty if frames is None else empty.assign(qc_pass=pd.Series(dtype=bool),
-                                                         qc_flags=pd.Series(dtype=object))
+                              for c in (*DEFECT_COLUMNS, "min_distance")}).astype({"t": "int64", "c": "int64",
+                                                                                  "object": "int64"})
+        if frames is None:
+            return empty
+        ids = {"object_id": pd.Series(dtype=frames["object_id"].dtype)} if "object_id" in frames else {}
+        return empty.assign(**ids, qc_pass=pd.Series(dtype=bool), qc_flags=pd.Series(dtype=object))
     out = pd.concat([p for p in parts if not p.empty], ignore_index=True)
     extra = [c for c in out.columns if c not in DEFECT_COLUMNS]
     out = out[list(DEFECT_COLUMNS) + extra]

@@ -43,6 +43,30 @@ def _check(defects: pd.DataFrame, max_distance: float, gap_frames: int) -> None:
     xyz = defects[["x", "y", "z"]].to_numpy(dtype=float)
     if not np.isfinite(xyz).all():
         raise NemoError("defect table has non-finite x, y, z positions; cannot track them")
+    t = pd.to_numeric(defects["t"], errors="coerce").to_numpy(dtype=float)
+    if not (np.isfinite(t) & (t == np.round(t))).all():
+        bad = defects["t"][~(np.isfinite(t) & (t == np.round(t)))].unique()[:5].tolist()
+        raise NemoError(f"defect table has t values that are not whole time-point indices ({bad}): t is the "
+                        "0-based index of the time point in the hyperstack, not a time in minutes")
+
+
+def _cutoff(distance: float) -> float:
+    """laptrack's squared cut-off for links of at most ``distance`` (its cut-off is exclusive)."""
+    return float(distance) ** 2 * (1.0 + 1e-9)
+
+
+def _split_long_steps(track: np.ndarray, frame: np.ndarray, xyz: np.ndarray, cutoff: float) -> np.ndarray:
+    """Split the tracks (ids ``track``, one per detection) at every step between consecutive frames
+    longer than ``sqrt(cutoff)``: laptrack's gap closing also joins segments of adjacent frames,
+    up to the gap's cut-off (it has no smallest gap). Returns new ids (0, 1, ...)."""
+    order = np.lexsort((frame, track))
+    tid, f, p = track[order], frame[order], xyz[order]
+    step = np.r_[np.inf, ((p[1:] - p[:-1]) ** 2).sum(axis=1)]
+    same = np.r_[False, tid[1:] == tid[:-1]]
+    cut = same & (np.r_[0, np.diff(f)] == 1) & (step > cutoff)
+    out = np.empty_like(track)
+    out[order] = np.cumsum(~same | cut) - 1
+    return out
 
 
 def link_defects(
@@ -65,9 +89,9 @@ def link_defects(
         Largest number of consecutive frames a defect may be missed and still be linked
         (0 = no gap closing).
     gap_max_distance : float, optional
-        Largest displacement (µm) across a gap; default ``max_distance``. laptrack's
-        gap-closing step also joins track segments of consecutive frames, so this is
-        effectively the largest link of all: keep it close to ``max_distance``.
+        Largest displacement (µm) across a gap; default ``max_distance``. A link between
+        consecutive frames is never longer than ``max_distance`` (laptrack's gap closing also
+        joins segments of adjacent frames; such links are split again).
     frames : sequence of int, optional
         All analysed time points (also those without defects), so a frame with no detection
         counts as a gap. Default: the sorted unique ``t`` of ``defects``.
@@ -104,9 +128,9 @@ def link_defects(
         sub["row_"] = np.arange(len(sub))
         lt = LapTrack(
             metric="sqeuclidean",
-            cutoff=float(max_distance) ** 2,
+            cutoff=_cutoff(max_distance),
             gap_closing_metric="sqeuclidean",
-            gap_closing_cutoff=float(gap_max) ** 2 if gap_frames > 0 else False,
+            gap_closing_cutoff=_cutoff(gap_max) if gap_frames > 0 else False,
             gap_closing_max_frame_count=int(gap_frames) + 1,
             splitting_cutoff=False,
             merging_cutoff=False,
@@ -114,6 +138,7 @@ def link_defects(
         track_df, _, _ = lt.predict_dataframe(sub, coordinate_cols=["x", "y", "z"], frame_col="frame")
         local = np.empty(len(sub), dtype=np.int64)
         local[track_df["row_"].to_numpy(dtype=np.int64)] = track_df["track_id"].to_numpy()
+        local = _split_long_steps(local, sub["frame"].to_numpy(), sub[["x", "y", "z"]].to_numpy(), _cutoff(max_distance))
         # renumber deterministically: by first frame, then x, y, z of the first detection
         first = (
             pd.DataFrame({"tid": local, "frame": sub["frame"].to_numpy(), "x": sub["x"].to_numpy(),

@@ -362,10 +362,19 @@ def test_collect_defects_without_any_defect():
 
 
 def test_collect_defects_of_empty_tables_has_the_columns(tmp_path):
+    """An empty dataset's table has the columns of one with defects (an independent review: it lacked
+    min_distance and object_id, so datasets no longer concatenated)."""
     write_table(_defects([], []), tmp_path / "empty.parquet")
-    out = collect_defects([{"t": 0, "c": 0, "layer": "basal", "defects": tmp_path / "empty.parquet"}])
-    assert len(out) == 0 and list(out.columns) == list(DEFECT_COLUMNS)
+    write_table(_defects([0.5], [0.5]), tmp_path / "one.parquet", parameters={"min_distance": 5.0})
+    empty = [{"t": 0, "c": 0, "layer": "basal", "defects": tmp_path / "empty.parquet"}]
+    out = collect_defects(empty)
+    assert len(out) == 0 and list(out.columns)[:len(DEFECT_COLUMNS)] == list(DEFECT_COLUMNS)
     assert out["t"].dtype == np.int64 and out["layer"].dtype == object
+    frames = pd.DataFrame({"t": [0], "c": [0], "layer": ["basal"], "object": [0], "object_id": pd.array([0], "Int64"),
+                           "qc_pass": [True], "qc_flags": [""]})
+    full = collect_defects([{**empty[0], "defects": tmp_path / "one.parquet"}], frames)
+    assert list(collect_defects(empty, frames).columns) == list(full.columns)
+    assert list(out.columns) == list(collect_defects([{**empty[0], "defects": tmp_path / "one.parquet"}]).columns)
 
 
 def test_collect_defects_carries_each_frames_quality_control(tmp_path):

@@ -120,6 +120,35 @@ def test_gap_closing_and_max_displacement():
     assert len(cut) == len(df)
 
 
+def test_a_link_between_consecutive_frames_is_never_longer_than_max_distance():
+    """laptrack's gap closing also joins segments of adjacent frames, up to its own cut-off: a
+    larger gap_max_distance let a 4 µm step through a 1 µm max_distance (an independent review)."""
+    one_then_another = pd.DataFrame({"t": [0, 1, 2, 3], "x": [0.0, 0.1, 4.1, 4.2], "y": 0.0, "z": 0.0,
+                                     "charge_rounded": 0.5})
+    for gap_max in (None, 2.0, 5.0):
+        linked = link_defects(one_then_another, max_distance=1.0, gap_frames=1, gap_max_distance=gap_max)
+        assert linked["track_id"].tolist() == [0, 0, 1, 1], gap_max
+    # a missed frame is still bridged up to gap_max_distance
+    missed = one_then_another.drop(index=2)
+    assert link_defects(missed, max_distance=1.0, gap_frames=1, gap_max_distance=5.0,
+                        frames=range(4))["track_id"].nunique() == 1
+    assert link_defects(missed, max_distance=1.0, gap_frames=1, gap_max_distance=2.0,
+                        frames=range(4))["track_id"].nunique() == 2
+
+
+def test_a_step_of_exactly_max_distance_is_linked():
+    step = pd.DataFrame({"t": [0, 1, 2], "x": [0.0, 2.0, 4.0], "y": 0.0, "z": 0.0, "charge_rounded": -0.5})
+    assert link_defects(step, max_distance=2.0)["track_id"].nunique() == 1
+    assert link_defects(step, max_distance=1.99)["track_id"].nunique() == 3
+
+
+@pytest.mark.parametrize("t", [[0, 0.5, 1.0, 1.5], [0, 1, np.nan, 3]])
+def test_time_points_that_are_not_indices_are_refused(t):
+    df = pd.DataFrame({"t": t, "x": [0.0, 0.1, 0.2, 0.3], "y": 0.0, "z": 0.0, "charge_rounded": 0.5})
+    with pytest.raises(NemoError, match="not whole time-point indices"):
+        link_defects(df, max_distance=1.0)
+
+
 def test_non_consecutive_time_points_are_consecutive_frames():
     df = _series(n_frames=5, omega=0.05, noise=0.1, rng=4)
     df["t"] = df["t"] * 2  # analysed t = 0, 2, 4, 6, 8
@@ -165,6 +194,19 @@ def test_cli_track(tmp_path, run_cli):
     code, out, err = run_cli("track", tmp_path / "tracks.parquet", "-o", tmp_path / "x.parquet",
                              "--max-distance", "15")
     assert code == 2 and "lacks column" in err and "\n" not in err.strip()
+
+
+def test_cli_default_max_distance_is_the_median_over_frames(tmp_path, run_cli):
+    """Every defect row repeats its frame's suppression radius: the default is their median over the
+    frames, not over the distinct values (three frames at 3 µm and two at 10 and 12 µm: 3, not 10)."""
+    from nemo.tables import read_provenance
+
+    df = _series(n_frames=5, omega=0.05, noise=0.2, rng=6)
+    df["min_distance"] = df["t"].map({0: 3.0, 1: 3.0, 2: 3.0, 3: 10.0, 4: 12.0})
+    write_table(df, tmp_path / "d.parquet")
+    code, out, err = run_cli("track", tmp_path / "d.parquet", "-o", tmp_path / "tracks.parquet")
+    assert code == 0, err
+    assert read_provenance(tmp_path / "tracks.parquet")["parameters"]["max_distance"] == 3.0
 
 
 def test_tracks_count_their_detections_in_flagged_frames():

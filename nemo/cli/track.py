@@ -37,6 +37,16 @@ def add_arguments(parser) -> None:
                         help="all analysed time points, also those without defects (default: the t found)")
 
 
+def _recorded_min_distances(defects) -> list:
+    """The defects' suppression radius once per frame's layer and object (``t``, ``c``, ``layer``,
+    ``object`` where present): every defect row repeats its frame's, and distinct values alone
+    would weigh a rare radius as much as the usual one."""
+    if "min_distance" not in defects:
+        return []
+    keys = [k for k in ("t", "c", "layer", "object") if k in defects]
+    return defects.drop_duplicates(keys)["min_distance"].dropna().tolist()
+
+
 def run(args) -> int:
     from nemo import stages
     from nemo._log import logger
@@ -47,7 +57,7 @@ def run(args) -> int:
     out = output_path(args.output)
     linked_path = output_path(args.linked) if args.linked else None
     defects = read_table(args.defects, columns=("t", "x", "y", "z", "charge_rounded"))
-    recorded = defects["min_distance"].dropna().unique() if "min_distance" in defects else []
+    recorded = _recorded_min_distances(defects)
     params = stages.tracking_distance(section_params(args, "tracking"),
                                       [{"min_distance": float(v)} for v in recorded], n_defects=len(defects))
     linked = link_defects(
