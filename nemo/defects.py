@@ -843,7 +843,8 @@ def _euler_check(mesh: trimesh.Trimesh, df: pd.DataFrame) -> dict:
         "sum_charge": float(df["charge"].sum()) if len(df) else 0.0,
         "sum_charge_rounded": float(df["charge_rounded"].sum()) if len(df) else 0.0,
         "euler_characteristic": chi, "closed": closed,
-        "matches": bool(closed and len(df) and abs(df["charge_rounded"].sum() - chi) < 1e-9),
+        # no defect on a torus (χ 0) matches: the sum of none is 0
+        "matches": bool(closed and abs((df["charge_rounded"].sum() if len(df) else 0.0) - chi) < 1e-9),
     }
     if closed:
         logger.info("Euler check: sum of charges %.3f (rounded %.1f) vs chi = %d (%s)",
