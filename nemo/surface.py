@@ -2189,7 +2189,10 @@ def split_mesh(
     radial direction would otherwise punch holes into it. Components that are really split
     (e.g. one open epithelium whose apical and basal sides meet at a rim) keep the per-face rule.
     A hollow shell cut by the image border (``border="open"``) has lost the cap joining its
-    walls: they are separate open components and each goes whole to its side.
+    walls: they are separate open components and each goes whole to its side. By the centre, a
+    hollow object's closed pieces go whole by their winding (:func:`_cavity_sides`: a closed piece
+    wound inward is a cavity's wall): the walls of a hollow torus or bent tube turn both ways
+    seen from any one centre.
 
     Parameters
     ----------
@@ -2204,7 +2207,7 @@ def split_mesh(
         Keep only the largest connected component of each half (drops loose fragments).
     component_majority : float
         Area fraction in (0.5, 1] above which a whole connected component follows its majority
-        side; 1 gives the pure per-face rule.
+        side; 1 gives the pure per-face rule (also for a hollow object's closed pieces).
 
     Returns
     -------
@@ -2222,6 +2225,8 @@ def split_mesh(
     side, labels, _, outer_frac, ref = _face_sides(mesh, by, axis, centre)
     if not 0.5 < component_majority <= 1.0:
         raise NemoError(f"component_majority must be in (0.5, 1], got {component_majority}")
+    if by == "centre" and component_majority < 1.0:  # 1: the pure per-face rule
+        outer_frac = _cavity_sides(mesh, labels, outer_frac)
     has_normal = side != 0
     side = np.where(has_normal & (outer_frac >= component_majority)[labels], 1.0, side)
     side = np.where(has_normal & (1.0 - outer_frac >= component_majority)[labels], -1.0, side)
@@ -2249,11 +2254,14 @@ def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
     as :func:`split_mesh` sorts the pieces that lie at least 90 % on one side. The object has two
     walls when its largest piece turned towards the centre (a hollow shell's inner wall, closed
     or cut open by the image border) has at least ``min_fraction`` of the area of its largest
-    piece turned away (the bar of an object, :func:`find_objects`); otherwise one. A droplet, a
-    filled cell or a ball with a small cavity have one; so has a single surface that turns
-    towards its centre over part of its area (a torus, a banana-shaped cell, a sheet cut by the
-    image border, a cup whose two sides meet at its lip): ``split: centre`` sorts those face by
-    face. ``mixed_fraction`` says how much of the surface such pieces hold.
+    piece turned away (the bar of an object, :func:`find_objects`); otherwise one. A closed piece
+    wound inward (a cavity's wall) is turned towards the centre wherever the centre lies, and then
+    every closed piece wound outward away from it (:func:`_cavity_sides`): a hollow torus has two
+    walls. A droplet, a filled cell or a ball with a small cavity have one; so has a single
+    surface that turns towards its centre over part of its area (a filled torus, a banana-shaped
+    cell, a sheet cut by the image border, a cup whose two sides meet at its lip): ``split:
+    centre`` sorts those face by face. ``mixed_fraction`` says how much of the surface such
+    pieces hold (by the centre's rule alone).
 
     Parameters
     ----------
@@ -2276,11 +2284,36 @@ def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
     """
     if len(mesh.faces) == 0:
         return 1, 0.0, 0.0
-    _, _, total, outward, _ = _face_sides(mesh, "centre", None, centre)
-    outer, inner = total[outward >= 0.9], total[outward <= 0.1]
+    _, labels, total, outward, _ = _face_sides(mesh, "centre", None, centre)
+    sides = _cavity_sides(mesh, labels, outward)
+    outer, inner = total[sides >= 0.9], total[sides <= 0.1]
     mixed = float(total[(outward > 0.1) & (outward < 0.9)].sum() / max(total.sum(), 1e-300))
     fraction = float(inner.max() / outer.max()) if len(inner) and len(outer) else 0.0
     return (2 if fraction >= min_fraction else 1), fraction, mixed
+
+
+def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """``outward`` (the outward area fraction per connected piece, :func:`_face_sides`) with the
+    closed pieces of a hollow object set by their winding: when a closed piece is wound inward
+    (negative enclosed volume: a cavity's wall, its normals out of the solid into the cavity),
+    it is inner (0) and every closed piece wound outward is outer (1), whatever the centre sees.
+    The centre alone reads a torus's or a bent tube's walls as turning both ways (an independent
+    review: a hollow torus counted one wall, its inner wall dropped). Without a cavity (a cup
+    whose two faces meet at its lip) ``outward`` is returned unchanged."""
+    from nemo.geometry import rim
+
+    faces = np.asarray(mesh.faces)
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    v = v - v.mean(axis=0)  # the enclosed volume of a closed piece does not depend on the origin
+    n = len(outward)
+    volume = np.bincount(labels, weights=np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]],
+                                                                                          v[faces[:, 2]])), minlength=n)
+    is_open = np.zeros(n, dtype=bool)
+    is_open[labels[rim(faces, len(v))["vertices"][faces].any(axis=1)]] = True
+    winding = np.where(is_open, 0.0, np.sign(volume))
+    if not (winding < 0).any():
+        return outward
+    return np.where(winding > 0, 1.0, np.where(winding < 0, 0.0, outward))
 
 
 def _face_sides(mesh: trimesh.Trimesh, by: str, axis, centre) -> tuple[np.ndarray, np.ndarray, np.ndarray,

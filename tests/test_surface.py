@@ -319,6 +319,35 @@ def test_count_walls_tells_a_shell_from_a_droplet():
     assert count_walls(sheet)[0] == 1
 
 
+def torus_shell_volume(major: float, r_in: float, r_out: float, spacing=(1.0, 1.0, 1.0), width: float = 1.0,
+                       amp: float = 200.0) -> np.ndarray:
+    """A hollow torus about z (ring radius ``major``, tube wall between ``r_in`` and ``r_out``),
+    blurred edges of ``width``, (Z, Y, X) with a margin of 5 ``r_out``/… around it."""
+    dz, dy, dx = spacing
+    half_xy, half_z = major + r_out + 5.0, r_out + 5.0
+    z, y, x = np.meshgrid(*(np.arange(-h, h + d / 2, d) for h, d in ((half_z, dz), (half_xy, dy), (half_xy, dx))),
+                          indexing="ij")
+    tube = np.hypot(np.hypot(x, y) - major, z)  # distance from the ring's core circle
+    return amp * 0.25 * (1 + erf((tube - r_in) / width)) * (1 + erf((r_out - tube) / width))
+
+
+def test_a_hollow_torus_has_two_walls_each_kept_whole():
+    """A hollow torus (ring 24, tube wall 5–10 µm): seen from its centre (in the hole) both walls
+    turn both ways, so the centre's rule read one wall and dropped the inner (an independent
+    review); a closed piece wound inward is a cavity's wall. Split by the centre, each torus goes
+    whole to its side (the face-by-face rule tore them: χ −9)."""
+    shell = reconstruct(torus_shell_volume(24.0, 5.0, 10.0), (1, 1, 1), keep="all")
+    walls, inner_fraction, _ = count_walls(shell)
+    assert walls == 2 and inner_fraction == pytest.approx(5 / 10, rel=0.05)
+    inner, outer = split_mesh(shell)
+    for wall, r in ((inner, 5.0), (outer, 10.0)):
+        assert wall.is_watertight and wall.euler_number == 0
+        assert wall.area == pytest.approx(4 * np.pi**2 * 24.0 * r, rel=0.03)
+        assert signed_volume(wall.vertices, wall.faces) > 0  # normals out of the tube: the inner one flipped
+    # a filled torus keeps one wall; a cup-like surface without a cavity still splits face by face
+    assert count_walls(reconstruct(torus_shell_volume(24.0, -5.0, 10.0), (1, 1, 1)))[0] == 1
+
+
 def _grid_faces(ny: int, nx: int) -> np.ndarray:
     """Two triangles per cell of an ny × nx vertex grid (row-major)."""
     i, j = np.meshgrid(np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
