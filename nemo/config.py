@@ -400,3 +400,10 @@ def _check_alignment(pairs: list, layers: dict) -> None:
                                 f"(defined: {', '.join(layers) or 'none'})")
         if pair[0] == pair[1]:
             raise NemoError(f"config key 'alignment.{i}': aligns layer '{pair[0]}' with itself")
+
+
+def reaches_out_of_one_wall(layer: Mapping) -> bool:
+    """A layer (its resolved section: ``surface``, ``inward``, ``range``) that, on an object of one
+    wall (whose ``inner`` and ``outer`` are its whole outline), samples outside the object."""
+    return (layer.get("surface") in ("inner", "outer") and not layer.get("inward")
+            and float((layer.get("range") or (0, 0))[1]) > 0)

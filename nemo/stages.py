@@ -716,7 +716,7 @@ def _warn_one_wall_layer(mesh: trimesh.Trimesh, p: dict) -> None:
     """Warn when a layer on the inner or outer wall of an object of one wall reaches out of it."""
     walls = (mesh.metadata.get("nemo_params") or {}).get("walls")
     one = 1 in walls if isinstance(walls, list) else walls == 1
-    if one and p.get("surface") in ("inner", "outer") and not p["inward"] and float(p["range"][1]) > 0:
+    if one and nconfig.reaches_out_of_one_wall(p):
         warnings.warn(f"the object has one wall (mesh.split: auto), so the layer's {p['surface']} surface is its whole "
                       f"outline and the range {list(p['range'])} reaches outside the object; peel inward "
                       "(inward: true) for a layer under its surface, or set mesh.split: centre for a shell",

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from nemo.config import reaches_out_of_one_wall
 from nemo.errors import NemoError
 from nemo.objects import value_for
 from nemo.tables import read_provenance, read_table
@@ -147,11 +148,11 @@ def _objects(m: Mapping) -> list[tuple[int, Mapping]]:
     return [(0, m)]
 
 
-def _layer_texture(r: Mapping) -> dict:
-    """The peel's texture check (``nemo.stages.peel``: where the texture peaks around the layer)."""
+def _peel_params(r: Mapping) -> dict:
+    """The peel's resolved layer (``nemo.stages.peel``: range, surface, inward, the texture check)."""
     if not r.get("layer_table"):
         return {}
-    return (read_provenance(r["layer_table"]).get("parameters") or {}).get("texture") or {}
+    return read_provenance(r["layer_table"]).get("parameters") or {}
 
 
 def _directors_params(r: Mapping, label: int) -> dict:
@@ -300,6 +301,10 @@ def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) ->
             value, what = row.get("peel_nan_in_view", value), "no layer intensity within the field of view (NaN voxels?)"
         if np.isfinite(value) and value > QC_MAX_NAN_FRACTION and (directed or key == "peel_nan_fraction"):
             flags.append(f"{100 * value:.0f} % of vertices have {what}")
+    if row.get("reaches_out") and row.get("walls") == 1:
+        flags.append("the object has one wall, so the layer's range from its outline reaches outside it: its "
+                     "directors are the background's or the edge's (peel inward: layers.NAME.inward true; for a "
+                     "shell, mesh.split: centre)")
     texture = row.get("texture") or {}
     if texture.get("outside"):
         flags.append(f"the image's texture peaks at depth {texture['peak_depth']:.3g}, outside the layer's range "
@@ -483,7 +488,9 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         directors = _directors_params(r, label)
         row["coherency_noise"] = _value(directors.get("coherency_noise"))  # NaN: imported directors, older tables
         row["directors_skipped"] = directors.get("skipped")
-        row["texture"] = _layer_texture(r)
+        peel = _peel_params(r)
+        row["texture"] = peel.get("texture") or {}
+        row["reaches_out"] = bool(peel) and reaches_out_of_one_wall(peel)
     no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why
     row["defects_skipped"] = skipped
     if "directors" in tables and (skipped or no_directors):  # not searched: no count, not "none found"

@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 
 from nemo import layout
-from nemo.errors import NemoError
+from nemo.errors import NemoError, NemoWarning
 from nemo.pipeline import run_frame
 from nemo.synthetic import write_vesicle
 from nemo.tables import read_provenance, read_table
@@ -403,6 +403,39 @@ def test_run_frame_of_a_droplet_at_the_defaults(ball_and_labels, monkeypatch):
     assert read_table(d / "out" / "thickness.parquet")["thickness"].isna().all()
     H = read_table(d / "out" / "curvature_outer.parquet")["H"].to_numpy()
     assert np.nanmedian(H) * (3 * m["volume"] / (4 * math.pi)) ** (1 / 3) == pytest.approx(1.0, abs=0.03)
+
+
+def test_a_layer_outward_from_a_droplet_fails_the_quality_control(ball_and_labels):
+    """The default layer (0–5 µm outward from the inner wall) on an object of one wall samples the
+    background: besides the warning, the frame's QC names it."""
+    d = ball_and_labels
+    cfg = {"datasets": {"d": {"path": str(d / "img.tif"), "mask": str(d / "labels.tif"), "mask_labels": [2]}}}
+    with pytest.warns(NemoWarning):
+        summary = run_frame(None, d / "out", cfg, dataset="d")
+    row = next(q for q in summary["qc"] if q["layer"] == "fibres")
+    assert not row["qc_pass"] and "the layer's range from its outline reaches outside it" in row["qc_flags"]
+
+
+def test_a_hollow_torus_is_split_into_its_two_walls(tmp_path):
+    """A hollow torus (ring 24 µm, tube wall 5–10 µm): seen from its centre both walls turn both
+    ways, and split: auto read one wall, dropping the inner (an independent review); its walls are
+    now the two tori, the thickness the wall's 5 µm."""
+    from scipy.special import erf
+
+    from nemo.io import write_hyperstack
+
+    z, y, x = np.meshgrid(np.arange(-15, 16.0), np.arange(-39, 40.0), np.arange(-39, 40.0), indexing="ij")
+    tube = np.hypot(np.hypot(x, y) - 24.0, z)
+    image = 20.0 + 50.0 * (1 + erf(tube - 5.0)) * (1 + erf(10.0 - tube))
+    write_hyperstack(tmp_path / "torus.tif", image.astype(np.float32), (1, 1, 1), axes="ZYX")
+    cfg = {"datasets": {"d": {"path": str(tmp_path / "torus.tif")}}, "layers": {}, "curvature": None}
+    summary = run_frame(None, tmp_path / "out", cfg, dataset="d")
+    assert summary["mesh"]["walls"] == 2
+    for wall, r in (("inner", 5.0), ("outer", 10.0)):
+        m = json.loads((tmp_path / "out" / f"measure_{wall}.json").read_text())
+        assert m["euler_characteristic"] == 0 and m["area"] == pytest.approx(4 * np.pi**2 * 24.0 * r, rel=0.04)
+    thickness = read_table(tmp_path / "out" / "thickness.parquet")["thickness"]
+    assert thickness.notna().mean() > 0.95 and thickness.median() == pytest.approx(5.0, abs=0.3)
 
 
 def test_a_shell_cut_by_the_field_of_view_passes_where_its_rays_and_samples_leave_the_image(tmp_path):

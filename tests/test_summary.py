@@ -303,6 +303,13 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
       "little, the position is uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)"]),
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
+    # a layer outward from the outline of an object of one wall samples the background (an independent
+    # review: a hollow torus taken for one wall read its edge's directors, 79° off, and passed)
+    ({"reaches_out": True, "walls": 1}, CLOSED,
+     ["the object has one wall, so the layer's range from its outline reaches outside it: its directors are the "
+      "background's or the edge's (peel inward: layers.NAME.inward true; for a shell, mesh.split: centre)"]),
+    ({"reaches_out": True, "walls": 2}, CLOSED, []),
+    ({"reaches_out": False, "walls": 1}, CLOSED, []),
 ])
 def test_quality_flags_name_each_reason(change, measure, expected):
     assert quality_flags({**GOOD, **change}, measure) == expected
