@@ -404,6 +404,8 @@ def _check_alignment(pairs: list, layers: dict) -> None:
 
 def reaches_out_of_one_wall(layer: Mapping) -> bool:
     """A layer (its resolved section: ``surface``, ``inward``, ``range``) that, on an object of one
-    wall (whose ``inner`` and ``outer`` are its whole outline), samples outside the object."""
-    return (layer.get("surface") in ("inner", "outer") and not layer.get("inward")
-            and float((layer.get("range") or (0, 0))[1]) > 0)
+    wall (whose ``inner`` and ``outer`` are its whole outline), samples mostly outside the object:
+    the middle of its range lies outward (a membrane layer straddling the outline, [−1, 1], does not).
+    ``surface: whole`` is the outline by choice (``split: none``), not a shell's wall: not counted."""
+    d_min, d_max = (float(v) for v in (layer.get("range") or (0.0, 0.0)))
+    return layer.get("surface") in ("inner", "outer") and not layer.get("inward") and d_min + d_max > 0

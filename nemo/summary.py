@@ -264,7 +264,8 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     valid = valid if cut else every  # none left it, or none stayed: every ray counts
     if np.isfinite(valid) and valid < QC_MIN_THICKNESS_VALID and row.get("walls") != 1:  # one wall: no thickness
         flags.append(f"thickness found at {100 * valid:.0f} % of vertices" + (" in view" if cut else ""))
-    cut_by_border = bool(measure.get("rim_loops")) if "rim_loops" in measure else not closed  # older records
+    rim_loops = measure.get("rim_loops")  # None: not recorded (an imported surface, an older record)
+    cut_by_border = bool(rim_loops) if rim_loops is not None else not closed
     return flags + (_layer_flags(row, closed, chi, cut_by_border) if "n_directors" in row else [])
 
 
@@ -537,20 +538,25 @@ def collect_defects(records: Iterable[Mapping], frames: pd.DataFrame | None = No
         df.insert(0, "c", int(r["c"]))
         df.insert(0, "t", int(r["t"]))
         parts.append(df)
-    if not parts or all(p.empty for p in parts):
-        # the columns a table with defects has (an empty dataset concatenates with others)
-        empty = pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else "float64")
-                              for c in (*DEFECT_COLUMNS, "min_distance")}).astype({"t": "int64", "c": "int64",
-                                                                                  "object": "int64"})
-        if frames is None:
-            return empty
-        ids = {"object_id": pd.Series(dtype=frames["object_id"].dtype)} if "object_id" in frames else {}
-        return empty.assign(**ids, qc_pass=pd.Series(dtype=bool), qc_flags=pd.Series(dtype=object))
-    out = pd.concat([p for p in parts if not p.empty], ignore_index=True)
+    if not parts:
+        return _no_defects(frames)
+    found = [p for p in parts if not p.empty]
+    out = pd.concat(found or parts, ignore_index=True)  # none found: the empty tables' columns
+    if not found:
+        out = out.astype({k: "int64" for k in ("t", "c", "object", "vertex") if k in out})
     extra = [c for c in out.columns if c not in DEFECT_COLUMNS]
     out = out[list(DEFECT_COLUMNS) + extra]
     out = out.sort_values(["t", "c", "layer"], kind="stable").reset_index(drop=True)
     return out if frames is None else _with_frame_qc(out, frames)
+
+
+def _no_defects(frames: pd.DataFrame | None) -> pd.DataFrame:
+    """The defects table of no frame: :data:`DEFECT_COLUMNS`, ``min_distance`` (and with ``frames``
+    the frame's ``object_id``, ``qc_pass``, ``qc_flags``)."""
+    empty = pd.DataFrame({c: pd.Series(dtype="object" if c == "layer" else "float64")
+                          for c in (*DEFECT_COLUMNS, "min_distance")}).astype({"t": "int64", "c": "int64",
+                                                                              "object": "int64", "vertex": "int64"})
+    return empty if frames is None else _with_frame_qc(empty, frames)
 
 
 def _with_frame_qc(defects: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:

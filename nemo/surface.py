@@ -2292,14 +2292,16 @@ def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
     return (2 if fraction >= min_fraction else 1), fraction, mixed
 
 
-def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray) -> np.ndarray:
+def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray,
+                  min_fraction: float = OBJECT_MIN_AREA) -> np.ndarray:
     """``outward`` (the outward area fraction per connected piece, :func:`_face_sides`) with the
-    closed pieces of a hollow object set by their winding: when a closed piece is wound inward
-    (negative enclosed volume: a cavity's wall, its normals out of the solid into the cavity),
-    it is inner (0) and every closed piece wound outward is outer (1), whatever the centre sees.
-    The centre alone reads a torus's or a bent tube's walls as turning both ways (an independent
-    review: a hollow torus counted one wall, its inner wall dropped). Without a cavity (a cup
-    whose two faces meet at its lip) ``outward`` is returned unchanged."""
+    walls of each cavity set by their winding: a closed piece wound inward (negative enclosed
+    volume: its normals point out of the solid into the cavity) of at least ``min_fraction`` of the
+    area of a closed piece wound outward that encloses it is inner (0), and that piece outer (1),
+    whatever the centre sees. The centre alone reads a torus's or a bent tube's walls as turning
+    both ways (an independent review: a hollow torus counted one wall, its inner wall dropped). Other
+    pieces keep ``outward``: a small void in a wall, or a separate piece wound inward (an imported
+    mesh's), changes nothing, and a cup whose two faces meet at its lip is still sorted face by face."""
     from nemo.geometry import rim
 
     faces = np.asarray(mesh.faces)
@@ -2308,12 +2310,21 @@ def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray
     n = len(outward)
     volume = np.bincount(labels, weights=np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]],
                                                                                           v[faces[:, 2]])), minlength=n)
+    area = np.bincount(labels, weights=face_normals_areas(v, faces)[1], minlength=n)
     is_open = np.zeros(n, dtype=bool)
     is_open[labels[rim(faces, len(v))["vertices"][faces].any(axis=1)]] = True
-    winding = np.where(is_open, 0.0, np.sign(volume))
-    if not (winding < 0).any():
-        return outward
-    return np.where(winding > 0, 1.0, np.where(winding < 0, 0.0, outward))
+    shells = np.flatnonzero(~is_open & (volume > 0))
+    sides = np.asarray(outward, dtype=np.float64).copy()
+    for cavity in np.flatnonzero(~is_open & (volume < 0)):  # a loop over cavities: a hollow object has few
+        big = shells[area[shells] * min_fraction <= area[cavity]]
+        if not len(big):
+            continue
+        probe = v[faces[labels == cavity][0, 0]][None]
+        around = [s for s in big if abs(_winding_numbers(probe, v, faces[labels == s])[0]) > 0.5]
+        if around:
+            sides[cavity] = 0.0
+            sides[around] = 1.0
+    return sides
 
 
 def _face_sides(mesh: trimesh.Trimesh, by: str, axis, centre) -> tuple[np.ndarray, np.ndarray, np.ndarray,

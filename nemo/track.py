@@ -43,11 +43,19 @@ def _check(defects: pd.DataFrame, max_distance: float, gap_frames: int) -> None:
     xyz = defects[["x", "y", "z"]].to_numpy(dtype=float)
     if not np.isfinite(xyz).all():
         raise NemoError("defect table has non-finite x, y, z positions; cannot track them")
-    t = pd.to_numeric(defects["t"], errors="coerce").to_numpy(dtype=float)
-    if not (np.isfinite(t) & (t == np.round(t))).all():
-        bad = defects["t"][~(np.isfinite(t) & (t == np.round(t)))].unique()[:5].tolist()
-        raise NemoError(f"defect table has t values that are not whole time-point indices ({bad}): t is the "
-                        "0-based index of the time point in the hyperstack, not a time in minutes")
+    _check_time_points(defects["t"], "defect table has t values")
+
+
+def _check_time_points(t, what: str) -> None:
+    """Refuse time points that are not whole numbers (0.5, NaN, text, True): ``t`` is an index."""
+    values = pd.Series(t)
+    numeric = pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values)
+    t = pd.to_numeric(values, errors="coerce").to_numpy(dtype=float) if numeric else np.full(len(values), np.nan)
+    whole = np.isfinite(t) & (t == np.round(t))
+    if not whole.all():
+        bad = values[~whole].unique()[:5].tolist()
+        raise NemoError(f"{what} that are not whole time-point indices ({bad}): t is the 0-based index of the "
+                        "time point in the hyperstack, not a time in minutes")
 
 
 def _cutoff(distance: float) -> float:
@@ -111,6 +119,8 @@ def link_defects(
     out["track_id"] = np.full(len(out), -1, dtype=np.int64)
     if out.empty:
         return out.set_axis(defects.index)
+    if frames is not None:
+        _check_time_points(list(frames), "frames has values")
     t_all = np.unique(np.asarray(frames if frames is not None else out["t"], dtype=np.int64))
     unknown = np.setdiff1d(out["t"].to_numpy(dtype=np.int64), t_all)
     if unknown.size:

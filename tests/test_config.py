@@ -338,3 +338,14 @@ def test_random_config_files_load_or_raise_nemo_error(tmp_path_factory, data):
     except NemoError:
         return
     assert_documented_types(cfg, what=f"the file {data!r}")
+
+
+@pytest.mark.parametrize("layer, out", [
+    ({"surface": "inner", "range": [0, 5]}, True),         # the default layer on a droplet: the background
+    ({"surface": "outer", "range": [2, 4]}, True),
+    ({"surface": "inner", "range": [-1, 1]}, False),       # a membrane layer straddling the outline
+    ({"surface": "inner", "range": [0, 5], "inward": True}, False),
+    ({"surface": "whole", "range": [0, 5]}, False),        # the outline by choice (split: none)
+])
+def test_a_layer_reaches_out_of_an_object_of_one_wall_when_its_range_lies_mostly_outward(layer, out):
+    assert config.reaches_out_of_one_wall(layer) is out

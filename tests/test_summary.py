@@ -258,6 +258,9 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
      {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 1}, ["thickness found at 0 % of vertices in view"]),
     ({"peel_nan_fraction": 0.12, "peel_nan_in_view": 0.0}, CLOSED,  # closed: every vertex counts
      ["12 % of vertices have no layer intensity (samples outside the image?)"]),
+    # an imported open surface records no rim_loops: open, the samples beyond the view are forgiven
+    ({"peel_nan_fraction": 0.12, "peel_nan_in_view": 0.0}, {"n_components": 1, "n_boundary_loops": 1,
+                                                            "rim_loops": None}, []),
     # open through holes only, not cut by the border: every vertex counts
     ({"peel_nan_fraction": 0.12, "peel_nan_in_view": 0.0}, {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 0},
      ["12 % of vertices have no layer intensity (samples outside the image?)"]),
@@ -376,12 +379,15 @@ def test_collect_defects_of_empty_tables_has_the_columns(tmp_path):
     empty = [{"t": 0, "c": 0, "layer": "basal", "defects": tmp_path / "empty.parquet"}]
     out = collect_defects(empty)
     assert len(out) == 0 and list(out.columns)[:len(DEFECT_COLUMNS)] == list(DEFECT_COLUMNS)
-    assert out["t"].dtype == np.int64 and out["layer"].dtype == object
     frames = pd.DataFrame({"t": [0], "c": [0], "layer": ["basal"], "object": [0], "object_id": pd.array([0], "Int64"),
                            "qc_pass": [True], "qc_flags": [""]})
-    full = collect_defects([{**empty[0], "defects": tmp_path / "one.parquet"}], frames)
-    assert list(collect_defects(empty, frames).columns) == list(full.columns)
-    assert list(out.columns) == list(collect_defects([{**empty[0], "defects": tmp_path / "one.parquet"}]).columns)
+    one = [{**empty[0], "defects": tmp_path / "one.parquet"}]
+    for got, full in ((out, collect_defects(one)), (collect_defects(empty, frames), collect_defects(one, frames)),
+                      (collect_defects([], frames), None)):
+        if full is not None:
+            assert list(got.columns) == list(full.columns)
+            assert got.dtypes.to_dict() == full.dtypes.to_dict()
+        assert got["t"].dtype == np.int64 and got["vertex"].dtype == np.int64 and "min_distance" in got
 
 
 def test_collect_defects_carries_each_frames_quality_control(tmp_path):

@@ -344,8 +344,26 @@ def test_a_hollow_torus_has_two_walls_each_kept_whole():
         assert wall.is_watertight and wall.euler_number == 0
         assert wall.area == pytest.approx(4 * np.pi**2 * 24.0 * r, rel=0.03)
         assert signed_volume(wall.vertices, wall.faces) > 0  # normals out of the tube: the inner one flipped
-    # a filled torus keeps one wall; a cup-like surface without a cavity still splits face by face
+    # a filled torus keeps one wall
     assert count_walls(reconstruct(torus_shell_volume(24.0, -5.0, 10.0), (1, 1, 1)))[0] == 1
+
+
+def test_only_a_cavity_enclosed_by_its_wall_sets_the_sides():
+    """A piece wound inward counts as a cavity only inside a closed piece of which it has ≥ 10 % of
+    the area (a review of the first version: a 1 µm void in a wall sent the whole surface of a
+    cut shell or a cup to one side, and an imported mesh's second cell, wound inward, made two
+    walls of two cells)."""
+    import trimesh
+
+    torus = trimesh.creation.torus(20.0, 6.0, major_sections=96, minor_sections=32)  # turns both ways
+    void = trimesh.creation.icosphere(2, radius=1.0)
+    void = trimesh.Trimesh(void.vertices + (20.0, 0.0, 0.0), void.faces[:, ::-1], process=False)  # in its solid
+    alone = split_mesh(torus, centre=(0.0, 0.0, 0.0), keep="largest")
+    with_void = split_mesh(trimesh.util.concatenate([torus, void]), centre=(0.0, 0.0, 0.0), keep="largest")
+    assert [len(m.faces) for m in with_void] == [len(m.faces) for m in alone]  # face by face, as without it
+    cell = trimesh.creation.icosphere(3, radius=10.0)
+    other = trimesh.Trimesh(cell.vertices * 0.6 + (30.0, 0.0, 0.0), cell.faces[:, ::-1], process=False)
+    assert count_walls(trimesh.util.concatenate([cell, other]))[0] == 1
 
 
 def _grid_faces(ny: int, nx: int) -> np.ndarray:

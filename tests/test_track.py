@@ -142,11 +142,15 @@ def test_a_step_of_exactly_max_distance_is_linked():
     assert link_defects(step, max_distance=1.99)["track_id"].nunique() == 3
 
 
-@pytest.mark.parametrize("t", [[0, 0.5, 1.0, 1.5], [0, 1, np.nan, 3]])
+@pytest.mark.parametrize("t", [[0, 0.5, 1.0, 1.5], [0, 1, np.nan, 3], ["0", "1", "2", "3"], [True, False, True, False]])
 def test_time_points_that_are_not_indices_are_refused(t):
     df = pd.DataFrame({"t": t, "x": [0.0, 0.1, 0.2, 0.3], "y": 0.0, "z": 0.0, "charge_rounded": 0.5})
     with pytest.raises(NemoError, match="not whole time-point indices"):
         link_defects(df, max_distance=1.0)
+    whole = df.assign(t=[0.0, 1.0, 2.0, 3.0])  # whole numbers in a float column are indices
+    assert link_defects(whole, max_distance=1.0)["track_id"].nunique() == 1
+    with pytest.raises(NemoError, match="frames has values"):
+        link_defects(whole, max_distance=1.0, frames=[0, 1, 2, 2.5, 3])
 
 
 def test_non_consecutive_time_points_are_consecutive_frames():
