@@ -2222,11 +2222,11 @@ def split_mesh(
     NemoError
         Unknown ``by``, missing or zero axis, or a half with no face (the mesh has one wall).
     """
-    side, labels, _, outer_frac, ref = _face_sides(mesh, by, axis, centre)
+    side, labels, area, outer_frac, ref = _face_sides(mesh, by, axis, centre)
     if not 0.5 < component_majority <= 1.0:
         raise NemoError(f"component_majority must be in (0.5, 1], got {component_majority}")
     if by == "centre" and component_majority < 1.0:  # 1: the pure per-face rule
-        outer_frac = _cavity_sides(mesh, labels, outer_frac)
+        outer_frac = _cavity_sides(mesh, labels, outer_frac, area)
     has_normal = side != 0
     side = np.where(has_normal & (outer_frac >= component_majority)[labels], 1.0, side)
     side = np.where(has_normal & (1.0 - outer_frac >= component_majority)[labels], -1.0, side)
@@ -2285,14 +2285,14 @@ def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
     if len(mesh.faces) == 0:
         return 1, 0.0, 0.0
     _, labels, total, outward, _ = _face_sides(mesh, "centre", None, centre)
-    sides = _cavity_sides(mesh, labels, outward)
+    sides = _cavity_sides(mesh, labels, outward, total)
     outer, inner = total[sides >= 0.9], total[sides <= 0.1]
     mixed = float(total[(outward > 0.1) & (outward < 0.9)].sum() / max(total.sum(), 1e-300))
     fraction = float(inner.max() / outer.max()) if len(inner) and len(outer) else 0.0
     return (2 if fraction >= min_fraction else 1), fraction, mixed
 
 
-def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray,
+def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray, area: np.ndarray,
                   min_fraction: float = OBJECT_MIN_AREA) -> np.ndarray:
     """``outward`` (the outward area fraction per connected piece, :func:`_face_sides`) with the
     walls of each cavity set by their winding: a closed piece wound inward (negative enclosed
@@ -2301,8 +2301,9 @@ def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray
     whatever the centre sees. The centre alone reads a torus's or a bent tube's walls as turning
     both ways (an independent review: a hollow torus counted one wall, its inner wall dropped). Other
     pieces keep ``outward``: a small void in a wall, or a separate piece wound inward (an imported
-    mesh's), changes nothing, and a cup whose two faces meet at its lip is still sorted face by face."""
-    from nemo.geometry import rim
+    mesh's), changes nothing, and a cup whose two faces meet at its lip is still sorted face by face.
+    ``labels`` (per face), ``outward`` and ``area`` (per piece) are :func:`_face_sides`'s."""
+    from nemo.geometry import boundary_edges
 
     faces = np.asarray(mesh.faces)
     v = np.asarray(mesh.vertices, dtype=np.float64)
@@ -2310,9 +2311,10 @@ def _cavity_sides(mesh: trimesh.Trimesh, labels: np.ndarray, outward: np.ndarray
     n = len(outward)
     volume = np.bincount(labels, weights=np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]],
                                                                                           v[faces[:, 2]])), minlength=n)
-    area = np.bincount(labels, weights=face_normals_areas(v, faces)[1], minlength=n)
+    on_rim = np.zeros(len(v), dtype=bool)
+    on_rim[boundary_edges(faces).ravel()] = True
     is_open = np.zeros(n, dtype=bool)
-    is_open[labels[rim(faces, len(v))["vertices"][faces].any(axis=1)]] = True
+    is_open[labels[on_rim[faces].any(axis=1)]] = True
     shells = np.flatnonzero(~is_open & (volume > 0))
     sides = np.asarray(outward, dtype=np.float64).copy()
     for cavity in np.flatnonzero(~is_open & (volume < 0)):  # a loop over cavities: a hollow object has few
