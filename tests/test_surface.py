@@ -348,6 +348,22 @@ def test_a_hollow_torus_has_two_walls_each_kept_whole():
     assert count_walls(reconstruct(torus_shell_volume(24.0, -5.0, 10.0), (1, 1, 1)))[0] == 1
 
 
+def test_a_bent_hollow_tube_has_two_walls_each_kept_whole():
+    """A hollow U-shaped capsule (core arc of radius 24 µm, wall 5–10 µm from its core curve): as
+    for the torus, the centre sees both walls turn both ways; each is kept whole."""
+    z, y, x = np.meshgrid(np.arange(-15, 16.0), np.arange(-15, 40.0), np.arange(-39, 40.0), indexing="ij")
+    on_arc = np.arctan2(y, x) >= 0
+    ends = np.minimum(np.sqrt((x - 24.0) ** 2 + y**2 + z**2), np.sqrt((x + 24.0) ** 2 + y**2 + z**2))
+    core = np.where(on_arc, np.hypot(np.hypot(x, y) - 24.0, z), ends)  # distance from the core curve
+    image = 50.0 * (1 + erf(core - 5.0)) * (1 + erf(10.0 - core))
+    shell = reconstruct(image.astype(np.float32), (1, 1, 1), keep="all")
+    assert count_walls(shell)[0] == 2
+    inner, outer = split_mesh(shell)
+    for wall, r in ((inner, 5.0), (outer, 10.0)):  # half a torus tube and a sphere of the two caps
+        assert wall.is_watertight and wall.area == pytest.approx(np.pi * 24.0 * 2 * np.pi * r + 4 * np.pi * r**2,
+                                                                 rel=0.03)
+
+
 def test_only_a_cavity_enclosed_by_its_wall_sets_the_sides():
     """A piece wound inward counts as a cavity only inside a closed piece of which it has ≥ 10 % of
     the area (a review of the first version: a 1 µm void in a wall sent the whole surface of a
