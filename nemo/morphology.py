@@ -1753,7 +1753,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
         surface whose fits are NaN along the rim: the sum misses that band), ``mean_H_fit``,
         ``mean_K_fit`` (over the vertices with a fit); ``n_objects``, ``snr``, ``noise`` and
         ``saturated`` of the image the mesh was made from, ``rim_loops`` (where the image
-        border cuts the object), ``walls`` (1 or 2; a list per object with several) and
+        border cuts the object; a list per object with several), ``walls`` (1 or 2; a list per object with several) and
         ``turned_out`` (objects that enclosed the dark side, turned out), from
         NEMO's mesh step (None otherwise); ``notes`` (list of
         str). Coincident vertices are merged (and the faces they collapse ignored) for the

@@ -115,7 +115,9 @@ def mesh(
         more than 1: objects meshed as one; None when the image has fewer than two regions),
         ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
-        surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface).
+        surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface; with ``keep: all`` and
+        several objects a list of each object's, so that a closed object beside a cut one is not
+        counted as cut).
 
     Raises
     ------
@@ -193,10 +195,22 @@ def mesh(
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
     info = rim(meshes["whole"].faces, len(meshes["whole"].vertices))  # of the analysed surface
     p["rim_vertices"], p["rim_loops"] = info["n_vertices"], info["n_loops"]
-    if p["rim_loops"]:
+    if info["n_loops"]:
         logger.info("open surface (cut by the image border): %d rim loop(s), %d rim vertices",
-                    p["rim_loops"], p["rim_vertices"])
+                    info["n_loops"], info["n_vertices"])
+    if p["keep"] == "all" and len(found) > 1:  # each object's own: one beside a cut one is not cut
+        p["rim_loops"] = _rim_loops_per_object(meshes["whole"], len(found))
     return meshes, p
+
+
+def _rim_loops_per_object(whole: trimesh.Trimesh, n_objects: int) -> list[int]:
+    """Rim loops (boundary loops on the image's border) of each object of a labelled ``whole``, by label."""
+    from nemo.geometry import rim
+
+    loops = [0] * n_objects
+    for part in objects.parts(whole):  # a loop over objects
+        loops[part.label] = rim(part.mesh.faces, len(part.mesh.vertices))["n_loops"]
+    return loops
 
 
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
@@ -535,6 +549,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
             for part in split:  # a loop over objects
                 record = measure(part.mesh, None if curvature_df is None else objects.local_table(curvature_df, part))
                 record.pop("walls", None)  # the frame's list, one per object: in the frame's record only
+                record["rim_loops"] = objects.value_for(record.get("rim_loops"), part.label)
                 result["objects"].append({**record, "object": part.label})
     return result
 

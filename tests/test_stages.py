@@ -229,6 +229,22 @@ def test_mesh_keep_all_splits_every_object_about_its_own_centre():
         assert meshes["whole"].euler_number == 8  # two shells, two walls each
 
 
+def test_mesh_keep_all_records_each_objects_own_rim():
+    """keep: all with one shell cut by the image's border and one inside it: the rim loops are each
+    object's (the frame's count for both made the closed object "cut", so the quality control forgave
+    its layer's samples that leave the image and counted its torn wall's loops as rim)."""
+    vol = _balls((40, 40, 76), [(20, 20, 20, 9, 14), (71, 20, 20, 6, 11)])  # the second cut by x = 75
+    meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
+    assert params["n_objects"] == 2 and params["rim_loops"] == [0, 2]  # the cut shell's two walls' rims
+    meshes["inner"].metadata["nemo_params"] = params  # as nemo mesh and nemo run record it
+    record = stages.measure(meshes["inner"])
+    assert [(o["object"], o["rim_loops"], o["n_boundary_loops"]) for o in record["objects"]] == [(0, 0, 0), (1, 2, 1)]
+    with pytest.warns(NemoWarning, match="2 objects: analysing the largest"):  # keep: largest: a number, as before
+        one, p1 = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
+    one["inner"].metadata["nemo_params"] = p1
+    assert p1["n_objects"] == 2 and p1["rim_loops"] == 0 and stages.measure(one["inner"])["rim_loops"] == 0
+
+
 def test_mesh_keep_all_leaves_a_droplet_out_of_the_walls():
     """A shell and a filled ball (one wall): the ball has no inner wall, and a warning says so."""
     from nemo import objects
