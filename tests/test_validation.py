@@ -5,7 +5,6 @@ sweep through Snakemake."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import snakemake_env
 
 from nemo import validation as V
 from nemo.cli import main as nemo_main
@@ -436,8 +436,7 @@ def test_ci_variant_through_snakemake(tmp_path):
     ordinary per-frame rules (≈ 60 s on 2 idle cores)."""
     cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(tmp_path),
            "--configfile", str(ROOT / "config" / "validation-ci.yaml"), "--cores", "2", "-q"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900,
-                          env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, env=snakemake_env())
     assert proc.returncode == 0, proc.stderr[-4000:]
     summ = tmp_path / "results" / "validation" / "summary"
     cases = pd.read_parquet(summ / "cases.parquet").set_index("case")

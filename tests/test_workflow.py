@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from conftest import snakemake_env
 
 ROOT = Path(__file__).resolve().parents[1]
 SNAKEFILE = ROOT / "Snakefile"
@@ -34,11 +35,11 @@ TRACKS_COLUMNS = {"track_id", "layer", "charge", "first_t", "last_t", "length", 
 
 
 # ----------------------------------------------------------------------------- helpers
-def smk(workdir: Path, *args, check: bool = True, timeout: float = 1200) -> subprocess.CompletedProcess:
-    """Run Snakemake on the NEMO Snakefile in ``workdir``."""
+def smk(workdir: Path, *args, check: bool = True, timeout: float = 1200, slurm: bool = False) -> subprocess.CompletedProcess:
+    """Run Snakemake on the NEMO Snakefile in ``workdir`` (``slurm``: with SLURM's own ``scontrol``,
+    :func:`conftest.snakemake_env`)."""
     cmd = [*SNAKEMAKE, "-s", str(SNAKEFILE), "-d", str(workdir), *map(str, args)]
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=snakemake_env(slurm))
     if check and proc.returncode != 0:
         raise AssertionError(f"snakemake {' '.join(map(str, args))} failed ({proc.returncode}):\n"
                              f"{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}")
@@ -527,7 +528,8 @@ def test_a_killed_run_recovers_with_unlock_and_rerun_incomplete(tmp_path):
            "report": {"summary": False}}
     config = write_config(tmp_path / "c.yaml", cfg)
     cmd = [*SNAKEMAKE, "-s", str(SNAKEFILE), "-d", str(tmp_path), "--cores", "1", "--configfile", str(config)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                            env=snakemake_env())
     deadline = time.monotonic() + 300
     while not list(tmp_path.glob("results/drops/t*/c*/mesh.ply")) and time.monotonic() < deadline:
         time.sleep(0.2)
@@ -651,7 +653,7 @@ def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_ru
     t0 = time.perf_counter()
     # poll SLURM every few seconds (the profile's defaults are gentler, for real clusters)
     smk(tmp_path, "--profile", ROOT / "profiles" / "slurm", "--seconds-between-status-checks", "3",
-        "--slurm-init-seconds-before-status-checks", "2", timeout=3600)
+        "--slurm-init-seconds-before-status-checks", "2", timeout=3600, slurm=True)
     print(f"\nSLURM run of the default workflow: {time.perf_counter() - t0:.0f} s")
     # the jobs really ran under SLURM: sacct knows them (the plugin stores the rule in the comment)
     sacct = subprocess.run(["sacct", "-X", "-n", "-P", "-S", start, "-o", "JobID,State,Comment,WorkDir"],
