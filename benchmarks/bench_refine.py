@@ -9,7 +9,8 @@ Usage::
 
     python benchmarks/bench_refine.py [--repeat 3] [--fresh]
 
-Prints, for ``refine`` off and on, the best wall time of :func:`nemo.surface.reconstruct` (blur,
+Prints, for the defaults, ``refine`` on and ``edge: profile`` (the level from the walls' fitted
+profiles, opt-in), the best wall time of :func:`nemo.surface.reconstruct` (blur,
 threshold, marching cubes, smoothing, refinement), the added fraction, and the inner and outer
 wall radii (median vertex distance to the true centre) against the truth.
 """
@@ -41,19 +42,21 @@ def main() -> None:
     spacing = tuple(float(s) for s in meta.spacing)
     centre = np.asarray(info["centre"], float)
     times = {}
-    for refine in (False, True):
+    variants = {"default": {}, "refine": {"refine": True}, "edge profile": {"edge": "profile"}}
+    for name, options in variants.items():
         best = np.inf
         for _ in range(args.repeat):
             t0 = time.perf_counter()
-            mesh = reconstruct(vol, spacing, step=2, keep="all", refine=refine)
+            mesh = reconstruct(vol, spacing, step=2, keep="all", **options)
             best = min(best, time.perf_counter() - t0)
-        times[refine] = best
+        times[name] = best
         inner, outer = split_mesh(mesh, centre=centre)
         r_in = np.median(np.linalg.norm(inner.vertices - centre, axis=1))
         r_out = np.median(np.linalg.norm(outer.vertices - centre, axis=1))
-        print(f"refine {refine!s:5}: {best:6.2f} s, {len(mesh.vertices)} vertices; inner wall {r_in:.3f} "
-              f"(truth {info['radius']:g}), outer {r_out:.3f}, thickness {r_out - r_in:.3f} µm")
-    print(f"refinement adds {times[True] - times[False]:.2f} s = {100 * (times[True] / times[False] - 1):.1f} %")
+        print(f"{name:12}: {best:6.2f} s, {len(mesh.vertices)} vertices; level {mesh.metadata['nemo_surface']['level']:.4g}; "
+              f"inner wall {r_in:.3f} (truth {info['radius']:g}), outer {r_out:.3f}, thickness {r_out - r_in:.3f} µm")
+    for name in ("refine", "edge profile"):
+        print(f"{name} adds {times[name] - times['default']:.2f} s = {100 * (times[name] / times['default'] - 1):.1f} %")
 
 
 if __name__ == "__main__":

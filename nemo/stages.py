@@ -106,7 +106,8 @@ def mesh(
     resolved : dict
         The section with ``step`` and ``sigma`` as numbers, the iso-level used, the image's
         ``noise``, ``snr``, ``saturated`` and ``background`` (:func:`nemo.surface.image_noise`;
-        None with a mask), ``refine_to`` as applied,
+        None with a mask), ``refine_to`` as applied, with ``edge: profile`` ``profile`` (the level
+        the walls' fitted profiles gave, or None, the half level, rays and fits),
         ``deconvolution`` (:func:`nemo.psf.deconvolve`'s record),
         ``n_objects`` (:func:`nemo.surface.find_objects`), ``turned_out`` (objects enclosing the
         dark side, turned out: :func:`nemo.surface.turn_out_dark_objects`), ``walls`` (1 or 2; a list per
@@ -171,6 +172,8 @@ def mesh(
     p["refine_sigma"] = surface.get("refine_sigma")
     p["refine_to"] = surface.get("refine_to", p["refine_to"])  # level when steepest could not be used
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
+    if "profile" in surface:  # edge: profile, the walls' fitted profiles (nemo.refine.wall_profile_level)
+        p["profile"] = dict(surface["profile"])
     del sharp
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
              else {"noise": None, "snr": None, "saturated": None, "background": None})

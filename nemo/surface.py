@@ -1033,7 +1033,7 @@ def auto_sigma(
 
 
 def iso_level(volume: np.ndarray, spacing, sigma: float, step: int = 1, threshold: str | float = "yen",
-              edge: Literal["half", "threshold"] = "half") -> float:
+              edge: Literal["half", "threshold", "profile"] = "half") -> float:
     """The iso-level :func:`reconstruct` would mesh ``volume`` at, in its intensity units.
 
     Parameters
@@ -1673,7 +1673,7 @@ def reconstruct(
     step: int = 1,
     smooth_iter: int = 10,
     keep: Literal["largest", "all"] = "largest",
-    edge: Literal["half", "threshold"] = "half",
+    edge: Literal["half", "threshold", "profile"] = "half",
     unit: str = "um",
     pass_band: float = 0.1,
     border: Literal["open", "closed"] = "open",
@@ -1706,10 +1706,14 @@ def reconstruct(
         Taubin (windowed-sinc, non-shrinking) smoothing iterations; 0 = none.
     keep : {"largest", "all"}
         Keep the largest connected component (by area) or every component.
-    edge : {"half", "threshold"}
+    edge : {"half", "threshold", "profile"}
         For automatic thresholds: place the surface half-way between the background and the
         object's plateau intensity (module docstring) (``"half"``, the true position of a blurred
-        edge) or at the automatic threshold itself (``"threshold"``).
+        edge), at the automatic threshold itself (``"threshold"``), or (``"profile"``) mesh at the
+        half level first and again at the level that blurred boxes fitted to the walls' intensity
+        along its normals imply (:func:`nemo.refine.wall_profile_level`: a thin z-blurred wall that
+        never reaches its plateau, or noise clipped at the detector's range, moves the histogram's
+        half level, not the fitted boxes'; recorded as ``metadata["nemo_surface"]["profile"]``).
     unit : str
         Unit of ``spacing`` (stored in ``mesh.units``).
     pass_band : float
@@ -1792,6 +1796,13 @@ def reconstruct(
         mesh.faces = mesh.faces[:, ::-1]
     logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
     mesh = keep_components(mesh, keep)
+    profile_info = {}
+    if edge == "profile" and mask is None and isinstance(how, str) and len(mesh.faces):  # not at a given level
+        mesh, level, profile_info = _at_profile_level(mesh, source, padded, level, (dz, dy, dx), step, box, keep)
+        profile_info = {"level": level * scale, **profile_info, "level_half": profile_info["level_half"] * scale}
+        if profile_info["level"] is not None:
+            logger.info("iso-level from the walls' profiles %.4g (%d of %d rays fitted; the half level %.4g)",
+                        profile_info["level"], profile_info["fitted"], profile_info["rays"], profile_info["level_half"])
     snap_info = _snap(mesh, padded, level, (dz, dy, dx), step, box)
     del padded
     if smooth_iter > 0:
@@ -1799,18 +1810,49 @@ def reconstruct(
             smoothed = _taubin(np.asarray(mesh.vertices), np.asarray(mesh.faces), smooth_iter, pass_band)
             mesh.vertices = np.clip(smoothed, 0.0, box)
     ref_info = _refine(mesh, source if mask is None else None, level, (dz, dy, dx), step, refine,
-                       refine_sigma, sigma, box, refine_to, background, edge == "half" or not isinstance(how, str))
+                       refine_sigma, sigma, box, refine_to, background, edge != "threshold" or not isinstance(how, str))
     mesh, rim_info = _apply_border(mesh, border, box)
     mesh.metadata["nemo_surface"] = {
         "level": float(level) * scale, "threshold": float(thr) * scale, "method": str(how),
         "sigma": sigma, "step": step, "smooth_iter": int(smooth_iter), "keep": keep, "edge": edge,
         "spacing": [dz, dy, dx], "border": border, **snap_info, **rim_info, **ref_info,
         "object_levels": [lev * scale for lev in object_levels], "region_peaks": region_peaks,
+        **({"profile": profile_info} if profile_info else {}),
     }
     mesh.metadata.pop("parent_faces", None)
     mesh.metadata.pop("parent_vertices", None)
     mesh.metadata["spacing"] = (dz, dy, dx)  # saved in the PLY header: peel checks the image
     return mesh
+
+
+def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, level: float,
+                      spacing: tuple[float, float, float], step: int, box: np.ndarray,
+                      keep: str) -> tuple[trimesh.Trimesh, float, dict]:
+    """``mesh`` remade at the level the walls' fitted profiles imply (:func:`nemo.refine.wall_profile_level`),
+    the level and the record; ``mesh`` and ``level`` as they are when too few rays fit (a filled object
+    larger than the rays' reach, a mesh of a few faces)."""
+    from nemo.refine import wall_profile_level
+
+    sample = np.asarray(spacing, dtype=np.float64) * step
+    with log_step(f"fitting wall profiles along {min(len(mesh.vertices), 4000)} normals"):
+        found, info = wall_profile_level(source, spacing, np.asarray(mesh.vertices), _vertex_normals(mesh), padded,
+                                         level, sample, -_PAD * sample, PROFILE_MAX_DEPTH_VOXELS * float(max(spacing)))
+    info = {**info, "level_half": float(level)}
+    if found is None or not float(padded.min()) < found < float(padded.max()):
+        logger.warning("too few walls' profiles fitted (%d of %d rays; a filled object larger than %g voxels "
+                       "across, or no wall): the surface stays at the half level", info["fitted"], info["rays"],
+                       PROFILE_MAX_DEPTH_VOXELS)
+        return mesh, level, {**info, "level": None}
+    vertices, faces, code = _marching_cubes(padded, found, spacing, step, box)
+    again = make_mesh(vertices, faces, unit=getattr(mesh, "units", None) or "um", fields={_CODE: code},
+                      orient_outward=False)
+    if signed_volume(again.vertices, again.faces) < 0:
+        again.faces = again.faces[:, ::-1]
+    return keep_components(again, keep), float(found), info
+
+
+#: How deep (in the largest voxel side) a ray of ``edge: profile`` looks for a wall's far edge.
+PROFILE_MAX_DEPTH_VOXELS = 40
 
 
 def _snap(mesh: trimesh.Trimesh, padded: np.ndarray, level: float, spacing: tuple[float, float, float],
@@ -1973,8 +2015,8 @@ def _check_reconstruct_args(spacing, sigma, keep, edge, step, smooth_iter, pass_
     dz, dy, dx = check_spacing(spacing)
     if keep not in ("largest", "all"):
         raise NemoError(f"keep must be 'largest' or 'all', got {keep!r}")
-    if edge not in ("half", "threshold"):
-        raise NemoError(f"edge must be 'half' or 'threshold', got {edge!r}")
+    if edge not in ("half", "threshold", "profile"):
+        raise NemoError(f"edge must be 'half', 'threshold' or 'profile', got {edge!r}")
     if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
         raise NemoError(f"marching-cubes step must be a whole number of voxels >= 1, got {step!r}")
     step = int(step)

@@ -286,6 +286,17 @@ def test_mesh_split_auto_splits_a_shell_and_keeps_a_droplet_whole():
         stages.mesh(_balls((30, 30, 30), [(15, 15, 15, -1, 9)]), (1.0, 1.0, 1.0), {"split": "centre"})
 
 
+def test_mesh_edge_profile_is_recorded():
+    """``edge: profile``: the level of the walls' fitted profiles (a 6 µm wall of 200 on 0 blurred by
+    1 voxel: the half level 100) is the mesh's, recorded with the first pass's half level; without it,
+    no record."""
+    shell = _balls((46, 46, 46), [(22, 22, 22, 10, 16)])
+    _, p = stages.mesh(shell, (1.0, 1.0, 1.0), {"edge": "profile"})
+    assert p["profile"]["level"] == p["level"] == pytest.approx(100.0, abs=2.0)
+    assert p["profile"]["fitted"] >= 0.9 * p["profile"]["rays"] and p["profile"]["level_half"] > 0
+    assert "profile" not in stages.mesh(shell, (1.0, 1.0, 1.0))[1]
+
+
 def test_a_layer_reaching_out_of_a_one_wall_object_is_warned_about(recwarn):
     """The default layer (0 to 5 µm outward from inner) on a droplet samples the background: a
     warning names it; peeling inward does not warn, nor does the same layer on a shell."""

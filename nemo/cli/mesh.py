@@ -92,9 +92,11 @@ def add_arguments(parser) -> None:
                              "with --edge threshold or no background it refines to the level, with a warning)")
     parser.add_argument("--threshold", type=_threshold, default=None, metavar="yen|otsu|VALUE",
                         help="automatic threshold or an intensity iso-level (default yen)")
-    parser.add_argument("--edge", choices=("half", "threshold"), default=None,
+    parser.add_argument("--edge", choices=("half", "threshold", "profile"), default=None,
                         help="with yen/otsu: surface half-way between object and background intensity "
-                             "(default, the true edge of a blurred object) or at the threshold itself")
+                             "(default, the true edge of a blurred object), at the threshold itself, or "
+                             "'profile': at the half level of blurred boxes fitted to the walls' intensity "
+                             "along the normals (noisy or z-blurred walls)")
     add_mask_arguments(parser)
     parser.add_argument("--from-mesh", metavar="SURFACE",
                         help="use this surface (PLY, OBJ or STL made in MeshLab, Blender, ilastik ...) instead "
