@@ -172,7 +172,18 @@ def validate(config: Mapping | None) -> dict:
     cfg = copy.deepcopy(dict(config or {}))
     _check(cfg, None)
     _fill_defaults(cfg, schema())
+    _check_profile_psf(cfg)
     return cfg
+
+
+def _check_profile_psf(cfg: Mapping) -> None:
+    """Refuse ``mesh.edge: profile`` on a dataset with a ``psf`` (:func:`nemo.stages.mesh` says why)."""
+    edge = (cfg.get("mesh") or {}).get("edge")
+    for name, dataset in (cfg.get("datasets") or {}).items():
+        dataset = dataset or {}
+        if dataset.get("psf") is not None and ((dataset.get("mesh") or {}).get("edge") or edge) == "profile":
+            raise NemoError(f"invalid configuration\n  config key 'datasets.{name}.psf': mesh.edge: profile and a psf "
+                            "do not go together (the deconvolved walls overshoot at their edges); drop one")
 
 
 def load(path: str | os.PathLike | None) -> dict:

@@ -480,6 +480,12 @@ def snap_to_level(vertices: np.ndarray, normals: np.ndarray, field: np.ndarray, 
 #: Rays of :func:`wall_profile_level` (a random subset of the vertices), the fewest fits it needs, and
 #: Levenberg–Marquardt iterations of the batched fit.
 PROFILE_RAYS, PROFILE_MIN_FITS, _PROFILE_ITERATIONS = 4000, 200, 40
+#: Most samples per ray (the step grows beyond them: anisotropic voxels, a long reach).
+PROFILE_MAX_SAMPLES = 256
+#: Largest fraction of the fitted rays whose blurred wall (the meshed field) stays below the level
+#: found: a wall thinner than the blur (a membrane under a z-PSF) never reaches its box's half height,
+#: and a surface at that level would tear.
+PROFILE_MAX_BELOW_CREST = 0.02
 #: Margin of each wall profile beyond its two edges, in the largest voxel side.
 PROFILE_MARGIN_VOXELS = 5.0
 #: Scale of the fit's soft-L1 loss, in the ray's starting contrast (0.05 gave the same levels, ±1 %).
@@ -487,7 +493,8 @@ PROFILE_LOSS_SCALE = 0.15
 
 
 def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals: np.ndarray, field: np.ndarray,
-                       level: float, sample_spacing, origin, max_depth: float, rng: int = 0) -> tuple[float | None, dict]:
+                       level: float, sample_spacing, origin, max_depth: float, rng: int = 0,
+                       labels: np.ndarray | None = None) -> tuple[float | None, dict]:
     """The iso-level that the walls' own intensity profiles imply (``mesh.edge: profile``).
 
     A wall across its thickness is a blurred box: along the inward normal of a surface vertex the
@@ -512,23 +519,29 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
         Longest wall (physical) a ray looks through; a ray without a far edge within it is not fitted.
     rng : int
         Seed of the ray subset.
+    labels : ndarray of int, shape (N,), optional
+        A label per vertex (the surface's separate pieces): each label's own median level with
+        :data:`PROFILE_MIN_FITS` fitted rays or more is reported (``levels_by_label``).
 
     Returns
     -------
     level : float or None
-        None when fewer than :data:`PROFILE_MIN_FITS` rays have a wall profile that fits.
+        None when fewer than :data:`PROFILE_MIN_FITS` rays have a wall profile that fits, or when the
+        meshed field stays below the level found across more than :data:`PROFILE_MAX_BELOW_CREST` of
+        them (a wall thinner than the blur: a surface at that level would tear).
     info : dict
-        ``rays``, ``fitted`` and ``blur`` (median fitted σ along the rays).
+        ``rays``, ``fitted``, ``blur`` (median fitted σ along the rays), ``below_crest`` (that fraction),
+        ``contrast`` (median fitted A) and with ``labels`` ``levels_by_label``.
     """
     sp = np.asarray(spacing, dtype=np.float64)
     ok = np.isfinite(normals).all(axis=1)
     pick = np.random.default_rng(rng).permutation(np.flatnonzero(ok))[:PROFILE_RAYS]
     v, n = vertices[pick], -normals[pick]  # into the wall
     margin = PROFILE_MARGIN_VOXELS * float(sp.max())
-    s = np.arange(-margin, max_depth + margin, 0.5 * float(sp.min()), dtype=np.float64)
-    far = _far_edge(field, level, sample_spacing, origin, v, n, s[s > 0])
-    if np.isfinite(far).any():  # samples up to the farthest edge found, not to max_depth
-        s = s[s <= np.nanmax(far) + margin]
+    reach = np.linspace(0.0, max_depth, min(PROFILE_MAX_SAMPLES, int(max_depth / (0.5 * sp.min())) + 2))[1:]
+    far, crest = _far_edge(field, level, sample_spacing, origin, v, n, reach)
+    longest = float(np.nanmax(far)) + margin if np.isfinite(far).any() else max_depth + margin  # not max_depth
+    s = np.linspace(-margin, longest, min(PROFILE_MAX_SAMPLES, int((longest + margin) / (0.5 * sp.min())) + 1))
     profile = _ray_samples(image, sp, v, n, s)  # (M, S), NaN outside the image
     use = np.isfinite(far)
     mask = use[:, None] & np.isfinite(profile) & (s[None, :] <= far[:, None] + margin)
@@ -537,10 +550,20 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
     good = (use & np.isfinite(params).all(axis=1) & (a > 0) & (s1 > s0) & (np.abs(s0) < margin)
             & (np.abs(s1 - far) < margin) & (mask.sum(axis=1) >= 8))
     info = {"rays": int(len(pick)), "fitted": int(good.sum()),
-            "blur": float(np.median(sigma[good])) if good.any() else None}
+            "blur": float(np.median(sigma[good])) if good.any() else None, "below_crest": None}
     if good.sum() < PROFILE_MIN_FITS:
         return None, info
-    return float(np.median((b + g * 0.5 * (s0 + s1) + 0.5 * a)[good])), info
+    per_ray = b + g * 0.5 * (s0 + s1) + 0.5 * a
+    found = float(np.median(per_ray[good]))
+    info["below_crest"] = float(np.mean(crest[good] < found))  # the meshed field stays below the level there
+    info["contrast"] = float(np.median(a[good]))
+    if labels is not None:
+        ray_labels = np.asarray(labels)[pick][good]
+        info["levels_by_label"] = {int(k): float(np.median(per_ray[good][ray_labels == k]))
+                                   for k in np.unique(ray_labels) if np.sum(ray_labels == k) >= PROFILE_MIN_FITS}
+    if info["below_crest"] > PROFILE_MAX_BELOW_CREST:
+        return None, info
+    return found, info
 
 
 def _ray_samples(image: np.ndarray, spacing: np.ndarray, points: np.ndarray, directions: np.ndarray,
@@ -548,13 +571,14 @@ def _ray_samples(image: np.ndarray, spacing: np.ndarray, points: np.ndarray, dir
     """The image (trilinear) at ``points + s directions``, shape (M, S); NaN outside it."""
     xyz = points[:, None, :] + s[None, :, None] * directions[:, None, :]
     zyx = (xyz[..., ::-1] / spacing).reshape(-1, 3).T
-    return ndi.map_coordinates(np.asarray(image, dtype=np.float32), zyx, order=1, mode="constant",
-                               cval=np.nan).reshape(len(points), len(s))
+    return ndi.map_coordinates(image, zyx, order=1, mode="constant", cval=np.nan,
+                               output=np.float32).reshape(len(points), len(s))  # no float copy of the image
 
 
 def _far_edge(field: np.ndarray, level: float, sample_spacing, origin, points: np.ndarray, directions: np.ndarray,
-              s: np.ndarray) -> np.ndarray:
-    """Per ray, the first ``s`` where ``field`` falls below ``level`` (linear between samples), NaN if none."""
+              s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray, the first ``s`` where ``field`` falls below ``level`` (linear between samples), NaN if none,
+    and the field's largest value before it (its crest across the wall)."""
     sp = np.asarray(sample_spacing, dtype=np.float64)
     xyz = points[:, None, :] - np.asarray(origin, dtype=np.float64)[::-1] + s[None, :, None] * directions[:, None, :]
     zyx = (xyz[..., ::-1] / sp).reshape(-1, 3).T
@@ -567,7 +591,8 @@ def _far_edge(field: np.ndarray, level: float, sample_spacing, origin, points: n
     f0, f1 = f[rows, k - 1], f[rows, k]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = s[k - 1] + (s[k] - s[k - 1]) * f0 / (f0 - f1)
-    return np.where(found, t, np.nan)
+    crest = np.max(np.where(np.arange(len(s))[None, :] < k[:, None], f, -np.inf), axis=1) + level
+    return np.where(found, t, np.nan), np.where(found, np.maximum(crest, level), np.nan)
 
 
 def _box_model(p: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

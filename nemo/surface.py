@@ -1034,7 +1034,8 @@ def auto_sigma(
 
 def iso_level(volume: np.ndarray, spacing, sigma: float, step: int = 1, threshold: str | float = "yen",
               edge: Literal["half", "threshold", "profile"] = "half") -> float:
-    """The iso-level :func:`reconstruct` would mesh ``volume`` at, in its intensity units.
+    """The iso-level :func:`reconstruct` would mesh ``volume`` at, in its intensity units (with
+    ``edge="profile"``: its first pass's, the half level; the walls' fitted level needs the mesh).
 
     Parameters
     ----------
@@ -1782,8 +1783,8 @@ def reconstruct(
     logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
     object_levels, region_peaks = [], []
     if isinstance(how, str):  # own levels only at the half edge and without refine (it crosses the one level)
-        object_levels, region_peaks = _object_levels(inner, thr, background, level, how,
-                                                     np.array([dz, dy, dx]) * step, shift=edge == "half" and not refine)
+        object_levels, region_peaks = _object_levels(inner, thr, background, level, how, np.array([dz, dy, dx]) * step,
+                                                     shift=edge in ("half", "profile") and not refine)
         if object_levels:
             logger.info("%d separate objects at their own half levels: %s (the stack's %.4g)", len(object_levels),
                         listed((f"{lev * scale:.4g}" for lev in object_levels), sep=", "), level * scale)
@@ -1796,8 +1797,8 @@ def reconstruct(
         mesh.faces = mesh.faces[:, ::-1]
     logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
     mesh = keep_components(mesh, keep)
-    profile_info = {}
-    if edge == "profile" and mask is None and isinstance(how, str) and len(mesh.faces):  # not at a given level
+    profile_info = _profile_skipped(edge, mask is not None, how, object_levels)
+    if edge == "profile" and not profile_info and len(mesh.faces):
         mesh, level, profile_info = _at_profile_level(mesh, source, padded, level, (dz, dy, dx), step, box, keep)
         profile_info = {"level": level * scale, **profile_info, "level_half": profile_info["level_half"] * scale}
         if profile_info["level"] is not None:
@@ -1834,14 +1835,27 @@ def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndar
     from nemo.refine import wall_profile_level
 
     sample = np.asarray(spacing, dtype=np.float64) * step
+    reach = PROFILE_MAX_DEPTH_VOXELS * max(float(max(spacing)), 2 * float(min(spacing)))
+    pieces = np.zeros(len(mesh.vertices), dtype=np.int64)
+    pieces[np.asarray(mesh.faces)] = face_components(np.asarray(mesh.faces), len(mesh.vertices))[:, None]
     with log_step(f"fitting wall profiles along {min(len(mesh.vertices), 4000)} normals"):
         found, info = wall_profile_level(source, spacing, np.asarray(mesh.vertices), _vertex_normals(mesh), padded,
-                                         level, sample, -_PAD * sample, PROFILE_MAX_DEPTH_VOXELS * float(max(spacing)))
+                                         level, sample, -_PAD * sample, reach, labels=pieces)
     info = {**info, "level_half": float(level)}
+    by_piece = list((info.pop("levels_by_label", None) or {}).values())
+    if found is not None and len(by_piece) > 1 and max(by_piece) - min(by_piece) > 0.1 * info["contrast"]:
+        logger.warning("the surface's pieces have walls of different brightness (their levels %s): one level, the "
+                       "median %.4g, serves them all, so a dim object shrinks; edge: half gives separate objects their "
+                       "own half levels", listed((f"{x:.4g}" for x in sorted(by_piece)), sep=", "), found)
+        info["piece_levels"] = sorted(by_piece)
+    if info["below_crest"] is not None and found is None:
+        logger.warning("the walls' fitted profiles put the level above the blurred wall's crest on %.0f %% of the rays "
+                       "(a wall thinner than the blur, e.g. a membrane under a z-elongated PSF: a surface there would "
+                       "tear): the surface stays at the half level", 100 * info["below_crest"])
+        return mesh, level, {**info, "level": None}
     if found is None or not float(padded.min()) < found < float(padded.max()):
-        logger.warning("too few walls' profiles fitted (%d of %d rays; a filled object larger than %g voxels "
-                       "across, or no wall): the surface stays at the half level", info["fitted"], info["rays"],
-                       PROFILE_MAX_DEPTH_VOXELS)
+        logger.warning("too few walls' profiles fitted (%d of %d rays; a filled object more than %.3g across, or no "
+                       "wall): the surface stays at the half level", info["fitted"], info["rays"], reach)
         return mesh, level, {**info, "level": None}
     vertices, faces, code = _marching_cubes(padded, found, spacing, step, box)
     again = make_mesh(vertices, faces, unit=getattr(mesh, "units", None) or "um", fields={_CODE: code},
@@ -1851,8 +1865,21 @@ def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndar
     return keep_components(again, keep), float(found), info
 
 
-#: How deep (in the largest voxel side) a ray of ``edge: profile`` looks for a wall's far edge.
+#: How deep a ray of ``edge: profile`` looks for a wall's far edge: this many of the largest voxel
+#: side, and at least twice as many of the smallest.
 PROFILE_MAX_DEPTH_VOXELS = 40
+
+
+def _profile_skipped(edge: str, masked: bool, how, object_levels: list) -> dict:
+    """Why ``edge: profile`` keeps the first level (``{"level": None, "skipped": reason}``, warned), else {}."""
+    if edge != "profile":
+        return {}
+    reason = ("a mask gives the surface" if masked else "the threshold is a given level" if not isinstance(how, str)
+              else "objects of different brightness keep their own half levels" if object_levels else None)
+    if reason is None:
+        return {}
+    logger.warning("edge: profile not applied: %s", reason)
+    return {"level": None, "skipped": reason}
 
 
 def _snap(mesh: trimesh.Trimesh, padded: np.ndarray, level: float, spacing: tuple[float, float, float],

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -11,25 +13,26 @@ import pytest
 
 from nemo.cli import main as nemo_main
 
+_NO_SLURM_SHIM: list[str] = []  # this process's shim folder, made once
+
 
 def snakemake_env(slurm: bool = False) -> dict[str, str]:
     """The environment of the tests' Snakemake runs: warnings off and, unless ``slurm``, a ``scontrol``
     that fails at once first on the PATH. The SLURM executor plugin (a test dependency) asks
     ``scontrol show config`` for MinJobAge whenever Snakemake starts, and waits out its 10-s timeout
     where SLURM's client is installed but no controller runs (a machine after ``make test-slurm``):
-    10 s per run, minutes per suite. The SLURM test itself (``slurm=True``) keeps the real one."""
+    10 s per run, minutes per suite. The SLURM test itself (``slurm=True``) keeps the real one. The
+    shim lives in a private folder of this process (``mkdtemp``: nobody else's files on the PATH)."""
     env = dict(os.environ, PYTHONWARNINGS="ignore")
     if slurm:
         return env
-    shim = Path(tempfile.gettempdir()) / f"nemo-tests-no-slurm-{os.getuid()}"
-    target = shim / "scontrol"
-    if not target.exists():
-        shim.mkdir(exist_ok=True)
-        tmp = shim / f".scontrol.{os.getpid()}"
-        tmp.write_text("#!/bin/sh\nexit 1\n")
-        tmp.chmod(0o755)
-        os.replace(tmp, target)  # atomic: pytest-xdist workers may race
-    env["PATH"] = f"{shim}{os.pathsep}{env.get('PATH', '')}"
+    if not _NO_SLURM_SHIM:
+        folder = Path(tempfile.mkdtemp(prefix="nemo-tests-no-slurm-"))
+        (folder / "scontrol").write_text("#!/bin/sh\nexit 1\n")
+        (folder / "scontrol").chmod(0o700)
+        _NO_SLURM_SHIM.append(str(folder))
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    env["PATH"] = f"{_NO_SLURM_SHIM[0]}{os.pathsep}{env.get('PATH', '')}"
     return env
 
 

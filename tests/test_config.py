@@ -349,3 +349,18 @@ def test_random_config_files_load_or_raise_nemo_error(tmp_path_factory, data):
 ])
 def test_a_layer_reaches_out_of_an_object_of_one_wall_when_its_range_lies_mostly_outward(layer, out):
     assert config.reaches_out_of_one_wall(layer) is out
+
+
+def test_edge_profile_with_a_psf_is_refused_naming_the_dataset():
+    """``mesh.edge: profile`` (global or the dataset's own) and a dataset's ``psf``: one error naming
+    the key; either alone, or the psf on another dataset, is fine."""
+    from nemo import config
+
+    for cfg in ({"mesh": {"edge": "profile"}, "datasets": {"a": {"path": "a.tif", "psf": [2, 1, 1]}}},
+                {"datasets": {"a": {"path": "a.tif", "psf": [2, 1, 1], "mesh": {"edge": "profile"}}}}):
+        with pytest.raises(NemoError, match=r"config key 'datasets.a.psf': mesh.edge: profile and a psf"):
+            config.validate(cfg)
+    ok = config.validate({"mesh": {"edge": "profile"},
+                          "datasets": {"a": {"path": "a.tif"}, "b": {"path": "b.tif", "psf": [2, 1, 1],
+                                                                     "mesh": {"edge": "half"}}}})
+    assert ok["mesh"]["edge"] == "profile"
