@@ -1850,8 +1850,9 @@ def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndar
         info["piece_levels"] = sorted(by_piece)
     if info["below_crest"] is not None and found is None:
         logger.warning("the walls' fitted profiles put the level above the blurred wall's crest on %.0f %% of the rays "
-                       "(a wall thinner than the blur, e.g. a membrane under a z-elongated PSF: a surface there would "
-                       "tear): the surface stays at the half level", 100 * info["below_crest"])
+                       "(a wall thinner than the blur, e.g. a membrane under a z-elongated PSF, or a dim wall whose "
+                       "bright texture raises the fitted contrast: a surface there would tear): the surface stays at "
+                       "the half level", 100 * info["below_crest"])
         return mesh, level, {**info, "level": None}
     if found is None or not float(padded.min()) < found < float(padded.max()):
         logger.warning("too few walls' profiles fitted (%d of %d rays; a filled object more than %.3g across, or no "
