@@ -1791,12 +1791,7 @@ def reconstruct(
     del inner
 
     box = (np.array(sampled_shape[::-1]) - 1) * step * np.array([dx, dy, dz])
-    vertices, faces, code = _marching_cubes(padded, level, (dz, dy, dx), step, box)
-    mesh = make_mesh(vertices, faces, unit=unit, fields={_CODE: code}, orient_outward=False)
-    if signed_volume(mesh.vertices, mesh.faces) < 0:  # padded => closed => the solid has volume > 0
-        mesh.faces = mesh.faces[:, ::-1]
-    logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
-    mesh = keep_components(mesh, keep)
+    mesh = _level_surface(padded, level, (dz, dy, dx), step, box, unit, keep)
     profile_info = _profile_skipped(edge, mask is not None, how, object_levels)
     if edge == "profile" and not profile_info and len(mesh.faces):
         mesh, level, profile_info = _at_profile_level(mesh, source, padded, level, (dz, dy, dx), step, box, keep)
@@ -1858,12 +1853,19 @@ def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndar
         logger.warning("too few walls' profiles fitted (%d of %d rays; a filled object more than %.3g across, or no "
                        "wall): the surface stays at the half level", info["fitted"], info["rays"], reach)
         return mesh, level, {**info, "level": None}
-    vertices, faces, code = _marching_cubes(padded, found, spacing, step, box)
-    again = make_mesh(vertices, faces, unit=getattr(mesh, "units", None) or "um", fields={_CODE: code},
-                      orient_outward=False)
-    if signed_volume(again.vertices, again.faces) < 0:
-        again.faces = again.faces[:, ::-1]
-    return keep_components(again, keep), float(found), info
+    again = _level_surface(padded, found, spacing, step, box, getattr(mesh, "units", None) or "um", keep)
+    return again, float(found), info
+
+
+def _level_surface(padded: np.ndarray, level: float, spacing: tuple[float, float, float], step: int,
+                   box: np.ndarray, unit: str, keep: str) -> trimesh.Trimesh:
+    """The iso-surface of ``padded`` at ``level`` (marching cubes), wound outward, its ``keep`` components."""
+    vertices, faces, code = _marching_cubes(padded, level, spacing, step, box)
+    mesh = make_mesh(vertices, faces, unit=unit, fields={_CODE: code}, orient_outward=False)
+    if signed_volume(mesh.vertices, mesh.faces) < 0:  # padded => closed => the solid has volume > 0
+        mesh.faces = mesh.faces[:, ::-1]
+    logger.info("marching cubes: %d vertices, %d faces", len(mesh.vertices), len(mesh.faces))
+    return keep_components(mesh, keep)
 
 
 #: How deep a ray of ``edge: profile`` looks for a wall's far edge: this many of the largest voxel
