@@ -86,7 +86,9 @@ skipped). On a closed surface, a contour that encloses more than :data:`MAX_ENCL
 of the surface's vertices is rejected (``"contour encloses most of the surface"``): on a small object a contour
 radius grown from the averaging radius can reach round the far side, and such a contour's charge
 is that of every defect inside it (a "+2" on a sphere with two +1 poles, 26 µm from both, in an
-independent review). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged; every
+independent review). Rejections are counted in ``df.attrs["parameters"]["rejected"]`` and logged, and
+the zeros of the averaged Q-tensor among them that may be defects in ``rejected_zeros``
+(:func:`rejected_zeros`: possibly missed defects, which the summary's quality control flags); every
 examined candidate (accepted or not, with its contour S, floor, largest step, limit and reason)
 is kept in ``df.attrs["candidates"]`` (:func:`candidate_table`, ``nemo defects --candidates``).
 
@@ -207,6 +209,12 @@ CONTOUR_PER_AVERAGING = 1.5
 #: A candidate of the same dip whose S is below this fraction of the surface's ordered level (P90
 #: of S) is a zero of the averaged Q-tensor (S 0.01–0.03 for 0.88), not a shallow minimum (0.26–0.44).
 ZERO_PER_ORDERED = 0.125
+
+#: Rejection reasons after which a zero of the averaged Q-tensor may still be a defect
+#: (:func:`rejected_zeros`): its contour's order or winding could not be read (with a nonzero
+#: winding), or the contour read zero round it (a ± pair inside).
+UNREAD_REASONS = ("disordered contour", "unresolved winding")
+PAIR_REASON = "zero charge"
 
 #: A contour of radius r whose line passes between these fractions of r from such a zero runs
 #: through its core (an averaging radius wide, r / 1.5): its winding there is ill-defined.
@@ -788,11 +796,41 @@ def find_defects(
         "k_term": "Gauss-Bonnet on the contour's turning" if st.k_from_contour else geo.k_source,
         "s_ordered": st.s_ordered, "noise_z": NOISE_Z, "charge_tolerance": charge_tolerance,
         "exact_angles": exact_angles, "fit_radius": fit_radius, **tally,
+        "rejected_zeros": rejected_zeros(records, s_ref),
     }
     df.attrs["candidates"] = records
     logger.info("defects: %d found, %d low-S candidates rejected (%s)", len(df), sum(tally["rejected"].values()),
                 ", ".join(f"{k}: {v}" for k, v in tally["rejected"].items() if v) or "none")
     return df
+
+
+def rejected_zeros(records: list[dict], s_ref: float) -> int:
+    """How many examined candidates may be missed defects: zeros of the averaged Q-tensor (S below
+    :data:`ZERO_PER_ORDERED` × ``s_ref``, as deep as a found defect's core, not a shallow minimum)
+    rejected because their contour read a nonzero charge but was disordered or its winding
+    unresolved (:data:`UNREAD_REASONS`), or read a zero charge (:data:`PAIR_REASON`: a ± pair
+    inside one contour sums to 0).
+
+    Such zeros are what defects closer together than the contour radius look like: ±½ pairs and a
+    −½ beside a +½ on a peanut's lobes (R 36 µm, 24 µm averaging radius: contours of 20 µm through
+    the neighbour's disordered core) read S 0.003–0.013 and were rejected at 0.66–0.92 of the
+    contour's S floor, Σ charge still χ (an independent review, session 28); a ±½ pair 20 µm
+    apart on a sphere R 60 µm averaged over 15 µm reads one zero of charge 0 (tests). Noise alone
+    makes shallow minima, with a zero or an unresolved winding.
+
+    Parameters
+    ----------
+    records : list of dict
+        The candidate records (``df.attrs["candidates"]`` of :func:`find_defects`).
+    s_ref : float
+        The surface's ordered level (P90 of S).
+    """
+    def missed(r: dict) -> bool:
+        if r["reason"] == PAIR_REASON:
+            return True
+        return r["reason"] in UNREAD_REASONS and abs(r["charge_rounded"] or 0.0) > 0
+
+    return sum(1 for r in records if r["S"] < ZERO_PER_ORDERED * s_ref and missed(r))
 
 
 def _local_coherency(tree: cKDTree | None, coherency: np.ndarray | None, df: pd.DataFrame) -> np.ndarray:

@@ -987,7 +987,9 @@ def defects(
         defect), the search is repeated with the candidate threshold relaxed by
         :data:`TOPOLOGY_THRESHOLD_STEPS` (unless ``s_threshold`` was given) and the result
         closest to χ kept; ``passes`` and ``relaxed_s_threshold`` (None: the first pass) say
-        what happened. A frame that still misses χ is flagged by the summary's quality control.
+        what happened. A frame that still misses χ is flagged by the summary's quality control,
+        as is one with ``rejected_zeros`` (:func:`nemo.defects.rejected_zeros`: zeros of the
+        averaged Q-tensor rejected for their contour: possibly missed defects).
     """
     p = nconfig.section("defects", params)
     if p["curvature_source"] == "table" and p["curvature_correction"] and curvature is None:
@@ -1037,7 +1039,8 @@ def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, in
                 break
     p["topology_search"] = search
     found = df.attrs["parameters"]
-    p.update({k: found[k] for k in ("s_threshold", "min_distance", "contour_radius", "avg_radius") if k in found})
+    p.update({k: found[k] for k in ("s_threshold", "min_distance", "contour_radius", "avg_radius", "rejected_zeros")
+              if k in found})
     p["n_refine_directors"] = 0 if extra is None else int(len(extra))
     logger.info("defects: %d found (Σ charge %.3f, χ = %s)", len(df), df.attrs["euler_check"]["sum_charge"],
                 df.attrs["euler_check"]["euler_characteristic"])

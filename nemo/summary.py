@@ -39,7 +39,7 @@ FRAME_COLUMNS = (
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
     "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median", "coherency_noise",
     "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum", "defects_faint",
-    "qc_pass", "qc_flags",
+    "rejected_zeros", "qc_pass", "qc_flags",
 )
 #: Largest |Σ charge − χ| of a closed surface's defects that passes quality control: a missed or
 #: spurious ±½ defect changes the sum by 0.5, the curvature term's discretisation by ≪ 0.1.
@@ -158,6 +158,16 @@ def _peel_params(r: Mapping) -> dict:
 def _directors_params(r: Mapping, label: int) -> dict:
     """The directors step's resolved parameters for object ``label``."""
     params = read_provenance(r["directors"]).get("parameters") or {}
+    if params.get("objects"):
+        params = next((o for o in params["objects"] if int(o.get("object", -1)) == label), {})
+    return params
+
+
+def _defects_params(r: Mapping, label: int) -> dict:
+    """The defect step's resolved parameters for object ``label`` (``nemo.stages.defects``)."""
+    if not r.get("defects"):
+        return {}
+    params = read_provenance(r["defects"]).get("parameters") or {}
     if params.get("objects"):
         params = next((o for o in params["objects"] if int(o.get("object", -1)) == label), {})
     return params
@@ -320,6 +330,11 @@ def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) ->
                      f"{f'{lowest:.2f} ' if np.isfinite(lowest) else ''}below {QC_MIN_DEFECT_COHERENCY:g} of the "
                      "surface's): a low S there says little, the position is uncertain (fibres across a z-elongated "
                      "PSF fade; giving the PSF helps)")
+    zeros = row.get("rejected_zeros")
+    if zeros is not None and not pd.isna(zeros) and zeros > 0:
+        flags.append(f"{zeros} zero(s) of the averaged order rejected (a disordered contour, or a zero charge round "
+                     "them): defects closer together than the contour radius may be missed there (a missed ± pair "
+                     "keeps Σ charge = χ)")
     charge = row["charge_sum"]
     searched = not row.get("defects_skipped")  # a skipped search has its own flag; no sum to check
     if searched and closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:
@@ -369,7 +384,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
     out = out.astype({"t": "int64", "c": "int64", "object": "int64", "walls": "Int64", "regions": "Int64", "n_directors": "Int64",
-                      "n_defects": "Int64", "defects_faint": "Int64", "qc_pass": "bool", "qc_flags": "str",
+                      "n_defects": "Int64", "defects_faint": "Int64", "rejected_zeros": "Int64", "qc_pass": "bool", "qc_flags": "str",
                       "closed": "bool"})
     _flag_changed_walls(out)
     _flag_cut_objects(out)
@@ -492,10 +507,13 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         peel = _peel_params(r)
         row["texture"] = peel.get("texture") or {}
         row["reaches_out"] = bool(peel) and reaches_out_of_one_wall(peel)
+        zeros = _defects_params(r, label).get("rejected_zeros")  # None: a table from before the count
+        row["rejected_zeros"] = pd.NA if zeros is None else int(zeros)
     no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why
     row["defects_skipped"] = skipped
     if "directors" in tables and (skipped or no_directors):  # not searched: no count, not "none found"
-        row.update(n_defects=pd.NA, charge_sum=math.nan, charge_rounded_sum=math.nan, defects_faint=pd.NA)
+        row.update(n_defects=pd.NA, charge_sum=math.nan, charge_rounded_sum=math.nan, defects_faint=pd.NA,
+                   rejected_zeros=pd.NA)
     extra = skipped and not no_directors and not _looks_empty(row)
     flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if extra else [])
     row["qc_pass"] = not flags

@@ -770,6 +770,51 @@ def test_step_limit_follows_contour_length():
     assert step_limit_deg(3) == 80.0  # never near the 90° head-tail ambiguity
 
 
+def _close_pair(base: np.ndarray, separation: float, radius: float) -> np.ndarray:
+    """Two points ``separation`` apart (chord) on a sphere of ``radius``, midway between base[0] and base[1]."""
+    mid = (base[0] + base[1]) / np.linalg.norm(base[0] + base[1])
+    t = np.cross(mid, base[0]) / np.linalg.norm(np.cross(mid, base[0]))
+    a = math.asin(separation / (2 * radius))
+    return np.array([math.cos(a) * mid + math.sin(a) * t, math.cos(a) * mid - math.sin(a) * t])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_close_pair_missed_is_counted_as_rejected_zeros(sphere60, seed):
+    """A +½/−½ pair 20 µm apart beside four tetrahedral +½ (sphere R 60, 15 µm averaging): one
+    contour encloses both and reads 0, so the pair is missed and Σ charge is still χ; its deep
+    Q-zero is counted in ``rejected_zeros`` (the summary flags the frame). The four alone count none."""
+    base = rotated(TETRA, 3)
+    dirs = np.vstack([base, _close_pair(base, 20.0, 60.0)])
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4 + [0.5, -0.5], 6000, 15.0, seed=seed, noise=5.0,
+                                 mesh=sphere60)
+    df = find_defects(mesh, odf, ddf, avg_radius=15.0)
+    assert len(df) == 4 and match(df, 60.0 * base).max() < 1.0  # the pair is missed, Σ = χ
+    assert df.attrs["euler_check"]["matches"]
+    assert df.attrs["parameters"]["rejected_zeros"] >= 1
+    mesh, ddf, odf = sphere_case(60.0, 1.5, base, [0.5] * 4, 6000, 15.0, seed=seed, noise=5.0, mesh=sphere60)
+    alone = find_defects(mesh, odf, ddf, avg_radius=15.0)
+    assert len(alone) == 4 and alone.attrs["parameters"]["rejected_zeros"] == 0
+
+
+def test_rejected_zeros_counts_deep_zeros_rejected_for_their_contour():
+    """Only zeros as deep as a defect's core (S < ZERO_PER_ORDERED × S_ref) count, and only when
+    their contour was unreadable with a nonzero charge, or read zero (a pair inside)."""
+    from nemo.defects import ZERO_PER_ORDERED, rejected_zeros
+
+    deep, shallow = 0.5 * ZERO_PER_ORDERED, 2 * ZERO_PER_ORDERED
+    recs = [{"S": deep, "charge_rounded": 0.5, "reason": "disordered contour"},
+            {"S": deep, "charge_rounded": -0.5, "reason": "unresolved winding"},
+            {"S": deep, "charge_rounded": 0.0, "reason": "zero charge"},
+            {"S": deep, "charge_rounded": 0.0, "reason": "disordered contour"},  # no winding to miss
+            {"S": deep, "charge_rounded": None, "reason": "no contour"},
+            {"S": deep, "charge_rounded": 0.5, "reason": ""},  # accepted
+            {"S": deep, "charge_rounded": 0.5, "reason": "same dip"},
+            {"S": shallow, "charge_rounded": 0.5, "reason": "disordered contour"},
+            {"S": shallow, "charge_rounded": 0.0, "reason": "zero charge"}]
+    assert rejected_zeros(recs, 1.0) == 3
+    assert rejected_zeros(recs, 0.25) == 0  # a lower ordered level: none is that deep
+
+
 def test_candidate_table_reports_accepted_and_rejected(sphere60):
     dirs = rotated(TETRA, 0)
     mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=0, noise=5.0, mesh=sphere60)

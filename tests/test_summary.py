@@ -95,6 +95,26 @@ def test_frame_summary_counts_the_defects_where_the_fibres_are_faint(frame_files
     assert frame_summary([frame_files]).iloc[0]["defects_faint"] == 0
 
 
+def test_frame_summary_reads_the_rejected_zeros_of_each_object(frame_files):
+    """``rejected_zeros`` (nemo.stages.defects' resolved parameters: zeros of the averaged order with
+    a nonzero winding rejected for their contour) is the row's column and flags it; per object on
+    a mesh of several; NA for a table from before the count."""
+    write_table(_defects([0.5] * 4, [0.5] * 4), frame_files["defects"], parameters={"rejected_zeros": 2})
+    row = frame_summary([frame_files]).iloc[0]
+    assert row["rejected_zeros"] == 2 and not row["qc_pass"] and "2 zero(s) of the averaged order" in row["qc_flags"]
+    write_table(_defects([0.5] * 4, [0.5] * 4), frame_files["defects"], parameters={"rejected_zeros": 0})
+    row = frame_summary([frame_files]).iloc[0]
+    assert row["rejected_zeros"] == 0 and "zero(s) of the averaged order" not in row["qc_flags"]
+    write_table(_defects([0.5] * 4, [0.5] * 4), frame_files["defects"], parameters={"s_threshold": 0.3})
+    assert frame_summary([frame_files]).iloc[0]["rejected_zeros"] is pd.NA
+    by_object = {"rejected_zeros": 0, "objects": [{"object": 0, "rejected_zeros": 0}, {"object": 1, "rejected_zeros": 3}]}
+    write_table(_defects([0.5] * 4, [0.5] * 4), frame_files["defects"], parameters=by_object)
+    from nemo import summary
+
+    assert summary._defects_params(frame_files, 1)["rejected_zeros"] == 3
+    assert summary._defects_params(frame_files, 0)["rejected_zeros"] == 0
+
+
 def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
     """A frame of one object whose defect search could not run (nemo.stages.defects: an object
     too small for its derived lengths) fails the QC with the reason, as an object of several does;
@@ -306,6 +326,11 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
       "little, the position is uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)"]),
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
+    ({"rejected_zeros": 2}, CLOSED,
+     ["2 zero(s) of the averaged order rejected (a disordered contour, or a zero charge round them): defects "
+      "closer together than the contour radius may be missed there (a missed ± pair keeps Σ charge = χ)"]),
+    ({"rejected_zeros": 0}, CLOSED, []),
+    ({"rejected_zeros": pd.NA}, CLOSED, []),
     # a layer outward from the outline of an object of one wall samples the background (an independent
     # review: a hollow torus taken for one wall read its edge's directors, 79° off, and passed)
     ({"reaches_out": True, "walls": 1}, CLOSED,
