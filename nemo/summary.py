@@ -384,8 +384,8 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
             rows.append(row)
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
     out = out.astype({"t": "int64", "c": "int64", "object": "int64", "walls": "Int64", "regions": "Int64", "n_directors": "Int64",
-                      "n_defects": "Int64", "defects_faint": "Int64", "rejected_zeros": "Int64", "qc_pass": "bool", "qc_flags": "str",
-                      "closed": "bool"})
+                      "n_defects": "Int64", "defects_faint": "Int64", "rejected_zeros": "Int64", "qc_pass": "bool",
+                      "qc_flags": "str", "closed": "bool"})
     _flag_changed_walls(out)
     _flag_cut_objects(out)
     out["object_id"] = link_objects(out)
