@@ -51,7 +51,7 @@ demo: $(STAMP_CORE)
 	@echo "make: done; figures in results/demo/summary/. To browse in 3D: make viewer, then $(BIN)/nemo view results/demo"
 
 test: $(STAMP_TEST)
-	$(BIN)/python -m pytest -n 2 tests
+	$(BIN)/python -m pytest -n 2 --durations=20 tests
 
 test-slow: $(STAMP_TEST)
 	$(BIN)/python -m pytest -m slow tests
