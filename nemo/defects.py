@@ -813,7 +813,7 @@ def rejected_zeros(records: list[dict], s_ref: float) -> int:
 
     Such zeros are what defects closer together than the contour radius look like: ±½ pairs and a
     −½ beside a +½ on a peanut's lobes (R 36 µm, 24 µm averaging radius: contours of 20 µm through
-    the neighbour's disordered core) read S 0.003–0.013 and were rejected at 0.66–0.92 of the
+    the neighbour's disordered core) read S 0.003–0.013 and were rejected at 0.52–0.98 of the
     contour's S floor, Σ charge still χ (an independent review, session 28); a ±½ pair 20 µm
     apart on a sphere R 60 µm averaged over 15 µm reads one zero of charge 0 (tests). Noise alone
     makes shallow minima, with a zero or an unresolved winding.
@@ -947,7 +947,9 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
     disordered or unresolved on a contour shrunk that way is examined once more at the end, with
     ``dmin`` counting only what may still be a defect: a neighbouring dip whose own contour read a
     zero charge encloses none, and would otherwise cap the contour inside a defect's disordered core
-    (the R 80 µm vesicles under a z-PSF lost a pole's +½ to two such dips 26 µm away).
+    (the R 80 µm vesicles under a z-PSF lost a pole's +½ to two such dips 26 µm away). The wider
+    contour's verdict replaces the first when it accepts the candidate, finds it part of an accepted
+    defect ("same defect") or reads zero round it (a ± pair inside).
 
     Returns the defect rows, the candidate records (every candidate examined) and the tallies
     ``rejected`` (reason -> count) and ``contours`` (contour kind -> count, ``shrunk`` at a rim).
@@ -991,9 +993,9 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
         if max(wider) <= max(radii):
             continue
         reason, record, contours = _verdict(mesh, geo, f, st, search, v, wider, dmin, crossed)
-        if reason is None:
-            tally["rejected"][reasons[v]] -= 1  # the first verdict is replaced by the acceptance
-            _count(tally, None, contours)
+        if reason in (None, "same defect", PAIR_REASON):  # the wider contour read what the first could not
+            tally["rejected"][reasons[v]] -= 1  # the first verdict is replaced
+            _count(tally, reason, contours)
             records[at] = record
     return search.rows, records, tally
 

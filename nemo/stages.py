@@ -1044,6 +1044,10 @@ def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, in
     p["n_refine_directors"] = 0 if extra is None else int(len(extra))
     logger.info("defects: %d found (Σ charge %.3f, χ = %s)", len(df), df.attrs["euler_check"]["sum_charge"],
                 df.attrs["euler_check"]["euler_characteristic"])
+    if p.get("rejected_zeros"):
+        logger.warning("defects: %d zero(s) of the averaged order rejected for their contour (disordered, an "
+                       "unresolved winding, or a zero charge round them): defects closer together than the contour "
+                       "radius may be missed there (the summary flags the frame)", p["rejected_zeros"])
     return df, extra, p
 
 
@@ -1083,7 +1087,10 @@ def _defects_by_object(split, order_df, directors_df, params, avg_radius, curvat
                                for df, part in zip(found, split) for r in df.attrs.get("candidates", [])]
     pieces = [(e, part) for e, part in zip(extras, split) if e is not None]
     extra = objects.combine_tables([e for e, _ in pieces], [q for _, q in pieces], sort=False) if pieces else None
-    return out, extra, objects.combine_params(resolved, split)
+    resolved = objects.combine_params(resolved, split)
+    counts = [o.get("rejected_zeros") for o in resolved["objects"] if o.get("rejected_zeros") is not None]
+    resolved["rejected_zeros"] = sum(counts) if counts else None  # the frame's, not the first object's
+    return out, extra, resolved
 
 
 def _no_defects(mesh: trimesh.Trimesh, label, params: dict | None, reason: str) -> tuple[pd.DataFrame, None, dict]:

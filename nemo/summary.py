@@ -332,9 +332,9 @@ def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) ->
                      "PSF fade; giving the PSF helps)")
     zeros = row.get("rejected_zeros")
     if zeros is not None and not pd.isna(zeros) and zeros > 0:
-        flags.append(f"{zeros} zero(s) of the averaged order rejected (a disordered contour, or a zero charge round "
-                     "them): defects closer together than the contour radius may be missed there (a missed ± pair "
-                     "keeps Σ charge = χ)")
+        flags.append(f"{zeros} zero(s) of the averaged order rejected (a disordered contour or an unresolved winding, "
+                     "or a zero charge round them): defects closer together than the contour radius may be missed "
+                     "there (a missed ± pair keeps Σ charge = χ)")
     charge = row["charge_sum"]
     searched = not row.get("defects_skipped")  # a skipped search has its own flag; no sum to check
     if searched and closed and np.isfinite(chi) and abs(charge - chi) > QC_CHARGE_TOLERANCE:

@@ -109,6 +109,7 @@ def test_summary_json(cli_run, vesicle):
     chk = lay["euler_check"]
     assert chk["closed"] and chk["euler_characteristic"] == 2 and chk["matches"]
     assert chk["sum_charge_rounded"] == 2.0 and chk["sum_charge"] == pytest.approx(2.0, abs=0.05)
+    assert lay["defects_parameters"]["rejected_zeros"] == 0  # recorded (nemo.defects.rejected_zeros); none here
     # the same defects as the table
     df = read_table(outdir / layout.layer_file("defects", LAYER), "defects")
     listed = np.array([[d["x"], d["y"], d["z"], d["charge"], d["charge_rounded"]] for d in lay["defects"]])

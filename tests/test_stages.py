@@ -693,6 +693,50 @@ def test_defects_search_again_when_the_charges_miss_chi():
     assert q["topology_search"] == {"passes": 1, "relaxed_s_threshold": None} and len(fixed) == 3
 
 
+def _sphere_directors(mesh: trimesh.Trimesh, dirs: np.ndarray, charges: list[float], shift=(0.0, 0.0, 0.0)):
+    """The stereographic field of ``charges`` at ``dirs`` on every third vertex of a sphere centred at 0,
+    as a directors table (positions shifted by ``shift``)."""
+    from sparse_fields import stereo_field
+
+    v = np.asarray(mesh.vertices)[::3]
+    n = stereo_field(v, dirs, charges)
+    v = v + np.asarray(shift)
+    return pd.DataFrame({"vertex": np.arange(0, len(mesh.vertices), 3), "x": v[:, 0], "y": v[:, 1], "z": v[:, 2],
+                         "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2], "coherency": 1.0})
+
+
+def test_defects_count_the_rejected_zeros_of_each_object(caplog):
+    """Four +½ and a ±½ pair 20 µm apart on a sphere R 60 (15 µm averaging): the pair's zeros are
+    rejected for their contour and Σ charge is still χ; the stage records the count (the summary
+    flags it) and warns. On a mesh of two objects (the four alone, and with the pair) each object
+    has its own count and the frame's is their sum."""
+    from nemo import objects
+
+    tetra = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / np.sqrt(3)
+    mid = (tetra[0] + tetra[1]) / np.linalg.norm(tetra[0] + tetra[1])
+    t = np.cross(mid, tetra[0]) / np.linalg.norm(np.cross(mid, tetra[0]))
+    a = np.arcsin(20.0 / 120.0)
+    pair = np.array([np.cos(a) * mid + np.sin(a) * t, np.cos(a) * mid - np.sin(a) * t])
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=60.0)
+    with_pair = _sphere_directors(sphere, np.vstack([tetra, pair]), [0.5] * 4 + [0.5, -0.5])
+    odf, _ = stages.order(sphere, with_pair, {"radius": 15.0})
+    with caplog.at_level("WARNING", logger="nemo"):
+        df, _, p = stages.defects(sphere, odf, with_pair, {"refine": "none"}, avg_radius=15.0)
+    assert len(df) == 4 and df["charge"].sum() == pytest.approx(2.0, abs=0.1)  # the pair is missed, Σ = χ
+    assert p["rejected_zeros"] >= 1 and "zero(s) of the averaged order rejected" in caplog.text
+
+    shift = (200.0, 0.0, 0.0)
+    both = objects.concatenate([sphere, sphere.copy().apply_translation(shift)], [0, 1])
+    n_v = len(sphere.vertices)
+    alone = _sphere_directors(sphere, tetra, [0.5] * 4)
+    moved = with_pair.assign(vertex=with_pair["vertex"] + n_v, x=with_pair["x"] + shift[0])
+    ddf = pd.concat([alone, moved], ignore_index=True)
+    odf, op = stages.order(both, ddf, {"radius": 15.0})
+    df, _, p = stages.defects(both, odf, ddf, {"refine": "none"}, avg_radius=[15.0, 15.0])
+    counts = {o["object"]: o["rejected_zeros"] for o in p["objects"]}
+    assert counts[0] == 0 and counts[1] >= 1 and p["rejected_zeros"] == counts[0] + counts[1]
+
+
 def test_the_topology_search_relaxes_the_first_threshold_not_the_last(monkeypatch):
     """Each relaxed pass multiplies the first pass's threshold by its factor (1.5, then 2 ×), also
     after a pass that came closer to χ without reaching it (it used to multiply that pass's own,

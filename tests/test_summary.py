@@ -327,8 +327,9 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
     ({"rejected_zeros": 2}, CLOSED,
-     ["2 zero(s) of the averaged order rejected (a disordered contour, or a zero charge round them): defects "
-      "closer together than the contour radius may be missed there (a missed ± pair keeps Σ charge = χ)"]),
+     ["2 zero(s) of the averaged order rejected (a disordered contour or an unresolved winding, or a zero charge "
+      "round them): defects closer together than the contour radius may be missed there (a missed ± pair keeps "
+      "Σ charge = χ)"]),
     ({"rejected_zeros": 0}, CLOSED, []),
     ({"rejected_zeros": pd.NA}, CLOSED, []),
     # a layer outward from the outline of an object of one wall samples the background (an independent
