@@ -981,12 +981,12 @@ def _examine(mesh, geo: _Geometry, f: _Fields, st: _Settings, centres: list[int]
                                                 dmin if len(centres) > 1 else np.inf, crossed)
         _count(tally, reasons[v], contours)
         records.append(record)
-        if reasons[v] in ("disordered contour", "unresolved winding"):
+        if reasons[v] in UNREAD_REASONS:
             retry.append((v, len(records) - 1, radii))
     for v, at, radii in retry:  # only dips that may still be defects cap the contour now
         if max_defects is not None and len(search.rows) >= max_defects:
             break
-        others = [u for u in centres if comp[u] != comp[v] and reasons.get(u) not in ("zero charge", "same dip")]
+        others = [u for u in centres if comp[u] != comp[v] and reasons.get(u) not in (PAIR_REASON, "same dip")]
         dmin = _nearest(geo, v, others, search.accepted)
         wider, crossed = _clear_of_zeros(geo, v, _contour_radii(r_default, contour_radius, dmin, geo.h, st.avg_radius),
                                          _dip_zeros(f, st, centres, comp, v))

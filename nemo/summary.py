@@ -155,19 +155,12 @@ def _peel_params(r: Mapping) -> dict:
     return read_provenance(r["layer_table"]).get("parameters") or {}
 
 
-def _directors_params(r: Mapping, label: int) -> dict:
-    """The directors step's resolved parameters for object ``label``."""
-    params = read_provenance(r["directors"]).get("parameters") or {}
-    if params.get("objects"):
-        params = next((o for o in params["objects"] if int(o.get("object", -1)) == label), {})
-    return params
-
-
-def _defects_params(r: Mapping, label: int) -> dict:
-    """The defect step's resolved parameters for object ``label`` (``nemo.stages.defects``)."""
-    if not r.get("defects"):
+def _step_params(r: Mapping, table: str, label: int) -> dict:
+    """The resolved parameters the record's ``table`` (``directors``, ``defects``) was made with, for
+    object ``label`` (each object's own on a mesh of several); {} without that table."""
+    if not r.get(table):
         return {}
-    params = read_provenance(r["defects"]).get("parameters") or {}
+    params = read_provenance(r[table]).get("parameters") or {}
     if params.get("objects"):
         params = next((o for o in params["objects"] if int(o.get("object", -1)) == label), {})
     return params
@@ -501,13 +494,13 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["thickness_beyond_view"] = int(th.size - in_view.size)
     if "directors" in tables:  # a morphology-only record has no layer tables
         row.update(_layer_columns(tables))
-        directors = _directors_params(r, label)
+        directors = _step_params(r, "directors", label)
         row["coherency_noise"] = _value(directors.get("coherency_noise"))  # NaN: imported directors, older tables
         row["directors_skipped"] = directors.get("skipped")
         peel = _peel_params(r)
         row["texture"] = peel.get("texture") or {}
         row["reaches_out"] = bool(peel) and reaches_out_of_one_wall(peel)
-        zeros = _defects_params(r, label).get("rejected_zeros")  # None: a table from before the count
+        zeros = _step_params(r, "defects", label).get("rejected_zeros")  # None: a table from before the count
         row["rejected_zeros"] = pd.NA if zeros is None else int(zeros)
     no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why
     row["defects_skipped"] = skipped

@@ -134,6 +134,15 @@ def cap_case(radius: float, spacing: float, max_polar_deg: float, defect_dirs: n
     return mesh, ddf, radius * defect_dirs / np.linalg.norm(defect_dirs, axis=1, keepdims=True)
 
 
+def close_pair(first: np.ndarray, second: np.ndarray, separation: float, radius: float) -> np.ndarray:
+    """Unit vectors (2, 3) of two points ``separation`` apart (chord) on a sphere of ``radius``, midway
+    between the unit vectors ``first`` and ``second``, along the great circle through them."""
+    mid = (first + second) / np.linalg.norm(first + second)
+    t = np.cross(mid, first) / np.linalg.norm(np.cross(mid, first))
+    a = np.arcsin(separation / (2 * radius))
+    return np.array([np.cos(a) * mid + np.sin(a) * t, np.cos(a) * mid - np.sin(a) * t])
+
+
 def polar_dirs(polar_deg, azimuth_deg) -> np.ndarray:
     """Unit vectors (K, 3) at the given polar and azimuthal angles (degrees)."""
     t, p = np.radians(np.asarray(polar_deg, float)), np.radians(np.asarray(azimuth_deg, float))

@@ -18,7 +18,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from skimage.measure import marching_cubes
-from sparse_fields import stereo_field
+from sparse_fields import close_pair, stereo_field
 
 from nemo.defects import (
     CANDIDATE_COLUMNS,
@@ -770,21 +770,13 @@ def test_step_limit_follows_contour_length():
     assert step_limit_deg(3) == 80.0  # never near the 90° head-tail ambiguity
 
 
-def _close_pair(base: np.ndarray, separation: float, radius: float) -> np.ndarray:
-    """Two points ``separation`` apart (chord) on a sphere of ``radius``, midway between base[0] and base[1]."""
-    mid = (base[0] + base[1]) / np.linalg.norm(base[0] + base[1])
-    t = np.cross(mid, base[0]) / np.linalg.norm(np.cross(mid, base[0]))
-    a = math.asin(separation / (2 * radius))
-    return np.array([math.cos(a) * mid + math.sin(a) * t, math.cos(a) * mid - math.sin(a) * t])
-
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_close_pair_missed_is_counted_as_rejected_zeros(sphere60, seed):
     """A +½/−½ pair 20 µm apart beside four tetrahedral +½ (sphere R 60, 15 µm averaging): one
     contour encloses both and reads 0, so the pair is missed and Σ charge is still χ; its deep
     Q-zero is counted in ``rejected_zeros`` (the summary flags the frame). The four alone count none."""
     base = rotated(TETRA, 3)
-    dirs = np.vstack([base, _close_pair(base, 20.0, 60.0)])
+    dirs = np.vstack([base, close_pair(base[0], base[1], 20.0, 60.0)])
     mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4 + [0.5, -0.5], 6000, 15.0, seed=seed, noise=5.0,
                                  mesh=sphere60)
     df = find_defects(mesh, odf, ddf, avg_radius=15.0)

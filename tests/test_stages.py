@@ -710,13 +710,12 @@ def test_defects_count_the_rejected_zeros_of_each_object(caplog):
     rejected for their contour and Σ charge is still χ; the stage records the count (the summary
     flags it) and warns. On a mesh of two objects (the four alone, and with the pair) each object
     has its own count and the frame's is their sum."""
+    from sparse_fields import close_pair
+
     from nemo import objects
 
     tetra = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / np.sqrt(3)
-    mid = (tetra[0] + tetra[1]) / np.linalg.norm(tetra[0] + tetra[1])
-    t = np.cross(mid, tetra[0]) / np.linalg.norm(np.cross(mid, tetra[0]))
-    a = np.arcsin(20.0 / 120.0)
-    pair = np.array([np.cos(a) * mid + np.sin(a) * t, np.cos(a) * mid - np.sin(a) * t])
+    pair = close_pair(tetra[0], tetra[1], 20.0, 60.0)
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=60.0)
     with_pair = _sphere_directors(sphere, np.vstack([tetra, pair]), [0.5] * 4 + [0.5, -0.5])
     odf, _ = stages.order(sphere, with_pair, {"radius": 15.0})

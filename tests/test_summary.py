@@ -111,8 +111,8 @@ def test_frame_summary_reads_the_rejected_zeros_of_each_object(frame_files):
     write_table(_defects([0.5] * 4, [0.5] * 4), frame_files["defects"], parameters=by_object)
     from nemo import summary
 
-    assert summary._defects_params(frame_files, 1)["rejected_zeros"] == 3
-    assert summary._defects_params(frame_files, 0)["rejected_zeros"] == 0
+    assert summary._step_params(frame_files, "defects", 1)["rejected_zeros"] == 3
+    assert summary._step_params(frame_files, "defects", 0)["rejected_zeros"] == 0
 
 
 def test_frame_summary_flags_a_skipped_defect_search_of_one_object(frame_files):
