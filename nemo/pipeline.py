@@ -361,7 +361,7 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
         meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf, deconvolved=deconvolved)
         params.update(frame or {})
         for name, m in meshes.items():
-            m.metadata["nemo_params"] = params
+            m.metadata["nemo_params"] = stages.wall_params(params, name)
             save_mesh(m, out / layout.MESH[name])
             written.append(layout.MESH[name])
         # read back, as the workflow's next jobs do (PLY stores float32 vertices)

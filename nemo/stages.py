@@ -118,7 +118,8 @@ def mesh(
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface; with ``keep: all`` and
         several objects a list of each object's, so that a closed object beside a cut one is not
-        counted as cut).
+        counted as cut); ``wall_rim_loops`` the same for each mesh returned, by name (a wall
+        keeps its own: :func:`wall_params`).
 
     Raises
     ------
@@ -201,21 +202,37 @@ def mesh(
     p["regions"] = [int(n) for n in regions] if any(regions) else None
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
     info = rim(meshes["whole"].faces, len(meshes["whole"].vertices))  # of the analysed surface
-    p["rim_vertices"], p["rim_loops"] = info["n_vertices"], info["n_loops"]
+    p["rim_vertices"] = info["n_vertices"]
     if info["n_loops"]:
         logger.info("open surface (cut by the image border): %d rim loop(s), %d rim vertices",
                     info["n_loops"], info["n_vertices"])
-    if p["keep"] == "all" and len(found) > 1:  # each object's own: one beside a cut one is not cut
-        p["rim_loops"] = _rim_loops_per_object(meshes["whole"], len(found))
+    # each wall's own (its holes are its loops beyond them), each object's own with keep: all (one
+    # beside a cut object is not cut)
+    n_objects = len(found) if p["keep"] == "all" and len(found) > 1 else 0
+    p["wall_rim_loops"] = {name: _rim_loops(m, n_objects) for name, m in meshes.items()}
+    p["rim_loops"] = p["wall_rim_loops"]["whole"]
     return meshes, p
 
 
-def _rim_loops_per_object(whole: trimesh.Trimesh, n_objects: int) -> list[int]:
-    """Rim loops (boundary loops on the image's border) of each object of a labelled ``whole``, by label."""
+def wall_params(params: dict, name: str) -> dict:
+    """The mesh step's record ``params`` as the wall ``name`` (``whole``, ``inner``, ``outer``) keeps it.
+
+    ``rim_loops`` becomes that wall's own (``params["wall_rim_loops"]``), so that its boundary loops
+    beyond them count as holes (:func:`nemo.summary.quality_flags`); records without it are returned as is.
+    """
+    own = (params.get("wall_rim_loops") or {}).get(name)
+    return params if own is None else {**params, "rim_loops": own}
+
+
+def _rim_loops(mesh: trimesh.Trimesh, n_objects: int) -> int | list[int]:
+    """Rim loops (boundary loops on the image's border, all of a fresh mesh's) of ``mesh``; with
+    ``n_objects`` > 0 a list of each object's of the labelled mesh, by label."""
     from nemo.geometry import rim
 
+    if not n_objects:
+        return rim(mesh.faces, len(mesh.vertices))["n_loops"]
     loops = [0] * n_objects
-    for part in objects.parts(whole):  # a loop over objects
+    for part in objects.parts(mesh):  # a loop over objects
         loops[part.label] = rim(part.mesh.faces, len(part.mesh.vertices))["n_loops"]
     return loops
 

@@ -236,13 +236,37 @@ def test_mesh_keep_all_records_each_objects_own_rim():
     vol = _balls((40, 40, 76), [(20, 20, 20, 9, 14), (71, 20, 20, 6, 11)])  # the second cut by x = 75
     meshes, params = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre", "keep": "all"})
     assert params["n_objects"] == 2 and params["rim_loops"] == [0, 2]  # the cut shell's two walls' rims
-    meshes["inner"].metadata["nemo_params"] = params  # as nemo mesh and nemo run record it
+    meshes["inner"].metadata["nemo_params"] = stages.wall_params(params, "inner")  # as nemo mesh, nemo run
     record = stages.measure(meshes["inner"])
-    assert [(o["object"], o["rim_loops"], o["n_boundary_loops"]) for o in record["objects"]] == [(0, 0, 0), (1, 2, 1)]
+    assert [(o["object"], o["rim_loops"], o["n_boundary_loops"]) for o in record["objects"]] == [(0, 0, 0), (1, 1, 1)]
     with pytest.warns(NemoWarning, match="2 objects: analysing the largest"):  # keep: largest: a number, as before
         one, p1 = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
     one["inner"].metadata["nemo_params"] = p1
     assert p1["n_objects"] == 2 and p1["rim_loops"] == 0 and stages.measure(one["inner"])["rim_loops"] == 0
+
+
+def test_a_cut_walls_holes_are_its_own_loops_beyond_its_rim():
+    """A shell cut by the top of the stack: each wall is compared with its own rim, so an intact
+    wall has no hole (it read -1 against the surface's two rims) and a tear in one wall is one hole
+    (it read 0: the other wall's rim hid it)."""
+    from unittest.mock import patch
+
+    from nemo.summary import quality_flags
+
+    vol, _ = _cut_shell()
+    meshes, p = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
+    inner = meshes["inner"]
+    inner.metadata["nemo_params"] = stages.wall_params(p, "inner")
+    record = stages.measure(inner)
+    assert (record["rim_loops"], record["n_boundary_loops"]) == (1, 1)
+    low = np.argsort(np.asarray(inner.vertices)[:, 2])[:3]  # a tear at the bottom, far from the rim
+    torn = trimesh.Trimesh(inner.vertices, inner.faces[~np.isin(inner.faces, low).any(axis=1)], process=False)
+    torn.metadata["nemo_params"] = stages.wall_params(p, "inner")
+    record = stages.measure(torn)
+    assert (record["rim_loops"], record["n_boundary_loops"]) == (1, 2)
+    with patch("nemo.summary.QC_MAX_HOLES", 0):
+        assert any("1 holes besides its rim" in f for f in quality_flags({}, record))
+        assert not any("holes" in f for f in quality_flags({}, stages.measure(inner)))
 
 
 def test_mesh_keep_all_leaves_a_droplet_out_of_the_walls():
@@ -618,6 +642,7 @@ def test_cut_shell_through_the_stages_is_open_and_nan_at_the_rim():
     meshes, p = stages.mesh(vol, (1.0, 1.0, 1.0), {"split": "centre"})
     assert p["border"] == "open" and p["rim_loops"] == 2 and p["cap_faces"] > 0 and p["n_objects"] == 1
     inner, outer = meshes["inner"], meshes["outer"]
+    assert p["wall_rim_loops"] == {"whole": 2, "inner": 1, "outer": 1}
     assert not inner.is_watertight and not outer.is_watertight
     # curvature: NaN where the fitting ball reaches the rim, 1/R elsewhere
     df, cp = stages.curvature(outer, {"radius": 3.0})

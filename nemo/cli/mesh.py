@@ -187,7 +187,7 @@ def run(args) -> int:
     spheres = {}
     for name, mesh in meshes.items():
         path = paths[name]
-        mesh.metadata["nemo_params"] = params
+        mesh.metadata["nemo_params"] = stages.wall_params(params, name)
         save_mesh(mesh, path)
         line = _describe(name, mesh) + f" -> {path}"
         if params["fit_sphere"]:
