@@ -490,6 +490,9 @@ PROFILE_MAX_BELOW_CREST = 0.02
 PROFILE_MARGIN_VOXELS = 5.0
 #: Scale of the fit's soft-L1 loss, in the ray's starting contrast (0.05 gave the same levels, ±1 %).
 PROFILE_LOSS_SCALE = 0.15
+#: Bins across a wall (its depth over its fitted thickness, from half a thickness outside to half
+#: one inside) where the fits' median residual is taken, and the fewest samples a bin needs.
+MISFIT_BINS, MISFIT_MIN_SAMPLES = 16, 50
 
 
 def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals: np.ndarray, field: np.ndarray,
@@ -531,7 +534,8 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
         them (a wall thinner than the blur: a surface at that level would tear).
     info : dict
         ``rays``, ``fitted``, ``blur`` (median fitted σ along the rays), ``below_crest`` (that fraction),
-        ``contrast`` (median fitted A) and with ``labels`` ``levels_by_label``.
+        ``contrast`` (median fitted A), ``misfit`` (:func:`box_misfit`) and with ``labels``
+        ``levels_by_label``.
     """
     sp = np.asarray(spacing, dtype=np.float64)
     ok = np.isfinite(normals).all(axis=1)
@@ -557,6 +561,7 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
     found = float(np.median(per_ray[good]))
     info["below_crest"] = float(np.mean(crest[good] < found))  # the meshed field stays below the level there
     info["contrast"] = float(np.median(a[good]))
+    info["misfit"] = box_misfit(s, profile, mask & good[:, None], params)
     if labels is not None:
         ray_labels = np.asarray(labels)[pick][good]
         info["levels_by_label"] = {int(k): float(np.median(per_ray[good][ray_labels == k]))
@@ -564,6 +569,46 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
     if info["below_crest"] > PROFILE_MAX_BELOW_CREST:
         return None, info
     return found, info
+
+
+def box_misfit(s: np.ndarray, profiles: np.ndarray, mask: np.ndarray, params: np.ndarray) -> float | None:
+    """How far the walls' profiles depart from blurred boxes: the largest median residual across a wall.
+
+    The residuals ``(profile − box) / A`` of every ray are binned by their depth across the wall,
+    ``u = (s − s0) / (s1 − s0)`` in [−0.5, 1.5] (:data:`MISFIT_BINS` bins); the largest \|median\|
+    of a bin is returned. Noise averages out over the rays, so a plain wall (a stained wall, a
+    nucleus) reads ≲ 0.01 at any SNR, while bright films or a gradient inside a wall (fibres by
+    its surfaces, a brighter apical side) leave a systematic residual of several % of the contrast
+    (docs/validation.md, "Plain and textured walls").
+
+    Parameters
+    ----------
+    s : ndarray, shape (S,)
+        Offsets along the rays.
+    profiles : ndarray, shape (M, S)
+    mask : ndarray of bool, shape (M, S)
+        The samples to use (the fitted rays' samples within their walls' margins).
+    params : ndarray, shape (M, 6)
+        The fitted (b, A, s0, s1, σ, g) (:func:`_fit_boxes`).
+
+    Returns
+    -------
+    float or None
+        None when no bin has :data:`MISFIT_MIN_SAMPLES` samples.
+    """
+    rows = np.flatnonzero(mask.any(axis=1))
+    p = params[rows].copy()
+    p[:, 4] = np.log(p[:, 4])
+    model, _ = _box_model(p, s)
+    a, s0, s1 = p[:, 1], p[:, 2], p[:, 3]
+    residual = ((np.nan_to_num(profiles[rows]) - model) / a[:, None])[mask[rows]]
+    u = ((s[None, :] - s0[:, None]) / (s1 - s0)[:, None])[mask[rows]]
+    bins = np.floor((u + 0.5) * MISFIT_BINS / 2.0).astype(np.int64)
+    keep = (bins >= 0) & (bins < MISFIT_BINS)
+    bins, residual = bins[keep], residual[keep]
+    medians = [np.median(residual[bins == k]) for k in range(MISFIT_BINS)  # a loop over 16 bins
+               if np.sum(bins == k) >= MISFIT_MIN_SAMPLES]
+    return float(np.max(np.abs(medians))) if medians else None
 
 
 def _ray_samples(image: np.ndarray, spacing: np.ndarray, points: np.ndarray, directions: np.ndarray,

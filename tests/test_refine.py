@@ -403,8 +403,34 @@ def test_profile_edge_keeps_a_thin_wall_under_a_z_psf(snr):
     record = mesh.metadata["nemo_surface"]
     assert record["edge"] == "profile" and record["profile"]["fitted"] >= 0.9 * record["profile"]["rays"]
     assert record["level"] == record["profile"]["level"] == pytest.approx(60.0, abs=1.5)
+    assert record["profile"]["misfit"] < 0.03  # a plain wall: boxes fit it (0.004-0.029 clean to SNR 3)
     inner, outer = split_mesh(mesh, centre=c, keep="largest")
     assert float(np.nanmedian(thickness(inner, outer))) == pytest.approx(4.0, abs=0.15)
+
+
+def test_profile_edge_warns_of_walls_that_are_not_boxes(caplog):
+    """A 10 µm wall (50 above the background) with two bright films 0.5-2 µm inside its surfaces: the
+    boxes' residuals keep the films' pattern (misfit 0.30; a plain wall ≤ 0.03), and the level they
+    give (46, the half level 36) comes with a warning that the walls may move inward."""
+    spacing, psf = (1.0, 1.0, 1.0), (1.0, 1.0, 1.0)
+    shape, c = _setup(15.0, 10.0, spacing, psf)
+
+    def radius(x, y, z):
+        return np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
+
+    def wall(x, y, z):
+        return (radius(x, y, z) >= 15.0) & (radius(x, y, z) < 25.0)
+
+    def films(x, y, z):
+        r = radius(x, y, z)
+        return ((r >= 15.5) & (r < 17.0)) | ((r >= 23.0) & (r < 24.5))
+
+    vol = _image(shape, spacing, wall, psf, amp=50.0, sub=2) + _image(shape, spacing, films, psf, bg=0.0, sub=2)
+    with caplog.at_level("WARNING", logger="nemo"):
+        mesh = reconstruct(vol, spacing, keep="all", edge="profile")
+    record = mesh.metadata["nemo_surface"]["profile"]
+    assert record["misfit"] > 0.1 and record["level"] > record["level_half"] + 5
+    assert "not plain blurred boxes" in caplog.text and "compare with edge: half" in caplog.text
 
 
 def test_profile_edge_stays_at_the_half_level_without_walls_in_reach(caplog):
