@@ -419,7 +419,8 @@ def rim(faces: np.ndarray, n_vertices: int, vertices: np.ndarray | None = None) 
     -------
     dict
         ``edges`` (B, 2) (:func:`boundary_edges`), ``vertices`` (N,) bool (on the rim),
-        ``n_vertices`` and ``n_loops`` (connected rim curves; 0 for a closed surface), and with
+        ``n_vertices`` and ``n_loops`` (connected rim curves; 0 for a closed surface), ``loop``
+        (N,) int (each rim vertex's rim curve, 0 … n_loops − 1; −1 off the rim), and with
         ``vertices`` given ``distance`` (N,) (Euclidean distance to the nearest rim vertex, inf
         on a closed surface).
     """
@@ -430,12 +431,14 @@ def rim(faces: np.ndarray, n_vertices: int, vertices: np.ndarray | None = None) 
     on_rim = np.zeros(int(n_vertices), dtype=bool)
     on_rim[edges.ravel()] = True
     n_loops = 0
+    loop = np.full(int(n_vertices), -1, dtype=np.int64)
     if len(edges):
         nodes, inv = np.unique(edges, return_inverse=True)
         inv = inv.reshape(-1, 2)
         g = sparse.coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(nodes), len(nodes)))
-        n_loops = int(connected_components(g, directed=False)[0])
-    out = {"edges": edges, "vertices": on_rim, "n_vertices": int(on_rim.sum()), "n_loops": n_loops}
+        n_loops, loop[nodes] = connected_components(g, directed=False)
+        n_loops = int(n_loops)
+    out = {"edges": edges, "vertices": on_rim, "n_vertices": int(on_rim.sum()), "n_loops": n_loops, "loop": loop}
     if vertices is not None:
         vertices = np.asarray(vertices, dtype=np.float64)
         dist = np.full(len(vertices), np.inf)

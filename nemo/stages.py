@@ -229,12 +229,13 @@ def _rim_loops(mesh: trimesh.Trimesh, n_objects: int) -> int | list[int]:
     ``n_objects`` > 0 a list of each object's of the labelled mesh, by label."""
     from nemo.geometry import rim
 
+    info = rim(mesh.faces, len(mesh.vertices))
     if not n_objects:
-        return rim(mesh.faces, len(mesh.vertices))["n_loops"]
-    loops = [0] * n_objects
-    for part in objects.parts(mesh):  # a loop over objects
-        loops[part.label] = rim(part.mesh.faces, len(part.mesh.vertices))["n_loops"]
-    return loops
+        return info["n_loops"]
+    on_rim = info["loop"] >= 0
+    first = np.unique(info["loop"][on_rim], return_index=True)[1]  # a vertex of each loop
+    labels = objects.vertex_labels(mesh)[np.flatnonzero(on_rim)[first]]
+    return np.bincount(labels, minlength=n_objects).astype(int).tolist()
 
 
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
