@@ -1873,7 +1873,7 @@ def _level_surface(padded: np.ndarray, level: float, spacing: tuple[float, float
     return keep_components(mesh, keep)
 
 
-#: Largest texture (:func:`nemo.refine.box_texture`) of walls whose profile level ``edge: profile`` takes
+#: Largest misfit (:func:`nemo.refine.box_misfit`) of walls whose profile level ``edge: profile`` takes
 #: without a warning: plain walls read ≤ 0.03 to SNR 3, walls with bright films or a gradient 0.04-0.3.
 PROFILE_MAX_MISFIT = 0.04
 
