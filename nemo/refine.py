@@ -497,7 +497,7 @@ MISFIT_BINS, MISFIT_MIN_SAMPLES = 16, 50
 
 def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals: np.ndarray, field: np.ndarray,
                        level: float, sample_spacing, origin, max_depth: float, rng: int = 0,
-                       labels: np.ndarray | None = None) -> tuple[float | None, dict]:
+                       labels: np.ndarray | None = None, n_rays: int = PROFILE_RAYS) -> tuple[float | None, dict]:
     """The iso-level that the walls' own intensity profiles imply (``mesh.edge: profile``).
 
     A wall across its thickness is a blurred box: along the inward normal of a surface vertex the
@@ -525,6 +525,8 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
     labels : ndarray of int, shape (N,), optional
         A label per vertex (the surface's separate pieces): each label's own median level with
         :data:`PROFILE_MIN_FITS` fitted rays or more is reported (``levels_by_label``).
+    n_rays : int
+        Most rays (vertices) fitted (:data:`PROFILE_RAYS`).
 
     Returns
     -------
@@ -539,7 +541,7 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
     """
     sp = np.asarray(spacing, dtype=np.float64)
     ok = np.isfinite(normals).all(axis=1)
-    pick = np.random.default_rng(rng).permutation(np.flatnonzero(ok))[:PROFILE_RAYS]
+    pick = np.random.default_rng(rng).permutation(np.flatnonzero(ok))[:n_rays]
     v, n = vertices[pick], -normals[pick]  # into the wall
     margin = PROFILE_MARGIN_VOXELS * float(sp.max())
     reach = np.linspace(0.0, max_depth, min(PROFILE_MAX_SAMPLES, int(max_depth / (0.5 * sp.min())) + 2))[1:]

@@ -107,7 +107,9 @@ def mesh(
         The section with ``step`` and ``sigma`` as numbers, the iso-level used, the image's
         ``noise``, ``snr``, ``saturated`` and ``background`` (:func:`nemo.surface.image_noise`;
         None with a mask), ``refine_to`` as applied, with ``edge: profile`` ``profile`` (the level
-        the walls' fitted profiles gave, or None, the half level, rays and fits),
+        the walls' fitted profiles gave, or None, the half level, rays and fits), with ``edge: half``
+        and an automatic threshold ``edge_check`` (the half level's ``offset`` from the walls'
+        profiles, over their contrast; None for textured walls: :func:`nemo.surface.reconstruct`),
         ``deconvolution`` (:func:`nemo.psf.deconvolve`'s record),
         ``n_objects`` (:func:`nemo.surface.find_objects`), ``turned_out`` (objects enclosing the
         dark side, turned out: :func:`nemo.surface.turn_out_dark_objects`), ``walls`` (1 or 2; a list per
@@ -179,6 +181,8 @@ def mesh(
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}
     if "profile" in surface:  # edge: profile, the walls' fitted profiles (nemo.refine.wall_profile_level)
         p["profile"] = dict(surface["profile"])
+    if "edge_check" in surface:  # edge: half, checked against the walls' profiles (nemo.surface._edge_check)
+        p["edge_check"] = dict(surface["edge_check"])
     del sharp
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
              else {"noise": None, "snr": None, "saturated": None, "background": None})

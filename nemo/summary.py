@@ -252,6 +252,13 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if saturated is not None and saturated > QC_MAX_SATURATED:
         flags.append(f"{100 * saturated:.1f} % of the object's core saturated: walls placed outward, "
                      "thickness overestimated (lower the gain or the exposure)")
+    check = measure.get("edge_check") or {}  # the mesh step's (nemo.surface._edge_check), with its limit
+    offset = check.get("offset")
+    if offset is not None and abs(offset) > check.get("limit", math.inf):
+        flags.append(f"the walls' own profiles put their edges {100 * abs(offset):.0f} % of the contrast "
+                     f"{'above' if offset > 0 else 'below'} the half level: walls placed "
+                     f"{'outward, thickness overestimated' if offset > 0 else 'inward, thickness underestimated'} "
+                     "(thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level)")
     if (measure.get("n_components") or 1) > 1:
         flags.append(f"surface has {measure['n_components']} pieces")
     if closed and np.isfinite(chi) and chi < QC_MIN_EULER:

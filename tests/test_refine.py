@@ -408,10 +408,30 @@ def test_profile_edge_keeps_a_thin_wall_under_a_z_psf(snr):
     assert float(np.nanmedian(thickness(inner, outer))) == pytest.approx(4.0, abs=0.15)
 
 
-def test_profile_edge_warns_of_walls_that_are_not_boxes(caplog):
-    """A 10 µm wall (50 above the background) with two bright films 0.5-2 µm inside its surfaces: the
-    boxes' residuals keep the films' pattern (misfit 0.30; a plain wall ≤ 0.03), and the level they
-    give (46, the half level 36) comes with a warning that the walls may move inward."""
+def test_the_half_level_is_checked_against_the_walls_profiles(caplog):
+    """At the default half level the walls' profiles check the level (the surface stays): the 4 µm
+    wall under a z-PSF reads an offset of 0.02 clean (thickness 4.14 µm) and 0.13 of the contrast
+    at SNR 3 (5.15 µm), which is warned about; a wall with bright films (misfit 0.3) gets none."""
+    spacing, psf = (2.0, 1.0, 1.0), (1.5, 0.6, 0.6)
+    checks = {}
+    for snr in (None, 3.0):
+        vol, c = _thin_shell(spacing, psf, snr, seed=7)
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="nemo"):
+            mesh = reconstruct(vol, spacing, sigma=auto_sigma(vol, spacing)[0], keep="all")
+        checks[snr] = mesh.metadata["nemo_surface"]["edge_check"], caplog.text
+    (clean, clean_log), (noisy, noisy_log) = checks[None], checks[3.0]
+    assert clean["misfit"] < 0.03 and 0 < clean["offset"] < 0.05 and "own profiles" not in clean_log
+    assert noisy["offset"] > noisy["limit"] == 0.1 and noisy["level_profile"] == pytest.approx(60.0, abs=2.0)
+    assert "the walls come out outward (thicker)" in noisy_log
+    vol, c = _films_wall()
+    textured = reconstruct(vol, (1.0, 1.0, 1.0), keep="all").metadata["nemo_surface"]["edge_check"]
+    assert textured["misfit"] > 0.1 and textured["offset"] is None
+
+
+def _films_wall():
+    """A 10 µm wall (R 15-25 µm, 50 above a background of 10) with two bright films 0.5-2 µm inside its
+    surfaces (+100), 1 µm voxels, 1 µm PSF."""
     spacing, psf = (1.0, 1.0, 1.0), (1.0, 1.0, 1.0)
     shape, c = _setup(15.0, 10.0, spacing, psf)
 
@@ -425,9 +445,16 @@ def test_profile_edge_warns_of_walls_that_are_not_boxes(caplog):
         r = radius(x, y, z)
         return ((r >= 15.5) & (r < 17.0)) | ((r >= 23.0) & (r < 24.5))
 
-    vol = _image(shape, spacing, wall, psf, amp=50.0, sub=2) + _image(shape, spacing, films, psf, bg=0.0, sub=2)
+    return _image(shape, spacing, wall, psf, amp=50.0, sub=2) + _image(shape, spacing, films, psf, bg=0.0, sub=2), c
+
+
+def test_profile_edge_warns_of_walls_that_are_not_boxes(caplog):
+    """A 10 µm wall (50 above the background) with two bright films 0.5-2 µm inside its surfaces: the
+    boxes' residuals keep the films' pattern (misfit 0.30; a plain wall ≤ 0.03), and the level they
+    give (46, the half level 36) comes with a warning that the walls may move inward."""
+    vol, _ = _films_wall()
     with caplog.at_level("WARNING", logger="nemo"):
-        mesh = reconstruct(vol, spacing, keep="all", edge="profile")
+        mesh = reconstruct(vol, (1.0, 1.0, 1.0), keep="all", edge="profile")
     record = mesh.metadata["nemo_surface"]["profile"]
     assert record["misfit"] > 0.1 and record["level"] > record["level_half"] + 5
     assert "not plain blurred boxes" in caplog.text and "compare with edge: half" in caplog.text

@@ -643,6 +643,11 @@ def test_cut_shell_through_the_stages_is_open_and_nan_at_the_rim():
     assert p["border"] == "open" and p["rim_loops"] == 2 and p["cap_faces"] > 0 and p["n_objects"] == 1
     inner, outer = meshes["inner"], meshes["outer"]
     assert p["wall_rim_loops"] == {"whole": 2, "inner": 1, "outer": 1}
+    # the half level checked against the walls' profiles: a plain wall, no offset to speak of, recorded
+    # for the summary's quality control through each wall's measure
+    assert abs(p["edge_check"]["offset"]) < 0.05 and p["edge_check"]["misfit"] < 0.03
+    inner.metadata["nemo_params"] = stages.wall_params(p, "inner")
+    assert stages.measure(inner)["edge_check"] == p["edge_check"]
     assert not inner.is_watertight and not outer.is_watertight
     # curvature: NaN where the fitting ball reaches the rim, 1/R elsewhere
     df, cp = stages.curvature(outer, {"radius": 3.0})

@@ -307,6 +307,16 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({}, {**CLOSED, "saturated": 0.10}, []),
     ({}, {**CLOSED, "saturated": None}, []),
     ({}, {**CLOSED, "n_objects": 3}, ["3 objects in the image (see the mesh step's warning)"]),
+    # the half level checked against the walls' own profiles (nemo.surface._edge_check)
+    ({}, {**CLOSED, "edge_check": {"offset": 0.13, "limit": 0.1, "misfit": 0.02}},
+     ["the walls' own profiles put their edges 13 % of the contrast above the half level: walls placed outward, "
+      "thickness overestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level)"]),
+    ({}, {**CLOSED, "edge_check": {"offset": -0.2, "limit": 0.1, "misfit": 0.01}},
+     ["the walls' own profiles put their edges 20 % of the contrast below the half level: walls placed inward, "
+      "thickness underestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level)"]),
+    ({}, {**CLOSED, "edge_check": {"offset": 0.05, "limit": 0.1}}, []),
+    ({}, {**CLOSED, "edge_check": {"offset": None, "limit": 0.1, "misfit": 0.3}}, []),  # textured walls: no check
+    ({}, {**CLOSED, "edge_check": None}, []),
     ({"regions": 2}, CLOSED, ["the surface holds 2 separate bright regions of the image: touching objects meshed as "
                               "one, their area and volume together (a mask that labels them apart separates them)"]),
     ({"regions": 1}, CLOSED, []),
