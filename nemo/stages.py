@@ -210,12 +210,17 @@ def mesh(
     if info["n_loops"]:
         logger.info("open surface (cut by the image border): %d rim loop(s), %d rim vertices",
                     info["n_loops"], info["n_vertices"])
-    # each wall's own (its holes are its loops beyond them), each object's own with keep: all (one
-    # beside a cut object is not cut)
-    n_objects = len(found) if p["keep"] == "all" and len(found) > 1 else 0
-    p["wall_rim_loops"] = {name: _rim_loops(m, n_objects) for name, m in meshes.items()}
+    p["wall_rim_loops"] = _wall_rim_loops(meshes, info, len(found) if p["keep"] == "all" and len(found) > 1 else 0)
     p["rim_loops"] = p["wall_rim_loops"]["whole"]
     return meshes, p
+
+
+def _wall_rim_loops(meshes: dict[str, trimesh.Trimesh], whole_rim: dict, n_objects: int) -> dict:
+    """Each wall's own rim loops (:func:`_rim_loops`; its holes are its loops beyond them: the split
+    opens one round every pore of a porous wall), each object's own with ``n_objects`` (one beside a
+    cut object is not cut); ``whole_rim`` is :func:`nemo.geometry.rim` of ``meshes["whole"]``."""
+    border = np.asarray(meshes["whole"].vertices)[whole_rim["vertices"]]  # where the image border cuts it
+    return {name: _rim_loops(m, n_objects, border) for name, m in meshes.items()}
 
 
 def wall_params(params: dict, name: str) -> dict:
@@ -228,18 +233,26 @@ def wall_params(params: dict, name: str) -> dict:
     return params if own is None else {**params, "rim_loops": own}
 
 
-def _rim_loops(mesh: trimesh.Trimesh, n_objects: int) -> int | list[int]:
-    """Rim loops (boundary loops on the image's border, all of a fresh mesh's) of ``mesh``; with
-    ``n_objects`` > 0 a list of each object's of the labelled mesh, by label."""
+def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> int | list[int]:
+    """Rim loops of ``mesh`` (one of the analysed surface's walls): its boundary loops through a point
+    of ``border`` (M, 3), the analysed surface's rim where the image border cuts it (a wall is a piece of
+    that surface, so its points are the same numbers); with ``n_objects`` > 0 a list of each object's
+    of the labelled mesh, by label."""
+    from scipy.spatial import cKDTree
+
     from nemo.geometry import rim
 
     info = rim(mesh.faces, len(mesh.vertices))
+    on_rim = np.flatnonzero(info["loop"] >= 0)
+    if len(on_rim) and len(border):
+        at_border = cKDTree(border).query(np.asarray(mesh.vertices)[on_rim], distance_upper_bound=1e-6)[0] < 1e-6
+        loops = np.unique(info["loop"][on_rim[at_border]], return_index=True)[1]  # a border vertex of each such loop
+        vertices = on_rim[at_border][loops]
+    else:
+        vertices = np.zeros(0, dtype=np.int64)
     if not n_objects:
-        return info["n_loops"]
-    on_rim = info["loop"] >= 0
-    first = np.unique(info["loop"][on_rim], return_index=True)[1]  # a vertex of each loop
-    labels = objects.vertex_labels(mesh)[np.flatnonzero(on_rim)[first]]
-    return np.bincount(labels, minlength=n_objects).astype(int).tolist()
+        return int(len(vertices))
+    return np.bincount(objects.vertex_labels(mesh)[vertices], minlength=n_objects).astype(int).tolist()
 
 
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,

@@ -403,7 +403,7 @@ def test_profile_edge_keeps_a_thin_wall_under_a_z_psf(snr):
     record = mesh.metadata["nemo_surface"]
     assert record["edge"] == "profile" and record["profile"]["fitted"] >= 0.9 * record["profile"]["rays"]
     assert record["level"] == record["profile"]["level"] == pytest.approx(60.0, abs=1.5)
-    assert record["profile"]["misfit"] < 0.03  # a plain wall: boxes fit it (0.004-0.029 clean to SNR 3)
+    assert record["profile"]["misfit"] < 0.04  # a plain wall, no warning: boxes fit it (0.004-0.029 clean to SNR 3)
     inner, outer = split_mesh(mesh, centre=c, keep="largest")
     assert float(np.nanmedian(thickness(inner, outer))) == pytest.approx(4.0, abs=0.15)
 

@@ -269,6 +269,28 @@ def test_a_cut_walls_holes_are_its_own_loops_beyond_its_rim():
         assert not any("holes" in f for f in quality_flags({}, stages.measure(inner)))
 
 
+def test_a_closed_walls_pores_are_holes_not_rim():
+    """A hollow ball inside the stack with three pores through its wall, split by its centre: the
+    split opens a loop round each pore in both walls; none is on the image's border, so each wall has
+    no rim and three holes, which the QC flags (counted as rim, they hid the porous wall)."""
+    from scipy import ndimage as ndi
+
+    from nemo.summary import quality_flags
+
+    z, y, x = np.indices((48, 48, 48)).astype(np.float32)
+    r = np.sqrt((x - 24) ** 2 + (y - 24) ** 2 + (z - 24) ** 2)
+    vol = ((r >= 9) & (r <= 14)).astype(np.float32) * 200
+    for u, v, w in ((x, y, z), (y, z, x), (z, x, y)):  # pores along +x, +y, +z
+        vol[(u > 24) & (np.hypot(v - 24, w - 24) < 3.5)] = 0
+    meshes, p = stages.mesh(ndi.gaussian_filter(vol, 1.0), (1.0, 1.0, 1.0), {"split": "centre"})
+    assert p["wall_rim_loops"] == {"whole": 0, "inner": 0, "outer": 0}
+    for name in ("inner", "outer"):
+        meshes[name].metadata["nemo_params"] = stages.wall_params(p, name)
+        record = stages.measure(meshes[name])
+        assert (record["n_boundary_loops"], record["rim_loops"]) == (3, 0)
+        assert "surface has 3 holes besides its rim on the image border (a porous or torn wall?)" in quality_flags({}, record)
+
+
 def test_mesh_keep_all_leaves_a_droplet_out_of_the_walls():
     """A shell and a filled ball (one wall): the ball has no inner wall, and a warning says so."""
     from nemo import objects
