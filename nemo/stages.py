@@ -245,7 +245,9 @@ def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> int
     info = rim(mesh.faces, len(mesh.vertices))
     on_rim = np.flatnonzero(info["loop"] >= 0)
     if len(on_rim) and len(border):
-        at_border = cKDTree(border).query(np.asarray(mesh.vertices)[on_rim], distance_upper_bound=1e-6)[0] < 1e-6
+        tol = 1e-9 * max(float(np.ptp(border, axis=0).max()), 1e-300)  # the same numbers, in any unit
+        points = np.asarray(mesh.vertices)[on_rim]
+        at_border = cKDTree(border).query(points, distance_upper_bound=tol)[0] <= tol
         loops = np.unique(info["loop"][on_rim[at_border]], return_index=True)[1]  # a border vertex of each such loop
         vertices = on_rim[at_border][loops]
     else:

@@ -1906,7 +1906,8 @@ EDGE_CHECK_RAYS = 1000
 #: Largest misfit of walls whose profiles check the half level: plain walls read ≤ 0.03 to SNR 3.
 EDGE_CHECK_MAX_MISFIT = 0.03
 #: Largest offset of the half level from the walls' profiles' level, over their contrast, that passes:
-#: plain thick walls read ≤ 0.03 to SNR 3, a 4 µm wall under a 1.5 µm z-PSF 0.02-0.13 clean to SNR 3.
+#: plain walls of 6-10 µm read ≤ 0.05 to SNR 5, a 4 µm wall under a 1.5 µm z-PSF 0.02-0.13 clean to SNR 3
+#: (its thickness +3 to +29 %; docs/validation.md, "The half level checked against the walls' own profiles").
 EDGE_CHECK_MAX_OFFSET = 0.1
 
 
