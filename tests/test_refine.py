@@ -410,7 +410,7 @@ def test_profile_edge_keeps_a_thin_wall_under_a_z_psf(snr):
 
 def test_the_half_level_is_checked_against_the_walls_profiles(caplog):
     """At the default half level the walls' profiles check the level (the surface stays): the 4 µm
-    wall under a z-PSF reads an offset of 0.02 clean (thickness 4.14 µm) and 0.13 of the contrast
+    wall under a z-PSF reads an offset of 0.02 clean (thickness 4.14 µm) and 0.14 of the contrast
     at SNR 3 (5.15 µm), which is warned about; a wall with bright films (misfit 0.3) gets none."""
     spacing, psf = (2.0, 1.0, 1.0), (1.5, 0.6, 0.6)
     checks = {}
