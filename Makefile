@@ -9,7 +9,11 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 CORES  ?= 2
 # --no-compile: pip would byte-compile every installed module (a third of the install time);
-# Python compiles the modules actually imported on first use instead.
+# Python compiles the modules actually imported on first use instead and caches them, unless
+# PYTHONDONTWRITEBYTECODE is set (some machines' images set it): then every process, each of the
+# workflow's jobs and the tests' commands, compiles snakemake, numpy, scipy, ... from source again
+# (~4 s of a 6 s `snakemake -n`), so the targets below run without it.
+unexport PYTHONDONTWRITEBYTECODE
 # PYTHONWARNINGS=ignore: setuptools' notice about editable installs is not for users.
 PIP    := $(BIN)/python -m pip --quiet --disable-pip-version-check
 PIPI   := PYTHONWARNINGS=ignore $(PIP) install --no-compile
