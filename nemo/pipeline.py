@@ -82,6 +82,7 @@ def run_frame(
     dataset: str | None = None,
     psf: tuple[float, float, float] | None = None,
     mask: dict | None = None,
+    layers: bool = True,
 ) -> dict:
     """Analyse one (t, c) frame into ``outdir``.
 
@@ -109,6 +110,9 @@ def run_frame(
     mask : dict, optional
         ``mask`` (the segmentation's file), ``mask_labels``, ``mask_threshold``, ``mask_channel``
         as a dataset gives them, replacing the dataset's (``nemo run --mask``).
+    layers : bool
+        False: the morphology only, the config's (and the dataset's) layers and alignment
+        dropped (``nemo run --no-layers``, as ``layers: {}``).
 
     Returns
     -------
@@ -123,7 +127,7 @@ def run_frame(
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
     frame = frame_setup(cfg, dataset, image, spacing, psf, mask)
     check_selection(cfg, frame, t, c)
-    sections = nconfig.analysis(cfg, frame["dataset"])
+    sections = _analysis(cfg, frame["dataset"], layers)
     final = Path(outdir).resolve()  # `-o .`, `-o a/..` and symlinked folders: stage beside the real one
     _check_imports_outside(sections, final, frame["dataset"], t, c)
     out = _staging_folder(final)
@@ -276,14 +280,24 @@ def _deconvolved(volume, info, psf, timed, needed: bool):
         return deconvolve(volume, info.spacing, psf)
 
 
+def _analysis(cfg: dict, dataset: str | None, layers: bool) -> dict:
+    """The analysis sections (:func:`nemo.config.analysis`), without layers and alignment when not ``layers``."""
+    if not layers:
+        cfg = {**cfg, "layers": {}, "alignment": []}
+        if dataset is not None and dataset in (cfg.get("datasets") or {}):
+            cfg["datasets"] = {**cfg["datasets"], dataset: {**cfg["datasets"][dataset], "layers": {}, "alignment": []}}
+    return nconfig.analysis(cfg, dataset)
+
+
 def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, dataset: str | None = None,
-                    psf=None, mask: dict | None = None) -> dict:
+                    psf=None, mask: dict | None = None, layers: bool = True) -> dict:
     """The analysis sections with every data-derived default as the number this frame gets.
 
     Meshes the frame (nothing is written); per surface and per layer where a default depends
     on the mesh (curvature radius, director patch radius, pixel and count, averaging radius,
     defect suppression and contour radii, tracking distance). With several objects
-    (``mesh.keep: all``) each layer's ``objects`` lists every object's lengths.
+    (``mesh.keep: all``) each layer's ``objects`` lists every object's lengths. ``layers``: as
+    :func:`run_frame`'s (False: the morphology's sections only).
     """
     from nemo.defects import CONTOUR_PER_AVERAGING
     from nemo.io import read_stack
@@ -291,7 +305,7 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     cfg = nconfig.load(config) if not isinstance(config, dict) else nconfig.validate(config)
     frame = frame_setup(cfg, dataset, image, spacing, psf, mask)
     check_selection(cfg, frame, t, c)
-    sections = nconfig.analysis(cfg, frame["dataset"])
+    sections = _analysis(cfg, frame["dataset"], layers)
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
     mask = _mesh_source(frame, t, volume.shape, sections, info.spacing)  # the same mesh source as run_frame

@@ -119,6 +119,36 @@ def test_summary_json(cli_run, vesicle):
         read_table(outdir / layout.layer_file("directors", LAYER)))
 
 
+def test_no_layers_gives_the_morphology_of_the_full_run(cli_run, vesicle, tmp_path):
+    """``--no-layers`` (a membrane or droplet without fibres) drops the layers and the alignment of the
+    config, its dataset's included, and writes the same surfaces and numbers as the full run."""
+    from nemo.cli import main
+
+    config = tmp_path / "c.yaml"  # two layers and an alignment, also given for the dataset
+    layers = "{a: {range: [0, 3]}, b: {range: [4, 7]}}"
+    config.write_text(f"layers: {layers}\nalignment: [[a, b]]\n"
+                      f"datasets: {{v: {{path: '{vesicle[0]}', layers: {layers}, alignment: [[a, b]]}}}}\n")
+    out, stdout = tmp_path / "out", io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(["run", "--config", str(config), "--dataset", "v", "--no-layers", "-o", str(out)])
+    assert code == 0
+    full = cli_run[3]
+    morphology = {p.name for p in full.iterdir() if not p.name.startswith(tuple(layout.LAYER_KINDS) + ("refined",))}
+    assert {p.name for p in out.iterdir()} == morphology
+    for surface in SURFACES:
+        a, b = (json.loads((d / layout.measure_file(surface)).read_text()) for d in (full, out))
+        assert a["area"] == b["area"] and a["volume"] == b["volume"]
+        assert read_table(out / layout.curvature_file(surface)).equals(read_table(full / layout.curvature_file(surface)))
+    assert read_table(out / layout.THICKNESS).equals(read_table(full / layout.THICKNESS))
+    s = json.loads((out / layout.SUMMARY_JSON).read_text())
+    assert s["layers"] == {} and s["alignment"] == [] and s["config"]["layers"] == {}
+    assert [(q["layer"], q["surface"]) for q in s["qc"]] == [("", surface) for surface in SURFACES]
+    lines = stdout.getvalue().splitlines()
+    assert not [line for line in lines if line.startswith("layer ")]
+    assert [line for line in lines if line.startswith("quality control")] == [
+        "quality control (inner): pass", "quality control (outer): pass"]
+
+
 def test_defects_are_the_generators(cli_run):
     """Each true defect found once, within 3 µm, with its charge (+½); nothing else. Measured:
     0.84, 1.39, 2.22, 2.76 µm (2 µm voxels; 1.05-1.86 µm at 1.5 µm voxels, at twice the time),

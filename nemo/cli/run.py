@@ -17,13 +17,16 @@ parameters, timings, peak memory, Euler check).
 report are used for the frame it points at, or ignored). Without it the schema's defaults
 apply: one layer 'fibres' [0, 5] µm outward from the inner wall; every length not given
 follows the data (mesh edge length, object size; see --print-config). With the same config
-the workflow and nemo run give the same numbers.
+the workflow and nemo run give the same numbers. --no-layers analyses the morphology only (a
+membrane or a droplet without fibres: mesh, measure, curvature, thickness), as a config with
+`layers: {}` does.
 
 examples:
   nemo synth vesicle.tif && nemo run vesicle.tif -o results/vesicle
   nemo run --config config/config.yaml --dataset demo --t 1 -o out/demo_t1
   nemo run movie.tif --t 3 --c 1 --config my.yaml -o results/t3c1
-  nemo run vesicle.tif --print-config          # every default resolved on this frame"""
+  nemo run vesicle.tif --print-config          # every default resolved on this frame
+  nemo run droplets.tif --no-layers -o out/droplets   # morphology only"""
 
 
 def add_arguments(parser) -> None:
@@ -33,6 +36,9 @@ def add_arguments(parser) -> None:
                         help="take image, spacing, psf, mask, segmented channel and overrides from datasets.NAME")
     parser.add_argument("--print-config", action="store_true",
                         help="print the parameters resolved on this frame (meshes it, no other output) and exit")
+    parser.add_argument("--no-layers", action="store_true",
+                        help="morphology only: no layers, directors, order, defects or alignment (the config's "
+                             "layers and alignment are dropped; the quality control is the surfaces')")
     add_common(parser, frame=True, output_help="output folder", output_required=False)
     add_mask_arguments(parser)
 
@@ -50,12 +56,13 @@ def run(args) -> int:
         from nemo.pipeline import resolved_config
 
         print(yaml.safe_dump(resolved_config(args.image, args.config, t=args.t, c=args.c, spacing=spacing,
-                                             dataset=args.dataset, psf=psf, mask=mask), sort_keys=False), end="")
+                                             dataset=args.dataset, psf=psf, mask=mask, layers=not args.no_layers),
+                             sort_keys=False), end="")
         return 0
     if not args.output:
         raise NemoError("give an output folder with -o OUTDIR")
     summary = run_frame(args.image, args.output, args.config, t=args.t, c=args.c, spacing=spacing,
-                        dataset=args.dataset, psf=psf, mask=mask)
+                        dataset=args.dataset, psf=psf, mask=mask, layers=not args.no_layers)
     dec = summary["mesh"].get("deconvolution") or {}
     psf_note = (f", deconvolved by the PSF σ {' '.join(f'{v:g}' for v in dec['psf'])} ({dec['iterations']} iterations)"
                 if dec.get("iterations") else "")
@@ -106,8 +113,9 @@ def _print_qc(rows: list[dict]) -> None:
                                     many and f"object {q['object']}") if x)
 
     if len(rows) <= QC_ROWS_PRINTED:
+        many = len({q["object"] for q in rows}) > 1
         for q in rows:
-            print(f"quality control ({what(q, len(rows) > 1)}): {'pass' if q['qc_pass'] else 'FAIL: ' + q['qc_flags']}")
+            print(f"quality control ({what(q, many)}): {'pass' if q['qc_pass'] else 'FAIL: ' + q['qc_flags']}")
         return
     for key in dict.fromkeys((q["layer"], q["surface"]) for q in rows):
         mine = [q for q in rows if (q["layer"], q["surface"]) == key]
