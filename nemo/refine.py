@@ -602,7 +602,7 @@ def box_misfit(s: np.ndarray, profiles: np.ndarray, mask: np.ndarray, params: np
     rows = np.flatnonzero(mask.any(axis=1))
     p = params[rows].copy()
     p[:, 4] = np.log(p[:, 4])
-    model, _ = _box_model(p, s)
+    model, _ = _box_model(p, s, jacobian=False)
     a, s0, s1 = p[:, 1], p[:, 2], p[:, 3]
     residual = ((np.nan_to_num(profiles[rows]) - model) / a[:, None])[mask[rows]]
     u = ((s[None, :] - s0[:, None]) / (s1 - s0)[:, None])[mask[rows]]
@@ -643,19 +643,21 @@ def _far_edge(field: np.ndarray, level: float, sample_spacing, origin, points: n
     return np.where(found, t, np.nan), np.where(found, np.maximum(crest, level), np.nan)
 
 
-def _box_model(p: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _box_model(p: np.ndarray, s: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """The blurred box of :func:`wall_profile_level` at offsets ``s`` (S,) for parameters ``p`` (M, 6)
-    = (b, A, s0, s1, log σ, g): values (M, S) and their Jacobian (M, S, 6)."""
+    = (b, A, s0, s1, log σ, g): values (M, S) and their Jacobian (M, S, 6), or None without ``jacobian``."""
     from scipy.special import ndtr
 
     b, a, s0, s1, log_sigma, g = (p[:, k, None] for k in range(6))
     sigma = np.exp(log_sigma)
     z0, z1 = (s - s0) / sigma, (s - s1) / sigma
+    box = ndtr(z0) - ndtr(z1)
+    values = b + g * s + a * box
+    if not jacobian:
+        return values, None
     phi0, phi1 = np.exp(-0.5 * z0 * z0), np.exp(-0.5 * z1 * z1)
     phi0 *= 1 / np.sqrt(2 * np.pi)
     phi1 *= 1 / np.sqrt(2 * np.pi)
-    box = ndtr(z0) - ndtr(z1)
-    values = b + g * s + a * box
     jac = np.stack(np.broadcast_arrays(np.ones_like(values), box, -a * phi0 / sigma, a * phi1 / sigma,
                                        a * (phi1 * z1 - phi0 * z0), np.broadcast_to(s, values.shape)), axis=-1)
     return values, jac

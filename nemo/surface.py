@@ -1825,6 +1825,13 @@ def reconstruct(
     return mesh
 
 
+def _profile_rays(spacing: tuple[float, float, float], step: int) -> tuple[np.ndarray, float]:
+    """The wall profiles' sample spacing (3,) along z, y, x (the marching cubes' step) and their reach
+    (:data:`PROFILE_MAX_DEPTH_VOXELS` of the coarser axis, at least twice the finer one)."""
+    sample = np.asarray(spacing, dtype=np.float64) * step
+    return sample, PROFILE_MAX_DEPTH_VOXELS * max(float(max(spacing)), 2 * float(min(spacing)))
+
+
 def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, level: float,
                       spacing: tuple[float, float, float], step: int, box: np.ndarray,
                       keep: str) -> tuple[trimesh.Trimesh, float, dict]:
@@ -1833,8 +1840,7 @@ def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndar
     larger than the rays' reach, a mesh of a few faces)."""
     from nemo.refine import wall_profile_level
 
-    sample = np.asarray(spacing, dtype=np.float64) * step
-    reach = PROFILE_MAX_DEPTH_VOXELS * max(float(max(spacing)), 2 * float(min(spacing)))
+    sample, reach = _profile_rays(spacing, step)
     pieces = np.zeros(len(mesh.vertices), dtype=np.int64)
     pieces[np.asarray(mesh.faces)] = face_components(np.asarray(mesh.faces), len(mesh.vertices))[:, None]
     with log_step(f"fitting wall profiles along {min(len(mesh.vertices), 4000)} normals"):
@@ -1880,8 +1886,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     """
     from nemo.refine import wall_profile_level
 
-    sample = np.asarray(spacing, dtype=np.float64) * step
-    reach = PROFILE_MAX_DEPTH_VOXELS * max(float(max(spacing)), 2 * float(min(spacing)))
+    sample, reach = _profile_rays(spacing, step)
     # the rays' vertices' normals only: a whole paper-scale mesh's would cost as much as the fits
     at = np.random.default_rng(0).permutation(len(mesh.vertices))[:EDGE_CHECK_RAYS]
     with log_step(f"checking the level against the wall profiles along {len(at)} normals"):
