@@ -656,6 +656,30 @@ def _cut_shell(r_in=9.0, r_out=14.0, centre=(22.0, 22.0, 16.0)):
     return (200.0 * edge(r - r_out) * edge(r_in - r)).astype(np.float32), np.array(centre)
 
 
+def test_split_auto_splits_a_torn_shell_and_keeps_a_filled_torus_whole():
+    """A shell (wall 14-19 µm) with a hole through its wall at one pole is one surface whose sides
+    face the centre and away from it: a thin sheet (5 µm across, 0.14 of its size), so ``split:
+    auto`` splits it face by face into two walls 5 µm apart, each with the hole (it read one wall
+    without thickness, silently: a review's shell torn where its wall is thinner than the z-blur).
+    A filled torus, as wide as its tube (12 µm, 0.5 of its size), keeps one wall."""
+    from scipy.ndimage import gaussian_filter
+
+    z, y, x = np.indices((50, 50, 50)).astype(np.float64)
+    r, rho = np.sqrt((x - 25) ** 2 + (y - 25) ** 2 + (z - 25) ** 2), np.hypot(x - 25, y - 25)
+    torn = gaussian_filter(200.0 * ((r >= 14) & (r <= 19) & ~((z > 25) & (rho < 6))), 1.0)
+    with pytest.warns(NemoWarning, match="thin sheet"):
+        meshes, p = stages.mesh(torn, (1.0, 1.0, 1.0), {})
+    assert p["walls"] == 2 and meshes["whole"].body_count == 1
+    df, _ = stages.thickness(meshes["inner"], meshes["outer"], {})
+    assert np.nanmedian(df["thickness"]) == pytest.approx(5.0, abs=0.3) and df["thickness"].notna().mean() > 0.9
+    for wall in ("inner", "outer"):  # the hole: one loop of each wall, none on the image's border
+        assert stages.measure(meshes[wall])["n_boundary_loops"] == 1 and p["wall_rim_loops"][wall] == 0
+    torus = gaussian_filter(200.0 * (np.hypot(rho - 14, z - 25) < 6), 1.0)
+    with pytest.warns(NemoWarning, match="no thin sheet"):
+        _, p = stages.mesh(torus, (1.0, 1.0, 1.0), {})
+    assert p["walls"] == 1
+
+
 def test_cut_shell_through_the_stages_is_open_and_nan_at_the_rim():
     """Mesh (border open), curvature, thickness and peel of a shell cut by the top of the stack:
     the rim is recorded, and curvature, thickness and layer values at the rim are NaN, never

@@ -20,6 +20,7 @@ from nemo.surface import (
     iso_level,
     keep_components,
     reconstruct,
+    sheet_width,
     split_mesh,
 )
 
@@ -317,6 +318,31 @@ def test_count_walls_tells_a_shell_from_a_droplet():
     sheet = trimesh.Trimesh(np.c_[x.ravel(), y.ravel(), 3 * np.sin(x.ravel() / 4)], _grid_faces(41, 41),
                             process=False)
     assert count_walls(sheet)[0] == 1
+
+
+def torn_shell_volume(r_in: float = 14.0, r_out: float = 19.0, hole: float = 6.0, spacing=(1.0, 1.0, 1.0)):
+    """A hollow shell (centre 25 µm from the origin on each axis) with a round hole of radius ``hole``
+    through its wall at the top pole: its inner and outer walls are one surface."""
+    shape = tuple(int(round(50 / d)) for d in spacing)
+    vol = shell_volume(shape, spacing, np.array([25.0] * 3), r_in, r_out)
+    z, y, x = _grid(shape, spacing)
+    return vol * _edge(hole - np.hypot(x - 25.0, y - 25.0), 1.0) ** ((z > 25.0) * 1.0)
+
+
+def test_sheet_width_is_a_torn_walls_thickness_or_a_solids_width():
+    """Across the solid along the inward normals: a shell torn at a pole (wall 14-19 µm) 5 µm, the
+    tube of a filled torus (r 6) 12 µm, a ball (R 10) 20 µm; NaN for a surface with no far side."""
+    import trimesh
+
+    torn = reconstruct(torn_shell_volume(), (1, 1, 1))
+    assert torn.body_count == 1 and count_walls(torn)[2] > 0.9  # one surface, turning both ways
+    assert sheet_width(torn) == pytest.approx(5.0, abs=0.3)
+    torus = trimesh.creation.torus(20.0, 6.0, major_sections=96, minor_sections=32)
+    assert sheet_width(torus) == pytest.approx(12.0, rel=0.02)
+    assert sheet_width(trimesh.creation.icosphere(4, radius=10.0)) == pytest.approx(20.0, rel=0.01)
+    x, y = np.meshgrid(np.linspace(0, 40, 41), np.linspace(0, 40, 41))
+    sheet = trimesh.Trimesh(np.c_[x.ravel(), y.ravel(), 3 * np.sin(x.ravel() / 4)], _grid_faces(41, 41), process=False)
+    assert np.isnan(sheet_width(sheet))
 
 
 def torus_shell_volume(major: float, r_in: float, r_out: float, spacing=(1.0, 1.0, 1.0), width: float = 1.0,
