@@ -38,11 +38,13 @@ A hollow object (e.g. a vesicle's fibre shell) has two walls: its inner wall is 
 surface facing the centre. MESH.inner.ply and MESH.outer.ply are written next to MESH.ply (the
 whole); both have normals pointing away from the centre, so the inner wall is the cavity's
 surface with outward normals and peeling outward from it samples the shell. --split auto (the
-default) splits an object with two walls by its centre; an object with one wall (a droplet, a
-filled cell, a torus) is not split: its inner and outer files are the whole surface and it has
-no thickness (the log says which it found). --split centre / axis always split, face by face
-(also a sheet whose two sides are one connected surface, which auto counts as one wall and
-warns about); --split none writes MESH.ply only. --fit-sphere fits a sphere to every written
+default) splits an object with two walls by its centre, and face by face one surface whose two
+sides face towards and away from its centre when it is a thin sheet (a shell torn where its
+wall is thinner than the blur, a cup); an object with one wall (a droplet, a filled cell, a
+torus) is not split: its inner and outer files are the whole surface and it has no thickness
+(the log says which it found). --split centre / axis always split, face by face (also a thick
+sheet whose two sides are one connected surface, which auto counts as one wall and warns
+about); --split none writes MESH.ply only. --fit-sphere fits a sphere to every written
 mesh and stores it in MESH.sphere.json.
 
 examples:
