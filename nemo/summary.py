@@ -506,7 +506,9 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["directors_skipped"] = directors.get("skipped")
         peel = _peel_params(r)
         row["texture"] = peel.get("texture") or {}
-        row["reaches_out"] = bool(peel) and reaches_out_of_one_wall(peel)
+        # the record's surface: the workflow's `nemo peel` is given a mesh file, not its name (an
+        # independent review: the workflow never raised this flag where `nemo run` did)
+        row["reaches_out"] = bool(peel) and reaches_out_of_one_wall({**peel, "surface": r["surface"]})
         zeros = _step_params(r, "defects", label).get("rejected_zeros")  # None: a table from before the count
         row["rejected_zeros"] = pd.NA if zeros is None else int(zeros)
     no_directors = "directors" in tables and not row["n_directors"]  # its own flag says why

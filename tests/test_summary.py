@@ -181,6 +181,23 @@ def test_frame_summary_flags_keep_largest_switching_objects(frame_files, tmp_pat
     assert out["object_id"].tolist() == [0, 0, 1, 1, 2, 3]  # the same objects, by their centres
 
 
+def test_a_layer_outside_one_wall_is_flagged_whoever_peeled_it(frame_files):
+    """A layer outward of a one-walled object's outline samples the background: flagged from the
+    record's surface, whether the peel's provenance names it (``nemo run``) or not (the workflow's
+    ``nemo peel``, given a mesh file: the workflow never raised the flag, an independent review)."""
+    measure = json.loads(frame_files["measure"].read_text())
+    frame_files["measure"].write_text(json.dumps({**measure, "walls": 1}))
+    layer = pd.DataFrame({"vertex": [0, 1, 2], "intensity": [1.0, 3.0, NAN]})
+    for named in ({"surface": "inner"}, {"surface": None}):
+        write_table(layer, frame_files["layer_table"], parameters={"range": [0.0, 5.0], "inward": False, **named})
+        row = frame_summary([frame_files]).iloc[0]
+        assert "the object has one wall, so the layer's range" in row["qc_flags"], named
+    write_table(layer, frame_files["layer_table"], parameters={"range": [-1.0, 1.0], "inward": False})
+    assert "the object has one wall" not in frame_summary([frame_files]).iloc[0]["qc_flags"]  # straddles it
+    write_table(layer, frame_files["layer_table"], parameters={"range": [0.0, 5.0], "inward": False})
+    assert "the object has one wall" not in frame_summary([{**frame_files, "surface": "whole"}]).iloc[0]["qc_flags"]
+
+
 def test_frame_summary_walls_come_from_the_mesh_step(frame_files):
     """The mesh step's walls (1 or 2; one per object with several) reach the row; a frame of one
     wall with its NaN thickness is not flagged for it."""
