@@ -516,7 +516,8 @@ def _read_pixels(series: tifffile.TiffPageSeries, key: tuple, path: str | os.Pat
 
 def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
               labels: list[int] | None = None, threshold: float | None = None,
-              channel: int | None = None, apart: tuple[int, int, int] | None = None) -> np.ndarray:
+              channel: int | None = None, apart: tuple[int, int, int] | None = None,
+              with_regions: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The object mask for time point ``t``, channel ``c`` of an image, from a segmentation.
 
     The mask is a TIFF or OME-Zarr image with its own T and C axes (then ``t``/``c`` select
@@ -540,9 +541,14 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     objects after the mask's blur (each loses a thin layer where they meet; without it every
     touching label merges into one surface, which is warned).
 
+    ``with_regions`` also returns a voxel inside each large label that touching labels merge with
+    (:func:`_merged_label_voxels`: two touching droplets, not the many cells of one tissue), for
+    the mesh step to count per object as it counts an image's separate bright regions.
+
     Returns
     -------
     ndarray of bool, shape (Z, Y, X) = ``shape``
+        The mask; with ``with_regions`` also an int array (n, 3) of voxel indices (z, y, x).
 
     Raises
     ------
@@ -571,13 +577,45 @@ def read_mask(path: str | os.PathLike, t: int, c: int, shape: tuple[int, ...],
     name = f"the mask {path} (t = {mt}, c = {mc})"
     data = _float_labels(data) if threshold is None else data
     apart = apart if apart is not None and _is_label_image(data) and threshold is None else None
-    mask = _select_object(data, labels, threshold, name, warn_touch=apart is None)
+    mask, touching = _select_object(data, labels, threshold, name, warn_touch=apart is None)
     if apart is not None and _varying(data) is None:
         _cut_where_labels_meet(data, mask, name, apart)
         if not mask.any():
             raise NemoError(f"{name}: no voxel is left once the labels are kept apart (mesh.keep: all): every "
                             "object voxel touches another label; give mask_threshold if it is a probability map")
-    return mask
+    return (mask, _merged_label_voxels(data, touching)) if with_regions else mask
+
+
+#: A label that touching labels merge with counts as an object of its own (:func:`_merged_label_voxels`)
+#: when it holds at least this share of their voxels (as :data:`nemo.surface.OBJECT_MIN_AREA` for surfaces).
+MERGED_LABEL_SHARE = 0.1
+
+
+def _merged_label_voxels(data: np.ndarray, touching: set[tuple[int, int]]) -> np.ndarray:
+    """A voxel (z, y, x) inside each label that holds at least :data:`MERGED_LABEL_SHARE` of a group of
+    touching labels (connected through ``touching``, pairs of labels) in which two or more do: objects
+    meshed as one (two touching droplets), not the cells of one tissue (each a small share of it).
+    The label's voxel nearest to its mean; (0, 3) when there is none."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if not touching:
+        return np.empty((0, 3), dtype=np.int64)
+    a, b = np.array(sorted(touching), dtype=np.int64).T
+    ids = np.unique(np.r_[a, b])
+    links = coo_matrix((np.ones(len(a)), (np.searchsorted(ids, a), np.searchsorted(ids, b))), shape=(len(ids),) * 2)
+    group = connected_components(links, directed=False)[1]
+    sizes = np.zeros(len(ids))
+    for plane in data:  # plane by plane: no full-size temporaries
+        values, counts = np.unique(plane[np.isin(plane, ids)], return_counts=True)
+        sizes[np.searchsorted(ids, values)] += counts
+    large = sizes >= MERGED_LABEL_SHARE * np.bincount(group, weights=sizes)[group]
+    chosen = ids[large & (np.bincount(group[large], minlength=group.max() + 1)[group] >= 2)]
+    points = []
+    for label in chosen.tolist():  # a loop over the few large labels of merged groups
+        voxels = np.argwhere(data == label)
+        points.append(voxels[np.argmin(((voxels - voxels.mean(axis=0)) ** 2).sum(axis=1))])
+    return np.array(points, dtype=np.int64).reshape(-1, 3)
 
 
 def label_gap(spacing, sigma: float) -> tuple[int, int, int]:
@@ -640,11 +678,11 @@ def _whole_numbers(data: np.ndarray) -> bool:
     return bool(np.all(finite == np.round(finite)))
 
 
-def _warn_if_labels_touch(data: np.ndarray, name: str) -> None:
+def _warn_if_labels_touch(data: np.ndarray, name: str) -> set[tuple[int, int]]:
     """Warn when labels of an integer label image touch: every nonzero label is object, so touching
-    objects (Cellpose cells, packed nuclei) merge into one surface."""
+    objects (Cellpose cells, packed nuclei) merge into one surface. Returns the touching pairs."""
     if np.issubdtype(data.dtype, np.floating) or data.dtype == bool:
-        return
+        return set()
     pairs: set[tuple[int, int]] = set()
 
     def add(lo: np.ndarray, hi: np.ndarray) -> None:
@@ -663,6 +701,7 @@ def _warn_if_labels_touch(data: np.ndarray, name: str) -> None:
         warnings.warn(f"{name}: labels touch ({shown}): with every nonzero label as object they are meshed as one "
                       "surface; give mask_labels to select one object, or mesh.keep: all to keep every label apart",
                       NemoWarning, stacklevel=4)
+    return pairs
 
 
 def _float_labels(data: np.ndarray) -> np.ndarray:
@@ -708,8 +747,9 @@ def _cut_where_labels_meet(data: np.ndarray, mask: np.ndarray, name: str, reach:
 
 
 def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float | None,
-                   name: str, warn_touch: bool = True) -> np.ndarray:
-    """Object voxels of a binary mask, label image or probability map (see :func:`read_mask`)."""
+                   name: str, warn_touch: bool = True) -> tuple[np.ndarray, set[tuple[int, int]]]:
+    """Object voxels of a binary mask, label image or probability map (see :func:`read_mask`), and the
+    labels that touch where every nonzero label is object (pairs; checked with ``warn_touch``)."""
     if labels:
         if np.issubdtype(data.dtype, np.floating):
             raise NemoError(f"{name} holds floating-point values, not labels: drop mask_labels "
@@ -723,12 +763,13 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
         if absent:  # one label of several given is not in this frame: the object is only the others
             warnings.warn(f"{name} has no voxel of label(s) {absent} of mask_labels {list(labels)}: meshing the "
                           "others only (a label of another frame, or mistyped?)", NemoWarning, stacklevel=3)
-        return mask
+        return mask, set()
+    touching: set[tuple[int, int]] = set()
     if threshold is None:
         if _check_not_probabilities(data, name):
             threshold = 0.5
         elif warn_touch:
-            _warn_if_labels_touch(data, name)
+            touching = _warn_if_labels_touch(data, name)
     mask = data > threshold if threshold is not None else (data != 0) & ~np.isnan(data)  # NaN: no object
     if mask.all():
         rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"
@@ -738,7 +779,7 @@ def _select_object(data: np.ndarray, labels: list[int] | None, threshold: float 
         rule = f"above the threshold {threshold}" if threshold is not None else "nonzero"
         raise NemoError(f"{name} is empty: no voxel is {rule}. Check the file and the frame, or lower "
                         "the threshold (`--mask-threshold`, config `mask_threshold`)")
-    return mask
+    return mask, touching
 
 
 def write_hyperstack(

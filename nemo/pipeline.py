@@ -207,7 +207,7 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     with timed("read"):
         volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    mask = _mesh_source(frame, t, volume.shape, sections, info.spacing)
+    mask, mask_regions = _mesh_source(frame, t, volume.shape, sections, info.spacing)
     summary = {"image": frame["image"], "dataset": frame["dataset"], "t": t, "c": c,
                "segment_channel": frame["seg"], "spacing": list(info.spacing), "unit": info.unit,
                "outdir": str(final)}
@@ -219,7 +219,8 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     psf_seg, psf_c = channel_psf(frame["psf"], frame["seg"]), channel_psf(frame["psf"], c)
     sharp = _deconvolved(volume, info, psf_seg, timed, meshed or (peels and c == frame["seg"]))
     meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed, final=final,
-                                           psf=psf_seg, deconvolved=sharp, frame={"t": t, "c": frame["seg"]})
+                                           psf=psf_seg, deconvolved=sharp, frame={"t": t, "c": frame["seg"]},
+                                           mask_regions=mask_regions)
     if c != frame["seg"]:
         with timed("read"):
             volume, info = read_stack(frame["image"], t, c, spacing=sp)
@@ -308,9 +309,9 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
     sections = _analysis(cfg, frame["dataset"], layers)
     sp = tuple(frame["spacing"]) if frame["spacing"] else None
     volume, info = read_stack(frame["image"], t, frame["seg"], spacing=sp)
-    mask = _mesh_source(frame, t, volume.shape, sections, info.spacing)  # the same mesh source as run_frame
+    mask, mask_regions = _mesh_source(frame, t, volume.shape, sections, info.spacing)  # as run_frame's
     meshes, sections["mesh"] = _mesh_or_import(volume, info, mask, sections["mesh"],
-                                               psf=channel_psf(frame["psf"], frame["seg"]))
+                                               psf=channel_psf(frame["psf"], frame["seg"]), mask_regions=mask_regions)
     del volume, mask
     if sections["curvature"] is not None:
         sections["curvature"] = {s: stages.curvature_defaults(meshes[s], sections["curvature"])
@@ -338,41 +339,45 @@ def resolved_config(image, config=None, t: int = 0, c: int = 0, spacing=None, da
 
 
 def _mesh_source(frame: dict, t: int, shape: tuple, sections: dict, spacing):
-    """The frame's mask (or None); a user's surface is noted in ``sections["mesh"]``."""
+    """The frame's mask and the voxels of its merged labels (:func:`nemo.io.read_mask`), or (None, None);
+    a user's surface is noted in ``sections["mesh"]``."""
     from nemo.io import read_mask
 
     if frame["surface_mesh"]:
         sections["mesh"] = {**sections["mesh"], "surface_mesh": layout.surface_mesh_path(frame["surface_mesh"], t),
                             "mesh_unit": frame["mesh_unit"]}
     if not frame["mask"]:
-        return None
+        return None, None
     return read_mask(frame["mask"], t, frame["seg"], shape, labels=frame["mask_labels"],
                      threshold=frame["mask_threshold"], channel=frame["mask_channel"],
-                     apart=stages.mask_label_gap(shape, spacing, sections.get("mesh")))
+                     apart=stages.mask_label_gap(shape, spacing, sections.get("mesh")), with_regions=True)
 
 
-def _mesh_or_import(volume, info, mask, section: dict, psf=None, deconvolved=None):
+def _mesh_or_import(volume, info, mask, section: dict, psf=None, deconvolved=None, mask_regions=None):
     """The frame's meshes: reconstructed from the image, or a user's surface checked against it."""
     section = dict(section)
     path, mesh_unit = section.pop("surface_mesh", None), section.pop("mesh_unit", None)
     if path is None:
-        return stages.mesh(volume, info.spacing, section, mask=mask, unit=info.unit, psf=psf, deconvolved=deconvolved)
+        return stages.mesh(volume, info.spacing, section, mask=mask, unit=info.unit, psf=psf, deconvolved=deconvolved,
+                           mask_regions=mask_regions)
     return stages.import_mesh(path, volume, info.spacing, section, unit=info.unit, mesh_unit=mesh_unit)
 
 
 def morphology_frame(volume, info, mask, sections, out: Path, written: list, timed, final: Path | None = None,
-                     psf=None, deconvolved=None, frame: dict | None = None):
+                     psf=None, deconvolved=None, frame: dict | None = None, mask_regions=None):
     """Mesh, measure, curvature and thickness of a time point (the workflow's mesh/morphology rules).
 
     Files go to ``out``; provenance names them in ``final`` (default ``out``), where they end up.
     ``frame``: the time point and channel meshed (``t``, ``c``), recorded in the meshes' parameters.
+    ``mask_regions``: :func:`nemo.stages.mesh`'s (the voxels of a mask's merged labels).
     """
     final = final or out
     from nemo.mesh import load_mesh, save_mesh
     from nemo.tables import write_table
 
     with timed("mesh"):
-        meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf, deconvolved=deconvolved)
+        meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf, deconvolved=deconvolved,
+                                         mask_regions=mask_regions)
         params.update(frame or {})
         for name, m in meshes.items():
             m.metadata["nemo_params"] = stages.wall_params(params, name)

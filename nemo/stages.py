@@ -69,6 +69,7 @@ def mesh(
     centre: np.ndarray | None = None,
     psf: tuple[float, float, float] | None = None,
     deconvolved: tuple[np.ndarray, dict] | None = None,
+    mask_regions: np.ndarray | None = None,
 ) -> tuple[dict[str, trimesh.Trimesh], dict]:
     """Surface reconstruction (method note §2), split into inner/outer walls if configured.
 
@@ -99,6 +100,10 @@ def mesh(
         (:func:`nemo.psf.deconvolve`; noise, SNR and saturation are still those of the image).
     deconvolved : (ndarray, dict), optional
         ``volume`` deconvolved by ``psf`` and its record, when already made (the peel reuses it).
+    mask_regions : ndarray of int, shape (n, 3), optional
+        Voxels (z, y, x) inside the large labels of ``mask`` that touching labels merge
+        (:func:`nemo.io.read_mask` ``with_regions``): counted per object as ``regions``, as an
+        image's separate bright regions are without a mask.
 
     Returns
     -------
@@ -115,8 +120,9 @@ def mesh(
         ``n_objects`` (:func:`nemo.surface.find_objects`), ``turned_out`` (objects enclosing the
         dark side, turned out: :func:`nemo.surface.turn_out_dark_objects`), ``walls`` (1 or 2; a list per
         object with ``keep: all`` and several objects), ``regions`` (per analysed object, the
-        image's separate bright regions its surface holds, :func:`nemo.surface.regions_per_object`;
-        more than 1: objects meshed as one; None when the image has fewer than two regions),
+        image's separate bright regions its surface holds, :func:`nemo.surface.regions_per_object`,
+        or with a mask the large labels of ``mask_regions``; more than 1: objects meshed as one; None
+        when the image has fewer than two regions),
         ``cap_faces`` (faces where the object
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface; with ``keep: all`` and
@@ -195,8 +201,8 @@ def mesh(
     if mask is not None and volume is not None:  # does the mask follow the segmented channel's edges?
         p.update(_mask_fit(whole, volume, spacing, unit))
     analysed = found if p["keep"] == "all" else found[:1]
-    regions = regions_per_object(whole, analysed, surface.get("region_peaks") or [])
-    _warn_joined_regions(regions)
+    regions = regions_per_object(whole, analysed, surface.get("region_peaks") or _voxel_points(mask_regions, spacing))
+    _warn_joined_regions(regions, from_mask=mask_regions is not None)
     if p["keep"] == "all":  # every object, labelled, each split about its own centre
         meshes = _object_walls(whole, found, p) if len(found) > 1 else _walls(whole, p, centre)
         p["n_objects"] = len(found)
@@ -328,10 +334,18 @@ def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) ->
     return fit
 
 
-def _warn_joined_regions(regions: list[int]) -> None:
-    """Warn about analysed objects whose surface holds several of the image's separate bright regions."""
+def _voxel_points(voxels: np.ndarray | None, spacing: tuple[float, float, float]) -> np.ndarray:
+    """Voxel indices (n, 3) along z, y, x as physical points (n, 3) x, y, z; (0, 3) for None."""
+    if voxels is None:
+        return np.empty((0, 3))
+    return np.asarray(voxels, dtype=np.float64).reshape(-1, 3)[:, ::-1] * np.asarray(spacing, dtype=np.float64)[::-1]
+
+
+def _warn_joined_regions(regions: list[int], from_mask: bool = False) -> None:
+    """Warn about analysed objects whose surface holds several of the image's separate bright regions
+    (``from_mask``: a mask's large labels, which :func:`nemo.io.read_mask` warned about)."""
     joined = [(k, n) for k, n in enumerate(regions) if n > 1]
-    if joined:
+    if joined and not from_mask:
         warnings.warn("one surface holds several separate bright regions of the image (object: regions "
                       + ", ".join(f"{k}: {n}" for k, n in joined[:10]) + "): touching objects, or objects closer than "
                       "the blur, meshed as one; its area and volume are theirs together (flagged in the summary). "

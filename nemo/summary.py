@@ -238,7 +238,10 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if (measure.get("n_objects") or 1) > 1:
         flags.append(f"{measure['n_objects']} objects in the image (see the mesh step's warning)")
     regions = row.get("regions")
-    if regions is not None and not pd.isna(regions) and regions > 1:
+    if regions is not None and not pd.isna(regions) and regions > 1 and measure.get("mask_contrast") is not None:
+        flags.append(f"the surface holds {regions} large labels of the mask that touch: objects meshed as one, their "
+                     "area and volume together (mask_labels selects one; mesh.keep: all keeps every label apart)")
+    elif regions is not None and not pd.isna(regions) and regions > 1:
         flags.append(f"the surface holds {regions} separate bright regions of the image: touching objects meshed "
                      "as one, their area and volume together (a mask that labels them apart separates them)")
     snr = row.get("snr", math.nan)

@@ -437,6 +437,35 @@ def test_touching_labels_are_warned_about(tmp_path, dtype):
 
 
 @pytest.mark.parametrize("dtype", ["uint16", "float32"])
+def test_large_touching_labels_are_returned_as_regions(tmp_path, dtype):
+    """``with_regions``: a voxel inside each label holding ≥ 10 % of a group of touching labels in which
+    two or more do (two touching droplets, and a small third one that touches them: not counted);
+    none for the 40 cells of one tissue (each 2.5 % of it), separate labels, a label selection or
+    labels kept apart (keep: all)."""
+    z, y, x = np.indices((20, 24, 44))
+    labels = np.zeros((20, 24, 44), np.uint16)
+    labels[np.sqrt((x - 12) ** 2 + (y - 12) ** 2 + (z - 10) ** 2) <= 8] = 1
+    labels[np.sqrt((x - 28) ** 2 + (y - 12) ** 2 + (z - 10) ** 2) <= 8] = 2  # touching 1 at x = 20
+    labels[(np.abs(x - 12) <= 1) & (y >= 21) & (y <= 22) & (np.abs(z - 10) <= 1)] = 3  # small, on top of 1
+    write_hyperstack(tmp_path / "drops.tif", _saved_as(labels, dtype), (1, 1, 1), axes="ZYX")
+    with pytest.warns(NemoWarning, match="labels touch \\(1–2, 1–3\\)"):
+        mask, voxels = read_mask(tmp_path / "drops.tif", 0, 0, labels.shape, with_regions=True)
+    assert mask.sum() == (labels > 0).sum() and voxels.shape == (2, 3)
+    assert sorted(labels[tuple(voxels.T)].tolist()) == [1, 2]  # one voxel inside each droplet
+    np.testing.assert_allclose(sorted(voxels[:, 2]), [12, 28], atol=1)
+    tissue = np.zeros((20, 24, 44), np.uint16)
+    tissue[2:18, 2:22, 2:42] = 1 + (x[2:18, 2:22, 2:42] - 2) // 4 + 10 * ((y[2:18, 2:22, 2:42] - 2) // 5)  # 40 cells
+    write_hyperstack(tmp_path / "tissue.tif", tissue, (1, 1, 1), axes="ZYX")
+    with pytest.warns(NemoWarning, match="labels touch"):
+        assert read_mask(tmp_path / "tissue.tif", 0, 0, labels.shape, with_regions=True)[1].shape == (0, 3)
+    apart = np.where(np.abs(x - 20) <= 1, 0, labels).astype(np.uint16)
+    write_hyperstack(tmp_path / "apart.tif", apart, (1, 1, 1), axes="ZYX")
+    assert read_mask(tmp_path / "apart.tif", 0, 0, labels.shape, with_regions=True)[1].shape == (0, 3)
+    for kwargs in ({"labels": [1, 2]}, {"apart": (1, 1, 1)}):
+        assert read_mask(tmp_path / "drops.tif", 0, 0, labels.shape, with_regions=True, **kwargs)[1].shape == (0, 3)
+
+
+@pytest.mark.parametrize("dtype", ["uint16", "float32"])
 def test_touching_labels_are_kept_apart_with_keep_all(tmp_path, dtype):
     """``apart`` (mesh.keep: all): the voxels within reach of another label are left out, so labels 1
     and 2 mesh as two objects (at the default blur, 1 × 1 × 1 µm voxels: one voxel each side);

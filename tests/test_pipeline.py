@@ -378,6 +378,31 @@ def test_run_frame_with_a_label_mask_analyses_the_chosen_object(ball_and_labels)
     np.testing.assert_allclose(read_mesh_centre(d / "out" / "mesh.ply"), (16, 16, 16), atol=0.2)
 
 
+def test_touching_labels_meshed_as_one_fail_the_quality_control(tmp_path):
+    """Two touching droplets labelled 1 and 2 with every label as object (keep: largest) are one
+    surface, their area and volume together: the frame is flagged (it passed, only a log warning
+    said so: an independent review); with mesh.keep: all they are two objects and pass."""
+    from scipy.ndimage import gaussian_filter
+
+    from nemo.io import write_hyperstack
+
+    z, y, x = np.indices((32, 32, 56))
+    first = np.sqrt((x - 16) ** 2 + (y - 16) ** 2 + (z - 16) ** 2) <= 10
+    second = np.sqrt((x - 37) ** 2 + (y - 16) ** 2 + (z - 16) ** 2) <= 11
+    labels = np.where(first, 1, np.where(second, 2, 0)).astype(np.uint16)  # touching at x = 26
+    write_hyperstack(tmp_path / "img.tif", gaussian_filter(200.0 * (labels > 0), 1.0).astype(np.float32), (1, 1, 1),
+                     axes="ZYX")
+    write_hyperstack(tmp_path / "labels.tif", labels, (1, 1, 1), axes="ZYX")
+    cfg = _morphology_config(tmp_path / "img.tif", mask=str(tmp_path / "labels.tif"))
+    with pytest.warns(NemoWarning, match="labels touch"):
+        summary = run_frame(None, tmp_path / "out", cfg, dataset="d")
+    assert summary["mesh"]["regions"] == [2] and summary["mesh"]["n_objects"] == 1
+    [row] = summary["qc"]
+    assert not row["qc_pass"] and "2 large labels of the mask that touch" in row["qc_flags"]
+    summary = run_frame(None, tmp_path / "all", {**cfg, "mesh": {"split": "none", "keep": "all"}}, dataset="d")
+    assert summary["mesh"]["n_objects"] == 2 and all(q["qc_pass"] for q in summary["qc"]), summary["qc"]
+
+
 def test_run_frame_of_a_droplet_at_the_defaults(ball_and_labels, monkeypatch):
     """A filled ball (one wall) with the default split (auto): the run goes through; the inner and
     outer surfaces are the ball's, its curvature is 1/R (computed once for both), its thickness

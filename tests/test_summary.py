@@ -337,6 +337,9 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"regions": 2}, CLOSED, ["the surface holds 2 separate bright regions of the image: touching objects meshed as "
                               "one, their area and volume together (a mask that labels them apart separates them)"]),
     ({"regions": 1}, CLOSED, []),
+    ({"regions": 3}, {**CLOSED, "mask_offset": 0.1, "mask_offset_limit": 0.5, "mask_contrast": 45.0},
+     ["the surface holds 3 large labels of the mask that touch: objects meshed as one, their area and volume "
+      "together (mask_labels selects one; mesh.keep: all keeps every label apart)"]),
     ({}, {**CLOSED, "mask_offset": 1.4, "mask_offset_limit": 0.5, "mask_contrast": 45.0},
      ["the mask lies 1.4 (median) from the segmented channel's edges, more than 0.5 (a mask of another time point, "
       "channel or class?)"]),

@@ -166,10 +166,10 @@ def run(args) -> int:
     logger.info("read %s t=%d c=%d: %s %s, spacing %s %s", args.image, args.t, args.c,
                 "x".join(map(str, volume.shape)), volume.dtype, tuple(info.spacing), info.unit)
     mask_options(args)  # checks the selection flags
-    mask = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
-                     threshold=args.mask_threshold, channel=args.mask_channel,
-                     apart=stages.mask_label_gap(volume.shape, info.spacing, section_params(args, "mesh"))
-                     ) if args.mask else None
+    mask, mask_regions = read_mask(args.mask, args.t, args.c, volume.shape, labels=args.mask_labels,
+                                   threshold=args.mask_threshold, channel=args.mask_channel,
+                                   apart=stages.mask_label_gap(volume.shape, info.spacing, section_params(args, "mesh")),
+                                   with_regions=True) if args.mask else (None, None)
     if args.from_mesh:
         if mask is not None or args.deconvolved:
             raise NemoError(f"--from-mesh replaces the meshing of the image: drop "
@@ -181,7 +181,8 @@ def run(args) -> int:
             raise NemoError("--mesh-unit is the unit of a --from-mesh surface: give the surface too")
         deconvolved = None if mask is not None else deconvolved_for(args, volume, info.spacing)  # a mask: unused
         meshes, params = stages.mesh(volume, info.spacing, section_params(args, "mesh"), mask=mask,
-                                     unit=info.unit, centre=args.centre, psf=args.psf, deconvolved=deconvolved)
+                                     unit=info.unit, centre=args.centre, psf=args.psf, deconvolved=deconvolved,
+                                     mask_regions=mask_regions)
     del volume, mask
     params.update(t=args.t, c=args.c)  # the frame meshed (nemo peel compares its PSF on the same channel)
     paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}
