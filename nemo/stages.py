@@ -198,8 +198,6 @@ def mesh(
                       f"frame below {QC_MIN_SNR:g} is flagged in the summary); check the channel and the time point",
                       NemoWarning, stacklevel=2)
     _check_object_size(whole, spacing, unit)
-    if mask is not None and volume is not None:  # does the mask follow the segmented channel's edges?
-        p.update(_mask_fit(whole, volume, spacing, unit))
     analysed = found if p["keep"] == "all" else found[:1]
     regions = regions_per_object(whole, analysed, surface.get("region_peaks") or _voxel_points(mask_regions, spacing))
     _warn_joined_regions(regions, from_mask=mask_regions is not None)
@@ -211,6 +209,8 @@ def mesh(
         meshes = _walls(whole, p, centre)
         p["n_objects"] = int(whole.metadata["n_objects"])
     p["regions"] = [int(n) for n in regions] if any(regions) else None
+    if mask is not None and volume is not None:  # does the mask follow the segmented channel's edges?
+        p.update(_mask_fit(meshes["whole"], volume, spacing, unit))
     p["cap_faces"] = int(whole.metadata["nemo_surface"]["cap_faces"])
     info = rim(meshes["whole"].faces, len(meshes["whole"].vertices))  # of the analysed surface
     p["rim_vertices"] = info["n_vertices"]
@@ -317,19 +317,26 @@ def mask_label_gap(shape: tuple[int, ...], spacing, params: dict | None) -> tupl
 
 
 def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) -> dict:
-    """:func:`nemo.surface.mask_edge_offset` of a mask's surface on the segmented channel, warned about
-    when the mask holds the darker side or lies off the channel's edges (the summary flags it)."""
+    """:func:`nemo.surface.mask_edge_offset` of a mask's analysed surface on the segmented channel, each
+    object's own (``keep: all``), warned about when the mask holds the darker side or lies off the
+    channel's edges (the summary flags it)."""
     from nemo.surface import mask_edge_offset
 
-    fit = mask_edge_offset(whole, volume, spacing)
-    if fit["mask_contrast"] < 0:
-        warnings.warn("the mask's inside is darker than its outside in the segmented channel: a mask of the "
-                      "background or a cavity class? (check mask_channel with a probability map of several classes, "
-                      "and segment_channel)", NemoWarning, stacklevel=3)
-    elif fit["mask_offset"] > fit["mask_offset_limit"]:
-        warnings.warn(f"the mask's surface lies {fit['mask_offset']:.3g} {unit} (median) from the segmented channel's "
-                      f"own edges (more than {fit['mask_offset_limit']:.3g}): a mask of another time point, channel "
-                      "or class? (check the mask's T axis and order, mask_channel and segment_channel)",
+    fit = mask_edge_offset(whole, volume, spacing, objects.vertex_labels(whole))
+    contrast, offset = (np.atleast_1d(np.asarray(fit[k], dtype=np.float64)) for k in ("mask_contrast", "mask_offset"))
+
+    def which(bad: np.ndarray) -> str:  # the objects named when there are several
+        return "" if len(contrast) == 1 else f" (object {listed(str(k) for k in np.flatnonzero(bad))})"
+
+    if (contrast < 0).any():
+        warnings.warn(f"the mask's inside is darker than its outside in the segmented channel{which(contrast < 0)}: a "
+                      "mask of the background or a cavity class? (check mask_channel with a probability map of several "
+                      "classes, and segment_channel)", NemoWarning, stacklevel=3)
+    elif (offset > fit["mask_offset_limit"]).any():
+        warnings.warn(f"the mask's surface lies up to {np.nanmax(offset):.3g} {unit} (median) from the segmented "
+                      f"channel's own edges{which(offset > fit['mask_offset_limit'])}, more than "
+                      f"{fit['mask_offset_limit']:.3g}: a mask of another time point, channel or class, or a stale "
+                      "label? (check the mask's T axis and order, mask_channel and segment_channel)",
                       NemoWarning, stacklevel=3)
     return fit
 
@@ -628,7 +635,8 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
             for part in split:  # a loop over objects
                 record = measure(part.mesh, None if curvature_df is None else objects.local_table(curvature_df, part))
                 record.pop("walls", None)  # the frame's list, one per object: in the frame's record only
-                record["rim_loops"] = objects.value_for(record.get("rim_loops"), part.label)
+                for key in ("rim_loops", "mask_offset", "mask_contrast"):  # each object's own
+                    record[key] = objects.value_for(record.get(key), part.label)
                 result["objects"].append({**record, "object": part.label})
     return result
 

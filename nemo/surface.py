@@ -533,7 +533,8 @@ MASK_MAX_OFFSET_VOXELS = 1.0
 MASK_REACH_VOXELS = 3
 
 
-def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[float, float, float]) -> dict:
+def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[float, float, float],
+                     labels: np.ndarray | None = None) -> dict:
     """How well a mask's surface follows the segmented channel's own edges.
 
     A mask from another time point, channel or class of a probability map is meshed as given and
@@ -552,6 +553,9 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
     image : ndarray, shape (Z, Y, X)
         The segmented channel.
     spacing : (dz, dy, dx)
+    labels : ndarray of int, shape (N,), optional
+        Each vertex's object (0, 1, …; :func:`nemo.objects.vertex_labels`): each object gets its
+        own half level and numbers (one label stale among several passed with a frame's median).
 
     Returns
     -------
@@ -560,7 +564,7 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
         ``mask_offset_limit`` (:data:`MASK_MAX_OFFSET_VOXELS` × the largest voxel side),
         ``mask_edges_found`` (fraction of vertices with an edge in reach) and ``mask_contrast``
         (median inside − median outside, in the image's units: negative when the mask holds the
-        darker side).
+        darker side); with ``labels`` of several objects, a list of each object's for the three.
     """
     from nemo.refine import _edge_offsets, _neighbour_matrix
 
@@ -580,22 +584,35 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
         return ndi.map_coordinates(smooth, (pts.reshape(-1, 3) / per_voxel)[:, ::-1].T, order=1,
                                    mode="nearest").reshape(len(pts), len(depths))
 
-    near = along(np.array([-1.0, 1.0]))
-    out["mask_contrast"] = float(np.median(near[:, 0]) - np.median(near[:, 1]))
+    labels = np.zeros(len(vertices), dtype=np.int64) if labels is None else np.asarray(labels, dtype=np.int64)
+    n_objects = int(labels.max()) + 1
+
+    def per_object(values: np.ndarray, where: np.ndarray) -> np.ndarray:  # each object's median of values[where]
+        return np.array([np.median(values[where & (labels == k)]) if np.any(where & (labels == k)) else np.nan
+                         for k in range(n_objects)])  # a loop over the objects
+
+    near = np.full((len(vertices), 2), np.nan)
+    near[ok] = along(np.array([-1.0, 1.0]))
+    contrast = per_object(near[:, 0], ok) - per_object(near[:, 1], ok)
     # the plateau: the brightest sample up to 3 voxels in (a thin wall or a small nucleus peaks
     # before that depth, and a fixed depth would read its lumen or far side); the background: the
-    # darkest up to 3 voxels out
+    # darkest up to 3 voxels out; each object's own
     depths = np.arange(1, 2 * MASK_REACH_VOXELS + 1) / 2.0  # every half voxel
-    level = float(0.5 * (np.median(along(-depths).max(axis=1)) + np.median(along(depths).min(axis=1))))
+    top, bottom = np.full(len(vertices), np.nan), np.full(len(vertices), np.nan)
+    top[ok], bottom[ok] = along(-depths).max(axis=1), along(depths).min(axis=1)
+    level = 0.5 * (per_object(top, ok) + per_object(bottom, ok))
     reach = np.full(len(vertices), MASK_REACH_VOXELS * voxel)
     offsets, left = _edge_offsets(smooth, vertices, np.where(ok[:, None], normals, np.nan), reach, per_voxel,
                                   8 * MASK_REACH_VOXELS,  # profile samples each side: 8 per voxel
-                                  _neighbour_matrix(faces, len(vertices)), "level", level, None)
+                                  _neighbour_matrix(faces, len(vertices)), "level", level[labels][:, None], None)
     found = np.isfinite(offsets) & ~left & ok
-    out["mask_edges_found"] = float(found.mean())
-    if found.any():
-        out["mask_offset"] = float(np.median(np.abs(offsets[found])))
-    return out
+    offset = per_object(np.abs(offsets), found)
+    share = np.array([found[labels == k].mean() if np.any(labels == k) else 0.0 for k in range(n_objects)])
+
+    def value(x: np.ndarray):  # one object: a number (as before objects), several: a list
+        return float(x[0]) if n_objects == 1 else [float(v) for v in x]
+
+    return {**out, "mask_offset": value(offset), "mask_edges_found": value(share), "mask_contrast": value(contrast)}
 
 
 def image_noise(volume: np.ndarray, level: float) -> dict:
