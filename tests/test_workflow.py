@@ -113,6 +113,8 @@ def tiny_stack(tmp_path_factory):
     data = np.zeros((2, 8, 1, 16, 16), dtype=np.uint8)
     write_hyperstack(d / "stack.tif", data, spacing=(1, 1, 1), axes="TZCYX")
     write_hyperstack(d / "mask_7_planes.tif", np.ones((7, 16, 16), np.uint8), spacing=(1, 1, 1), axes="ZYX")
+    write_hyperstack(d / "stack_3t.tif", np.zeros((3, 8, 1, 16, 16), np.uint8), spacing=(1, 1, 1), axes="TZCYX")
+    write_hyperstack(d / "mask_2t.tif", np.ones((2, 8, 16, 16), np.uint8), spacing=(1, 1, 1), axes="TZYX")
     return d / "stack.tif"
 
 
@@ -163,6 +165,11 @@ def test_bad_config_fails_before_any_job_naming_the_key(tmp_path, name):
         pytest.param(lambda d: d.update(mask=str(Path(d["path"]).with_name("mask_7_planes.tif"))),
                      "datasets.cells.mask", "(7, 16, 16) but the image has (8, 16, 16)", id="mask-shape",
                      marks=pytest.mark.slow),
+        # a mask of 2 time points for a movie of 3 (an independent review: it failed in the t = 2 job)
+        pytest.param(lambda d: d.update(path=str(Path(d["path"]).with_name("stack_3t.tif")),
+                                        mask=str(Path(d["path"]).with_name("mask_2t.tif"))),
+                     "datasets.cells.mask", "has 2 time points, so none for the analysed time point(s) [2]",
+                     id="mask-time-points", marks=pytest.mark.slow),
     ],
 )
 def test_hyperstack_header_checked_at_parse_time(tmp_path, tiny_stack, edit, key, words):

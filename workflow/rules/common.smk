@@ -280,8 +280,10 @@ def _check_surface_meshes(name, pattern, times):
         )
 
 
-def _check_mask_header(name, path, shape):
-    """The mask's (Z, Y, X) size is the image's (read from its header, before any job starts)."""
+def _check_mask_header(name, path, shape, times):
+    """The mask's (Z, Y, X) size is the image's, and a mask of several time points has every analysed
+    one (read from its header, before any job starts; one time point serves them all).
+    """
     from nemo.io import read_info
 
     try:
@@ -293,6 +295,13 @@ def _check_mask_header(name, path, shape):
             f"datasets.{name}.mask",
             f"{path} has (Z, Y, X) = {(m['Z'], m['Y'], m['X'])} but the image has "
             f"{(shape['Z'], shape['Y'], shape['X'])}; give a mask of the same size",
+        )
+    missing = [t for t in times if t >= m["T"]] if m["T"] > 1 else []
+    if missing:
+        config_error(
+            f"datasets.{name}.mask",
+            f"{path} has {m['T']} time points, so none for the analysed time point(s) "
+            f"{missing[:10]}; give a mask of every time point (or of one, for all)",
         )
 
 
@@ -362,7 +371,7 @@ def _datasets():
         if d["mask"] is not None and not Path(d["mask"]).exists():
             config_error(f"datasets.{name}.mask", f"file not found: {d['mask']}")
         if d["mask"] is not None and shape is not None and shape.get("Z"):
-            _check_mask_header(name, d["mask"], shape)
+            _check_mask_header(name, d["mask"], shape, entry["t"])
         if d["surface_mesh"] is not None:
             _check_surface_meshes(name, d["surface_mesh"], entry["t"])
         out[name] = entry
