@@ -586,10 +586,11 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
 
     labels = np.zeros(len(vertices), dtype=np.int64) if labels is None else np.asarray(labels, dtype=np.int64)
     n_objects = int(labels.max()) + 1
+    order = np.argsort(labels, kind="stable")  # each object's vertices, once: O(N) over all objects
+    groups = np.split(order, np.searchsorted(labels[order], np.arange(1, n_objects)))
 
     def per_object(values: np.ndarray, where: np.ndarray) -> np.ndarray:  # each object's median of values[where]
-        return np.array([np.median(values[where & (labels == k)]) if np.any(where & (labels == k)) else np.nan
-                         for k in range(n_objects)])  # a loop over the objects
+        return np.array([np.median(values[g][where[g]]) if where[g].any() else np.nan for g in groups])
 
     near = np.full((len(vertices), 2), np.nan)
     near[ok] = along(np.array([-1.0, 1.0]))
@@ -607,7 +608,7 @@ def mask_edge_offset(mesh: trimesh.Trimesh, image: np.ndarray, spacing: tuple[fl
                                   _neighbour_matrix(faces, len(vertices)), "level", level[labels][:, None], None)
     found = np.isfinite(offsets) & ~left & ok
     offset = per_object(np.abs(offsets), found)
-    share = np.array([found[labels == k].mean() if np.any(labels == k) else 0.0 for k in range(n_objects)])
+    share = np.array([found[g].mean() if len(g) else 0.0 for g in groups])
 
     def value(x: np.ndarray):  # one object: a number (as before objects), several: a list
         return float(x[0]) if n_objects == 1 else [float(v) for v in x]
