@@ -464,7 +464,7 @@ def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = N
         if again[0] == 2:
             (walls, inner, _), centre = again, curvature_centre
     say = logger.debug if quiet else logger.info
-    if walls == 1 and mixed >= OBJECT_MIN_AREA and _thin_sheet(whole, what, mixed):
+    if walls == 1 and mixed >= OBJECT_MIN_AREA and _thin_sheet(whole, what, mixed, centre, quiet):
         return 2, whole, centre
     if walls == 2:
         say("split auto: %s has two walls (inner %.0f %% of the outer's area): split by its %s",
@@ -474,29 +474,40 @@ def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = N
            f"{100 * OBJECT_MIN_AREA:.0f} %" if inner else "no separate surface faces its centre")
     if mixed >= OBJECT_MIN_AREA:
         warnings.warn(f"split auto: {what} counts as one wall ({why}), but {100 * mixed:.0f} % of its surface lies in "
-                      "pieces that turn partly towards its centre, and it is no thin sheet: a torus or a curved cell "
-                      "has one wall, but a thick sheet whose two sides meet at a rim (an epithelium cut by the image "
-                      "border) has two; set split: centre for that", NemoWarning, stacklevel=3)
+                      "pieces that turn partly towards its centre, and it is not a thin sheet round a cavity: a torus, "
+                      "a curved cell or a filament has one wall, but a sheet whose two sides meet at a rim (an "
+                      "epithelium cut by the image border) has two; set split: centre for that", NemoWarning,
+                      stacklevel=3)
     say("split auto: %s has one wall (%s): its inner and outer surfaces are the whole surface, and there is "
         "no thickness", what, why)
     return 1, _with_metadata(keep_components(whole, "largest"), whole), None
 
 
-def _thin_sheet(whole: trimesh.Trimesh, what: str, mixed: float) -> bool:
-    """Whether one surface that turns partly towards its centre is a thin sheet, two walls joined at
-    a rim or a tear (:func:`nemo.surface.sheet_width` ≤ :data:`nemo.surface.SHEET_MAX_WIDTH` × its
-    size): a shell torn where its wall is thinner than the blur, a cup; warned about when it is."""
-    from nemo.surface import SHEET_MAX_WIDTH, sheet_width
+def _thin_sheet(whole: trimesh.Trimesh, what: str, mixed: float, centre: np.ndarray | None, quiet: bool) -> bool:
+    """Whether one surface that turns partly towards its centre is a thin sheet round a cavity, two walls
+    joined at a rim or a tear (a shell torn where its wall is thinner than the blur, a cup): at most
+    :data:`nemo.surface.SHEET_MAX_WIDTH` × its size across (:func:`nemo.surface.sheet_width`) and wrapping
+    its centre in at least :data:`nemo.surface.CAVITY_MIN_ENCLOSURE` of the directions
+    (:func:`nemo.surface.cavity_enclosure`; a thin filled cell or a bent filament does not: the diff
+    review); warned about when it is (logged with ``quiet``)."""
+    from nemo.surface import CAVITY_MIN_ENCLOSURE, SHEET_MAX_WIDTH, cavity_enclosure, sheet_width
 
     width, size = sheet_width(whole), math.sqrt(float(whole.area) / (4 * math.pi))
     if not width <= SHEET_MAX_WIDTH * size:  # NaN: the far side cut away, no width to tell
         return False
+    wrapped = cavity_enclosure(whole, centre)
+    if wrapped < CAVITY_MIN_ENCLOSURE:
+        return False
     unit = getattr(whole, "units", None) or "um"
-    warnings.warn(f"split auto: {what} is one surface, {100 * mixed:.0f} % of it turning partly towards its centre, "
-                  f"but a thin sheet ({width:.3g} {unit} across, {100 * width / size:.0f} % of its size): two walls "
-                  "joined at a rim or a tear (a shell torn where its wall is thinner than the blur, a cup); split face "
-                  "by face as split: centre does (the tear's holes are counted by the quality control; split: none "
-                  "keeps one surface)", NemoWarning, stacklevel=4)
+    message = (f"split auto: {what} is one surface, {100 * mixed:.0f} % of it turning partly towards its centre, "
+               f"but a thin sheet ({width:.3g} {unit} across, {100 * width / size:.0f} % of its size) round a cavity "
+               f"(it wraps {100 * wrapped:.0f} % of the directions from its centre): two walls joined at a rim or a "
+               "tear (a shell torn where its wall is thinner than the blur, a cup); split face by face as split: "
+               "centre does (the tear's holes are counted by the quality control; split: none keeps one surface)")
+    if quiet:
+        logger.debug(message)
+    else:
+        warnings.warn(message, NemoWarning, stacklevel=4)
     return True
 
 

@@ -89,6 +89,7 @@ __all__ = [
     "AUTO_SIGMA_SNR",
     "OBJECT_MIN_AREA",
     "SHEET_MAX_WIDTH",
+    "cavity_enclosure",
     "count_walls",
     "auto_sigma",
     "blur_noise_gain",
@@ -2439,6 +2440,10 @@ def split_mesh(
 SHEET_MAX_WIDTH = 0.25
 #: Rays cast by :func:`sheet_width` (from this many random vertices).
 SHEET_RAYS = 1000
+#: ... and it wraps a cavity round its centre: :func:`cavity_enclosure` at least this (a torn shell
+#: 0.9+, a cup about half; a filled cell whose centre lies in its solid 0, a bent filament or a torus
+#: well below).
+CAVITY_MIN_ENCLOSURE = 0.4
 
 
 def sheet_width(mesh: trimesh.Trimesh, n_rays: int = SHEET_RAYS, rng: int = 0) -> float:
@@ -2474,6 +2479,42 @@ def sheet_width(mesh: trimesh.Trimesh, n_rays: int = SHEET_RAYS, rng: int = 0) -
     return float(np.nanmedian(across)) if np.isfinite(across).sum() >= 0.5 * len(at) else float("nan")
 
 
+def cavity_enclosure(mesh: trimesh.Trimesh, centre: np.ndarray | None = None, n_rays: int = 256) -> float:
+    """Share of the directions from ``centre`` in which the first face met is entered (its outward
+    normal faces the ray): how far the surface wraps an empty cavity round the centre.
+
+    A shell torn at a pole wraps its cavity in nearly every direction, a cup in about half; from a
+    centre inside the solid (a filled cell, a fried-egg-shaped adherent cell) every first face is
+    left, not entered: 0; a bent filament or a torus round its hole meets few directions.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Surface with outward normals.
+    centre : array_like, shape (3,), optional
+        Default: the area-weighted centroid of the faces (as :func:`count_walls`).
+    n_rays : int
+        Directions, spread evenly over the sphere (a Fibonacci lattice).
+
+    Returns
+    -------
+    float
+        In [0, 1].
+    """
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    if centre is None:
+        centroids, areas = vertices[faces].mean(axis=1), np.asarray(mesh.area_faces)
+        centre = (centroids * areas[:, None]).sum(axis=0) / max(float(areas.sum()), 1e-300)
+    k = np.arange(n_rays) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * k / n_rays), np.pi * (1 + 5**0.5) * k
+    directions = np.column_stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)])
+    hit = np.asarray(mesh.ray.intersects_first(np.tile(np.asarray(centre, dtype=np.float64), (n_rays, 1)),
+                                               directions), dtype=np.int64)
+    corners = vertices[faces[hit[hit >= 0]]]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return float(np.sum(np.einsum("ij,ij->i", normals, directions[hit >= 0]) < 0) / n_rays)
+
+
 def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
                 min_fraction: float = OBJECT_MIN_AREA) -> tuple[int, float, float]:
     """Walls of one object for ``mesh.split: auto``: 2 when a separate surface faces its centre.
@@ -2489,8 +2530,9 @@ def count_walls(mesh: trimesh.Trimesh, centre: np.ndarray | None = None,
     surface that turns towards its centre over part of its area (a filled torus, a banana-shaped
     cell, a sheet cut by the image border, a cup whose two sides meet at its lip): ``split:
     centre`` sorts those face by face. ``mixed_fraction`` says how much of the surface such
-    pieces hold (by the centre's rule alone); :func:`sheet_width` then tells a thin sheet (two walls
-    joined at a rim or a tear) from a solid (``split: auto``, :func:`nemo.stages.mesh`).
+    pieces hold (by the centre's rule alone); :func:`sheet_width` and :func:`cavity_enclosure` then
+    tell a thin sheet round a cavity (two walls joined at a rim or a tear) from a solid (``split:
+    auto``, :func:`nemo.stages.mesh`).
 
     Parameters
     ----------

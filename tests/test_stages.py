@@ -661,7 +661,8 @@ def test_split_auto_splits_a_torn_shell_and_keeps_a_filled_torus_whole():
     face the centre and away from it: a thin sheet (5 µm across, 0.14 of its size), so ``split:
     auto`` splits it face by face into two walls 5 µm apart, each with the hole (it read one wall
     without thickness, silently: a review's shell torn where its wall is thinner than the z-blur).
-    A filled torus, as wide as its tube (12 µm, 0.5 of its size), keeps one wall."""
+    A filled torus, as wide as its tube (12 µm, 0.5 of its size), and a thin filled cell round no
+    cavity keep one wall."""
     from scipy.ndimage import gaussian_filter
 
     z, y, x = np.indices((50, 50, 50)).astype(np.float64)
@@ -675,8 +676,18 @@ def test_split_auto_splits_a_torn_shell_and_keeps_a_filled_torus_whole():
     for wall in ("inner", "outer"):  # the hole: one loop of each wall, none on the image's border
         assert stages.measure(meshes[wall])["n_boundary_loops"] == 1 and p["wall_rim_loops"][wall] == 0
     torus = gaussian_filter(200.0 * (np.hypot(rho - 14, z - 25) < 6), 1.0)
-    with pytest.warns(NemoWarning, match="no thin sheet"):
+    with pytest.warns(NemoWarning, match="not a thin sheet round a cavity"):
         _, p = stages.mesh(torus, (1.0, 1.0, 1.0), {})
+    assert p["walls"] == 1
+    # a filled adherent cell, a 1.5 µm lamella round a nuclear dome: thin, but round no cavity (its
+    # centre lies in its solid): one wall (the diff review: split into two walls 2 µm apart)
+    zc, yc, xc = np.mgrid[0:38, 0:110, 0:110] * 0.5
+    r = np.hypot(xc - 27.5, yc - 27.5)
+    cell = ((zc >= 2) & (zc <= 3.5) & (r <= 22)) | ((r**2 + (zc - 2) ** 2 <= 12**2) & (zc >= 2))
+    image = np.random.default_rng(0).poisson(20 + gaussian_filter(200.0 * cell, 1.0)).astype(np.uint16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NemoWarning)
+        _, p = stages.mesh(image, (0.5, 0.5, 0.5), {})
     assert p["walls"] == 1
 
 

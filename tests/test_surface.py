@@ -13,6 +13,7 @@ from nemo.errors import NemoError
 from nemo.io import write_hyperstack
 from nemo.mesh import load_mesh, signed_volume, vertex_normals
 from nemo.surface import (
+    cavity_enclosure,
     count_walls,
     default_sigma,
     find_objects,
@@ -343,6 +344,10 @@ def test_sheet_width_is_a_torn_walls_thickness_or_a_solids_width():
     x, y = np.meshgrid(np.linspace(0, 40, 41), np.linspace(0, 40, 41))
     sheet = trimesh.Trimesh(np.c_[x.ravel(), y.ravel(), 3 * np.sin(x.ravel() / 4)], _grid_faces(41, 41), process=False)
     assert np.isnan(sheet_width(sheet))
+    # how far each wraps a cavity round its centre: the torn shell nearly everywhere, the ball not at all
+    # (its centre is in its solid), the torus only round its hole (the tube's solid angle from its centre)
+    assert cavity_enclosure(torn) > 0.9 and cavity_enclosure(trimesh.creation.icosphere(4, radius=10.0)) == 0.0
+    assert cavity_enclosure(torus) == pytest.approx(np.sin(np.arctan(6.0 / 20.0)), abs=0.05)
 
 
 def torus_shell_volume(major: float, r_in: float, r_out: float, spacing=(1.0, 1.0, 1.0), width: float = 1.0,

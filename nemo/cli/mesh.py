@@ -39,8 +39,8 @@ surface facing the centre. MESH.inner.ply and MESH.outer.ply are written next to
 whole); both have normals pointing away from the centre, so the inner wall is the cavity's
 surface with outward normals and peeling outward from it samples the shell. --split auto (the
 default) splits an object with two walls by its centre, and face by face one surface whose two
-sides face towards and away from its centre when it is a thin sheet (a shell torn where its
-wall is thinner than the blur, a cup); an object with one wall (a droplet, a filled cell, a
+sides face towards and away from its centre when it is a thin sheet round a cavity (a shell
+torn where its wall is thinner than the blur, a cup); an object with one wall (a droplet, a filled cell, a
 torus) is not split: its inner and outer files are the whole surface and it has no thickness
 (the log says which it found). --split centre / axis always split, face by face (also a thick
 sheet whose two sides are one connected surface, which auto counts as one wall and warns
