@@ -143,14 +143,15 @@ def _profiles(image: np.ndarray, points: np.ndarray, normals: np.ndarray, reach:
     return t, prof.reshape(t.shape), outside
 
 
-def _crossings(t: np.ndarray, prof: np.ndarray, level: float) -> np.ndarray:
+def _crossings(t: np.ndarray, prof: np.ndarray, level: float | np.ndarray) -> np.ndarray:
     """Signed distance along the normal to the nearest inside→outside iso-level crossing.
 
     Parameters
     ----------
     t, prof : ndarray, shape (M, S)
         Offsets and profiles (:func:`_profiles`).
-    level : float
+    level : float or ndarray, shape (M, 1)
+        One level, or each profile's.
 
     Returns
     -------
@@ -311,9 +312,10 @@ def refine_vertices(
 
 
 def _edge_offsets(image: np.ndarray, vertices: np.ndarray, normals: np.ndarray, reach: np.ndarray,
-                  spacing_xyz: np.ndarray, k: int, mean: sparse.csr_matrix, to: str, level: float,
+                  spacing_xyz: np.ndarray, k: int, mean: sparse.csr_matrix, to: str, level: float | np.ndarray,
                   background: float | None) -> tuple[np.ndarray, np.ndarray]:
     """Every vertex's offset to its edge along the normal (NaN: none) and the profiles that leave the image.
+    ``level``: one for all, or (with ``to="level"``) each vertex's, shape (N, 1).
 
     Profiles are sampled in chunks (all rows with a normal: fixed vertices' profiles still inform
     their neighbours'), then read as :func:`_crossings` or, averaged, :func:`_steepest`.

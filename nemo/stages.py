@@ -332,7 +332,7 @@ def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) ->
         warnings.warn(f"the mask's inside is darker than its outside in the segmented channel{which(contrast < 0)}: a "
                       "mask of the background or a cavity class? (check mask_channel with a probability map of several "
                       "classes, and segment_channel)", NemoWarning, stacklevel=3)
-    elif (offset > fit["mask_offset_limit"]).any():
+    if (offset > fit["mask_offset_limit"]).any():  # another object's, or the same's: both said
         warnings.warn(f"the mask's surface lies up to {np.nanmax(offset):.3g} {unit} (median) from the segmented "
                       f"channel's own edges{which(offset > fit['mask_offset_limit'])}, more than "
                       f"{fit['mask_offset_limit']:.3g}: a mask of another time point, channel or class, or a stale "

@@ -115,6 +115,7 @@ def tiny_stack(tmp_path_factory):
     write_hyperstack(d / "mask_7_planes.tif", np.ones((7, 16, 16), np.uint8), spacing=(1, 1, 1), axes="ZYX")
     write_hyperstack(d / "stack_3t.tif", np.zeros((3, 8, 1, 16, 16), np.uint8), spacing=(1, 1, 1), axes="TZCYX")
     write_hyperstack(d / "mask_2t.tif", np.ones((2, 8, 16, 16), np.uint8), spacing=(1, 1, 1), axes="TZYX")
+    write_hyperstack(d / "mask_2c.tif", np.ones((8, 2, 16, 16), np.uint8), spacing=(1, 1, 1), axes="ZCYX")
     return d / "stack.tif"
 
 
@@ -170,6 +171,9 @@ def test_bad_config_fails_before_any_job_naming_the_key(tmp_path, name):
                                         mask=str(Path(d["path"]).with_name("mask_2t.tif"))),
                      "datasets.cells.mask", "has 2 time points, so none for the analysed time point(s) [2]",
                      id="mask-time-points", marks=pytest.mark.slow),
+        pytest.param(lambda d: d.update(mask=str(Path(d["path"]).with_name("mask_2c.tif")), mask_channel=2),
+                     "datasets.cells.mask_channel", "has 2 channels (0 to 1), none is 2", id="mask-channel",
+                     marks=pytest.mark.slow),
     ],
 )
 def test_hyperstack_header_checked_at_parse_time(tmp_path, tiny_stack, edit, key, words):

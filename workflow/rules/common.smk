@@ -280,7 +280,7 @@ def _check_surface_meshes(name, pattern, times):
         )
 
 
-def _check_mask_header(name, path, shape, times):
+def _check_mask_header(name, path, shape, times, seg, mask_channel):
     """The mask's (Z, Y, X) size is the image's, and a mask of several time points has every analysed
     one (read from its header, before any job starts; one time point serves them all).
     """
@@ -302,6 +302,14 @@ def _check_mask_header(name, path, shape, times):
             f"datasets.{name}.mask",
             f"{path} has {m['T']} time points, so none for the analysed time point(s) "
             f"{missing[:10]}; give a mask of every time point (or of one, for all)",
+        )
+    # the mask's channel: mask_channel, else the segmented one when the mask has channels
+    channel = seg if mask_channel is None else mask_channel
+    if (m["C"] > 1 or mask_channel is not None) and channel >= m["C"]:
+        config_error(
+            f"datasets.{name}.mask_channel",
+            f"{path} has {m['C']} channels (0 to {m['C'] - 1}), none is {channel}: give "
+            "mask_channel, the mask's channel of the object",
         )
 
 
@@ -371,7 +379,14 @@ def _datasets():
         if d["mask"] is not None and not Path(d["mask"]).exists():
             config_error(f"datasets.{name}.mask", f"file not found: {d['mask']}")
         if d["mask"] is not None and shape is not None and shape.get("Z"):
-            _check_mask_header(name, d["mask"], shape, entry["t"])
+            _check_mask_header(
+                name,
+                d["mask"],
+                shape,
+                entry["t"],
+                seg,
+                d["mask_channel"],
+            )
         if d["surface_mesh"] is not None:
             _check_surface_meshes(name, d["surface_mesh"], entry["t"])
         out[name] = entry
