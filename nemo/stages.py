@@ -332,9 +332,10 @@ def _mask_fit(whole: trimesh.Trimesh, volume: np.ndarray, spacing, unit: str) ->
         warnings.warn(f"the mask's inside is darker than its outside in the segmented channel{which(contrast < 0)}: a "
                       "mask of the background or a cavity class? (check mask_channel with a probability map of several "
                       "classes, and segment_channel)", NemoWarning, stacklevel=3)
-    if (offset > fit["mask_offset_limit"]).any():  # another object's, or the same's: both said
-        warnings.warn(f"the mask's surface lies up to {np.nanmax(offset):.3g} {unit} (median) from the segmented "
-                      f"channel's own edges{which(offset > fit['mask_offset_limit'])}, more than "
+    off = (offset > fit["mask_offset_limit"]) & ~(contrast < 0)  # a darker inside's edges are not its own
+    if off.any():  # another object's than a darker one's
+        warnings.warn(f"the mask's surface lies up to {np.nanmax(offset[off]):.3g} {unit} (median) from the segmented "
+                      f"channel's own edges{which(off)}, more than "
                       f"{fit['mask_offset_limit']:.3g}: a mask of another time point, channel or class, or a stale "
                       "label? (check the mask's T axis and order, mask_channel and segment_channel)",
                       NemoWarning, stacklevel=3)
