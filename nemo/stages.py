@@ -477,8 +477,8 @@ def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = N
         warnings.warn(f"split auto: {what} counts as one wall ({why}), but {100 * mixed:.0f} % of its surface lies in "
                       "pieces that turn partly towards its centre, and it is not a thin sheet round a cavity: a torus, "
                       "a curved cell or a filament has one wall, but a sheet whose two sides meet at a rim (an "
-                      "epithelium cut by the image border) has two; set split: centre for that", NemoWarning,
-                      stacklevel=3)
+                      "epithelium cut by the image border, a thick-walled torn shell or a shallow cup) has two; set "
+                      "split: centre for that", NemoWarning, stacklevel=3)
     say("split auto: %s has one wall (%s): its inner and outer surfaces are the whole surface, and there is "
         "no thickness", what, why)
     return 1, _with_metadata(keep_components(whole, "largest"), whole), None
@@ -486,25 +486,39 @@ def _auto_walls(whole: trimesh.Trimesh, what: str, centre: np.ndarray | None = N
 
 def _thin_sheet(whole: trimesh.Trimesh, what: str, mixed: float, centre: np.ndarray | None, quiet: bool) -> bool:
     """Whether one surface that turns partly towards its centre is a thin sheet round a cavity, two walls
-    joined at a rim or a tear (a shell torn where its wall is thinner than the blur, a cup): at most
-    :data:`nemo.surface.SHEET_MAX_WIDTH` × its size across (:func:`nemo.surface.sheet_width`) and wrapping
-    its centre in at least :data:`nemo.surface.CAVITY_MIN_ENCLOSURE` of the directions
-    (:func:`nemo.surface.cavity_enclosure`; a thin filled cell or a bent filament does not: the diff
-    review); warned about when it is (logged with ``quiet``)."""
-    from nemo.surface import CAVITY_MIN_ENCLOSURE, SHEET_MAX_WIDTH, cavity_enclosure, sheet_width
+    joined at a rim or a tear (a shell torn where its wall is thinner than the blur, a cup): its pieces
+    that turn so (not a droplet in its lumen) at most :data:`nemo.surface.SHEET_MAX_WIDTH` × its size
+    across (:func:`nemo.surface.sheet_width`), flat at that scale, a sheet and not a tube
+    (:func:`nemo.surface.sheet_flatness`), and wrapping the centre in at least
+    :data:`nemo.surface.CAVITY_MIN_ENCLOSURE` of the directions (:func:`nemo.surface.cavity_enclosure`;
+    a thin filled cell does not); warned about when it is (logged with ``quiet``)."""
+    from nemo.surface import (
+        CAVITY_MIN_ENCLOSURE,
+        SHEET_MAX_WIDTH,
+        SHEET_MIN_FLATNESS,
+        _face_sides,
+        cavity_enclosure,
+        sheet_flatness,
+        sheet_width,
+        submesh,
+    )
 
-    width, size = sheet_width(whole), math.sqrt(float(whole.area) / (4 * math.pi))
+    _, labels, _, outward, _ = _face_sides(whole, "centre", None, centre)
+    turning = np.flatnonzero((outward > 0.1) & (outward < 0.9))
+    piece = submesh(whole, np.isin(labels, turning)) if len(turning) else whole  # the sheet's pieces (a cut one has two)
+    if centre is None:  # count_walls' centre: the whole object's area-weighted centroid
+        centre = (whole.triangles_center * whole.area_faces[:, None]).sum(axis=0) / max(float(whole.area), 1e-300)
+    width, size = sheet_width(piece), math.sqrt(float(piece.area) / (4 * math.pi))
     if not width <= SHEET_MAX_WIDTH * size:  # NaN: the far side cut away, no width to tell
         return False
-    wrapped = cavity_enclosure(whole, centre)
-    if wrapped < CAVITY_MIN_ENCLOSURE:
+    if not sheet_flatness(piece, width) >= SHEET_MIN_FLATNESS or cavity_enclosure(piece, centre) < CAVITY_MIN_ENCLOSURE:
         return False
     unit = getattr(whole, "units", None) or "um"
     message = (f"split auto: {what} is one surface, {100 * mixed:.0f} % of it turning partly towards its centre, "
-               f"but a thin sheet ({width:.3g} {unit} across, {100 * width / size:.0f} % of its size) round a cavity "
-               f"(it wraps {100 * wrapped:.0f} % of the directions from its centre): two walls joined at a rim or a "
-               "tear (a shell torn where its wall is thinner than the blur, a cup); split face by face as split: "
-               "centre does (the tear's holes are counted by the quality control; split: none keeps one surface)")
+               f"but a thin sheet ({width:.3g} {unit} across, {100 * width / size:.0f} % of its size) round a cavity: "
+               "two walls joined at a rim or a tear (a shell torn where its wall is thinner than the blur, a cup); "
+               "split face by face as split: centre does (the tear's holes are counted by the quality control; "
+               "split: none keeps one surface)")
     if quiet:
         logger.debug(message)
     else:

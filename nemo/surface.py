@@ -91,6 +91,7 @@ __all__ = [
     "SHEET_MAX_WIDTH",
     "cavity_enclosure",
     "count_walls",
+    "sheet_flatness",
     "auto_sigma",
     "blur_noise_gain",
     "default_mask_sigma",
@@ -2464,6 +2465,11 @@ SHEET_RAYS = 1000
 #: 0.9+, a cup about half; a filled cell whose centre lies in its solid 0, a bent filament or a torus
 #: well below).
 CAVITY_MIN_ENCLOSURE = 0.4
+#: ... and it is a sheet, not a tube: the normals within half its width of a vertex keep, on average,
+#: a cosine of at least this with its own (:func:`sheet_flatness`; a wall's two faces are near-parallel
+#: planes at that scale, while a filament's normals turn round its axis within its radius: a coiled
+#: filament was split as a torn shell, an independent review).
+SHEET_MIN_FLATNESS = 0.95
 
 
 def sheet_width(mesh: trimesh.Trimesh, n_rays: int = SHEET_RAYS, rng: int = 0) -> float:
@@ -2497,6 +2503,33 @@ def sheet_width(mesh: trimesh.Trimesh, n_rays: int = SHEET_RAYS, rng: int = 0) -
     ok = np.isfinite(normals).all(axis=1)
     across = _ray_distance(mesh, vertices[at][ok], -normals[ok], 1e-3 * mean_edge_length(mesh), back_off=False)
     return float(np.nanmedian(across)) if np.isfinite(across).sum() >= 0.5 * len(at) else float("nan")
+
+
+def sheet_flatness(mesh: trimesh.Trimesh, width: float, n_vertices: int = SHEET_RAYS, rng: int = 0) -> float:
+    """How flat a surface is at half its width: the median, over ``n_vertices`` random vertices, of the
+    mean cosine between a vertex's normal and those of the vertices within ``width`` / 2 of it.
+
+    About 1 for a sheet whose width (:func:`sheet_width`) is small beside its radius of curvature (a
+    torn shell's wall); about 0.85 for a tube, whose normals turn round its axis within its radius.
+
+    Returns
+    -------
+    float
+        In [−1, 1]; NaN for a width that is not positive and finite.
+    """
+    from scipy.spatial import cKDTree
+
+    if not (np.isfinite(width) and width > 0):
+        return float("nan")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    normals = _vertex_normals(mesh)
+    at = np.random.default_rng(rng).permutation(len(vertices))[:n_vertices]
+    distance, near = cKDTree(vertices).query(vertices[at], k=64, distance_upper_bound=0.5 * width)
+    found = np.isfinite(distance)
+    cosines = np.einsum("ikj,ij->ik", normals[np.where(found, near, 0)], normals[at])
+    with np.errstate(invalid="ignore"):
+        mean = np.nansum(np.where(found, cosines, 0.0), axis=1) / found.sum(axis=1)
+    return float(np.nanmedian(mean))
 
 
 def cavity_enclosure(mesh: trimesh.Trimesh, centre: np.ndarray | None = None, n_rays: int = 256) -> float:
