@@ -2470,7 +2470,8 @@ CAVITY_MIN_ENCLOSURE = 0.4
 #: planes at that scale, while a filament's normals turn round its axis within its radius: a coiled
 #: filament was split as a torn shell, an independent review). Measured at 1 µm and 0.5 × 0.5 × 1.5 µm
 #: voxels: torn shells and cups 0.97-0.99, a hollow bent tube's wall (radii 5-9 µm) 0.975 / 0.947; a
-#: loose filled coil 0.92 / 0.83, filaments caging a sphere 0.94 (a narrow margin: docs/validation.md).
+#: loose filled coil 0.92 / 0.83, filaments caging a sphere 0.94 (a narrow margin: docs/validation.md);
+#: a torus's tube at its diameter 0.87 on a coarse or a dense mesh.
 SHEET_MIN_FLATNESS = 0.94
 
 
@@ -2525,10 +2526,15 @@ def sheet_flatness(mesh: trimesh.Trimesh, width: float, n_vertices: int = SHEET_
         return float("nan")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     normals = _vertex_normals(mesh)
-    at = np.random.default_rng(rng).permutation(len(vertices))[:n_vertices]
-    distance, near = cKDTree(vertices).query(vertices[at], k=64, distance_upper_bound=0.5 * width)
+    generator = np.random.default_rng(rng)
+    at = generator.permutation(len(vertices))[:n_vertices]
+    # neighbours drawn from a subset with ~40 vertices in a ball of radius width / 2, so that the 64
+    # nearest span that ball also on a dense mesh (all the vertices: a coarse one)
+    n_sample = int(min(len(vertices), max(64.0, 40.0 * float(mesh.area) / (np.pi * (0.5 * width) ** 2))))
+    sample = generator.permutation(len(vertices))[:n_sample]
+    distance, near = cKDTree(vertices[sample]).query(vertices[at], k=64, distance_upper_bound=0.5 * width)
     found = np.isfinite(distance)
-    cosines = np.einsum("ikj,ij->ik", normals[np.where(found, near, 0)], normals[at])
+    cosines = np.einsum("ikj,ij->ik", normals[sample][np.where(found, near, 0)], normals[at])
     with np.errstate(invalid="ignore"):
         mean = np.nansum(np.where(found, cosines, 0.0), axis=1) / found.sum(axis=1)
     return float(np.nanmedian(mean))

@@ -21,6 +21,7 @@ from nemo.surface import (
     iso_level,
     keep_components,
     reconstruct,
+    sheet_flatness,
     sheet_width,
     split_mesh,
 )
@@ -348,6 +349,19 @@ def test_sheet_width_is_a_torn_walls_thickness_or_a_solids_width():
     # (its centre is in its solid), the torus only round its hole (the tube's solid angle from its centre)
     assert cavity_enclosure(torn) > 0.9 and cavity_enclosure(trimesh.creation.icosphere(4, radius=10.0)) == 0.0
     assert cavity_enclosure(torus) == pytest.approx(np.sin(np.arctan(6.0 / 20.0)), abs=0.05)
+
+
+def test_sheet_flatness_tells_a_sheet_from_a_tube_at_any_mesh_density():
+    """Within half the width of a vertex, a sheet's normals stay near its own (a sphere R 30 at width 6:
+    > 0.99), a tube's turn round its axis (a torus's tube at its diameter: ~0.87), on a coarse and on a
+    dense mesh alike (its 64 nearest vertices once spanned a tiny patch of a dense one: 0.999)."""
+    import trimesh
+
+    assert sheet_flatness(trimesh.creation.icosphere(5, radius=30.0), 6.0) > 0.99
+    coarse = trimesh.creation.torus(20.0, 2.0, major_sections=200, minor_sections=24)
+    dense = trimesh.creation.torus(100.0, 30.0, major_sections=600, minor_sections=200)  # 120 000 vertices
+    assert 0.8 < sheet_flatness(coarse, 4.0) < 0.92 and 0.8 < sheet_flatness(dense, 60.0) < 0.92
+    assert np.isnan(sheet_flatness(coarse, 0.0))
 
 
 def torus_shell_volume(major: float, r_in: float, r_out: float, spacing=(1.0, 1.0, 1.0), width: float = 1.0,
