@@ -492,6 +492,7 @@ def _thin_sheet(whole: trimesh.Trimesh, what: str, mixed: float, centre: np.ndar
     (:func:`nemo.surface.sheet_flatness`), and wrapping the centre in at least
     :data:`nemo.surface.CAVITY_MIN_ENCLOSURE` of the directions (:func:`nemo.surface.cavity_enclosure`;
     a thin filled cell does not); warned about when it is (logged with ``quiet``)."""
+    from nemo.geometry import surface_centre
     from nemo.surface import (
         CAVITY_MIN_ENCLOSURE,
         SHEET_MAX_WIDTH,
@@ -506,8 +507,7 @@ def _thin_sheet(whole: trimesh.Trimesh, what: str, mixed: float, centre: np.ndar
     _, labels, _, outward, _ = _face_sides(whole, "centre", None, centre)
     turning = np.flatnonzero((outward > 0.1) & (outward < 0.9))
     piece = submesh(whole, np.isin(labels, turning)) if len(turning) else whole  # the sheet's pieces (a cut one has two)
-    if centre is None:  # count_walls' centre: the whole object's area-weighted centroid
-        centre = (whole.triangles_center * whole.area_faces[:, None]).sum(axis=0) / max(float(whole.area), 1e-300)
+    centre = surface_centre(whole) if centre is None else centre  # count_walls' centre: the whole object's
     width, size = sheet_width(piece), math.sqrt(float(piece.area) / (4 * math.pi))
     if not width <= SHEET_MAX_WIDTH * size:  # NaN: the far side cut away, no width to tell
         return False

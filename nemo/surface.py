@@ -1243,7 +1243,7 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
     spacing : ndarray, shape (3,)
         Physical spacing of ``sub``'s samples (dz, dy, dx).
     per_axis : bool
-        Count depths in each axis's own edge width (:func:`_edge_widths`): under a z-elongated PSF a
+        Count depths in each axis's own edge width (:func:`_edge_width`): under a z-elongated PSF a
         wall's poles are blurred deeper than its sides, and the lower threshold's region around them
         is thick enough to hold a "core" of the dimmed crest (a 6 µm wall under σz 2 µm read a plateau
         0.9 × its own; an independent review). :func:`_own_level` uses it.
@@ -1257,7 +1257,7 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
     box = ndi.find_objects(np.isin(labels, np.flatnonzero(sizes >= 0.01 * sizes.max()) + 1).astype(np.int8))[0]
     sub = sub[tuple(slice(max(0, b.start - 1), b.stop + 1) for b in box)]
     (sub,), spacing = _interior_sample([sub], spacing)
-    width = (_edge_widths if per_axis else _edge_width)(sub, background, median, spacing)
+    width = _edge_width(sub, background, median, spacing, per_axis=per_axis)
     if width is None:
         return None
     depth = ndi.distance_transform_edt(sub > thr, sampling=spacing / width)  # in edge widths
@@ -1272,33 +1272,28 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
     return plateau if plateau > median and flat else None
 
 
-def _edge_width(sub: np.ndarray, background: float, median: float, spacing: np.ndarray) -> float | None:
+def _edge_width(sub: np.ndarray, background: float, median: float, spacing: np.ndarray,
+                per_axis: bool = False) -> float | np.ndarray | None:
     """The width σ of an object's blurred edge, ``(median − background) / (√(2π) g)`` with g the
     median gradient magnitude within 10 % of the contrast of the provisional half level (an erf edge
-    of contrast C and width σ is steepest at C / (√(2π) σ)); None without samples there."""
-    half = 0.5 * (background + median)
-    band = np.abs(sub - half) < 0.1 * (median - background)
-    if not band.any():
-        return None
-    grad = np.sqrt(sum((g / d) ** 2 for g, d in zip(np.gradient(sub.astype(np.float32, copy=False)), spacing)))
-    return (median - background) / (np.sqrt(2.0 * np.pi) * max(float(np.median(grad[band])), 1e-300))
-
-
-def _edge_widths(sub: np.ndarray, background: float, median: float, spacing: np.ndarray) -> np.ndarray | None:
-    """The edge width σ along each axis (3,) z, y, x, as :func:`_edge_width` from the samples whose gradient
-    lies within 26° of that axis (|g_axis| ≥ 0.9 |g|); :func:`_edge_width`'s σ for an axis with fewer than
-    :data:`INTERIOR_MIN_SAMPLES` such samples; None without samples near the half level."""
+    of contrast C and width σ is steepest at C / (√(2π) σ)); None without samples there.
+    ``per_axis``: σ along each axis (3,) z, y, x, from the samples whose gradient lies within 26° of
+    that axis (|g_axis| ≥ 0.9 |g|), the overall σ for an axis with fewer than
+    :data:`INTERIOR_MIN_SAMPLES` such samples."""
     half = 0.5 * (background + median)
     band = np.abs(sub - half) < 0.1 * (median - background)
     if not band.any():
         return None
     parts = [g[band] / d for g, d in zip(np.gradient(sub.astype(np.float32, copy=False)), spacing)]
     magnitude = np.sqrt(sum(g**2 for g in parts))
-    scale = (median - background) / np.sqrt(2.0 * np.pi)
-    overall = scale / max(float(np.median(magnitude)), 1e-300)
+
+    def width(where: np.ndarray | slice) -> float:
+        return (median - background) / (np.sqrt(2.0 * np.pi) * max(float(np.median(magnitude[where])), 1e-300))
+
+    if not per_axis:
+        return width(slice(None))
     along = [np.abs(g) >= 0.9 * magnitude for g in parts]
-    return np.array([scale / max(float(np.median(magnitude[a])), 1e-300) if a.sum() >= INTERIOR_MIN_SAMPLES
-                     else overall for a in along])
+    return np.array([width(a) if a.sum() >= INTERIOR_MIN_SAMPLES else width(slice(None)) for a in along])
 
 
 def _object_levels(field: np.ndarray, thr: float, background: float | None, level: float, method: str,
@@ -2525,7 +2520,6 @@ def sheet_flatness(mesh: trimesh.Trimesh, width: float, n_vertices: int = SHEET_
     if not (np.isfinite(width) and width > 0):
         return float("nan")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    normals = _vertex_normals(mesh)
     generator = np.random.default_rng(rng)
     at = generator.permutation(len(vertices))[:n_vertices]
     # neighbours drawn from a subset with ~40 vertices in a ball of radius width / 2, so that the 64
@@ -2534,7 +2528,8 @@ def sheet_flatness(mesh: trimesh.Trimesh, width: float, n_vertices: int = SHEET_
     sample = generator.permutation(len(vertices))[:n_sample]
     distance, near = cKDTree(vertices[sample]).query(vertices[at], k=64, distance_upper_bound=0.5 * width)
     found = np.isfinite(distance)
-    cosines = np.einsum("ikj,ij->ik", normals[sample][np.where(found, near, 0)], normals[at])
+    # the normals of the drawn vertices only (a dense mesh's all would cost more than the query)
+    cosines = np.einsum("ikj,ij->ik", _vertex_normals(mesh, sample)[np.where(found, near, 0)], _vertex_normals(mesh, at))
     with np.errstate(invalid="ignore"):
         mean = np.nansum(np.where(found, cosines, 0.0), axis=1) / found.sum(axis=1)
     return float(np.nanmedian(mean))
@@ -2562,10 +2557,10 @@ def cavity_enclosure(mesh: trimesh.Trimesh, centre: np.ndarray | None = None, n_
     float
         In [0, 1].
     """
+    from nemo.geometry import surface_centre
+
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
-    if centre is None:
-        centroids, areas = vertices[faces].mean(axis=1), np.asarray(mesh.area_faces)
-        centre = (centroids * areas[:, None]).sum(axis=0) / max(float(areas.sum()), 1e-300)
+    centre = surface_centre(mesh) if centre is None else centre
     k = np.arange(n_rays) + 0.5
     polar, azimuth = np.arccos(1 - 2 * k / n_rays), np.pi * (1 + 5**0.5) * k
     directions = np.column_stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)])
