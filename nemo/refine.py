@@ -538,7 +538,8 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
         them (a wall thinner than the blur: a surface at that level would tear).
     info : dict
         ``rays``, ``fitted``, ``blur`` (median fitted σ along the rays), ``below_crest`` (that fraction),
-        ``contrast`` (median fitted A), ``misfit`` (:func:`box_misfit`) and with ``labels``
+        ``contrast`` (median fitted A), ``level_share`` (median of ``level`` above the fitted background,
+        over A), ``misfit`` (:func:`box_misfit`) and with ``labels``
         ``levels_by_label``.
     """
     sp = np.asarray(spacing, dtype=np.float64)
@@ -565,6 +566,7 @@ def wall_profile_level(image: np.ndarray, spacing, vertices: np.ndarray, normals
     found = float(np.median(per_ray[good]))
     info["below_crest"] = float(np.mean(crest[good] < found))  # the meshed field stays below the level there
     info["contrast"] = float(np.median(a[good]))
+    info["level_share"] = float(np.median((level - b - g * 0.5 * (s0 + s1))[good] / a[good]))  # of the boxes' height
     info["misfit"] = box_misfit(s, profile, mask & good[:, None], params)
     if labels is not None:
         ray_labels = np.asarray(labels)[pick][good]

@@ -422,6 +422,7 @@ def test_the_half_level_is_checked_against_the_walls_profiles(caplog):
         checks[snr] = mesh.metadata["nemo_surface"]["edge_check"], caplog.text
     (clean, clean_log), (noisy, noisy_log) = checks[None], checks[3.0]
     assert clean["misfit"] < 0.03 and 0 < clean["offset"] < 0.05 and "own profiles" not in clean_log
+    assert clean["thinner_than_blur"] is None and noisy["thinner_than_blur"] is None
     assert noisy["offset"] > noisy["limit"] == 0.1 and noisy["level_profile"] == pytest.approx(60.0, abs=2.0)
     assert "the walls come out outward (thicker)" in noisy_log
     vol, c = _films_wall()
@@ -500,6 +501,26 @@ def test_profile_edge_keeps_the_half_level_on_a_wall_thinner_than_the_blur(caplo
     assert record["below_crest"] > 0.3
     assert mesh.metadata["nemo_surface"]["level"] == half.metadata["nemo_surface"]["level"]
     assert mesh.euler_number == half.euler_number == 4  # the membrane's two closed sides
+
+
+def test_the_half_level_check_flags_a_wall_thinner_than_the_blur(caplog):
+    """The same 1 µm membrane at the default half level: its profiles' level is refused (their crests
+    stay below it), and rather than no check the record says the walls are thinner than the blur, with
+    a warning (and a QC flag, tests/test_summary.py; a 2 µm wall under σz 2 µm read 4.5 µm unflagged in
+    a review)."""
+    spacing, psf = (1.0, 0.5, 0.5), (1.5, 0.5, 0.5)
+    shape, c = _setup(15.0, 1.0, spacing, psf)
+
+    def membrane(x, y, z):
+        r = np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
+        return (r >= 15.0) & (r < 16.0)
+
+    vol = _image(shape, spacing, membrane, psf, sub=2)
+    with caplog.at_level("WARNING", logger="nemo"):
+        check = reconstruct(vol, spacing, keep="all").metadata["nemo_surface"]["edge_check"]
+    assert check["offset"] is None and check["misfit"] < 0.03 and check["thinner_than_blur"] > 0.3
+    assert check["level_share"] > 0.15  # the boxes are the wall (a bright texture on a dim wall: < 0.1)
+    assert "thinner than the image's blur" in caplog.text
 
 
 def test_profile_edge_reports_pieces_of_different_brightness(caplog):
