@@ -1058,11 +1058,15 @@ def test_wild_fits_are_clipped_before_the_average(monkeypatch):
     over the averaging's width (median K error 30 %, worse than the fits alone); clipped at
     3 robust SDs of their residual they do not (10 %)."""
     import nemo.morphology as nm
+    import nemo.surface as ns
     from nemo.mesh import make_mesh
 
     R = 15.0
     vol, _ = render(lambda p: np.linalg.norm(p, axis=-1) - R, (R, R, R), (0.5, 0.5, 0.5), (1.0, 0.4, 0.4),
                     noise=36.0, rng=1)
+    # the surface at the histogram's half level (the fixture measured): corrected from the walls' profiles
+    # (session 32) this ball's surface is smoother and has fewer wild fits (unclipped 18 %, clipped 12 %)
+    monkeypatch.setattr(ns, "EDGE_CHECK_MIN_CORRECTION", np.inf)
     ball = reconstructed(vol, (0.5, 0.5, 0.5))
     keep = np.flatnonzero(ball.triangles_center[:, 2] - ball.vertices[:, 2].mean() > 3.0)
     cap = ball.submesh([keep], append=True)

@@ -96,7 +96,9 @@ def add_arguments(parser) -> None:
                         help="automatic threshold or an intensity iso-level (default yen)")
     parser.add_argument("--edge", choices=("half", "threshold", "profile"), default=None,
                         help="with yen/otsu: surface half-way between object and background intensity "
-                             "(default, the true edge of a blurred object), at the threshold itself, or "
+                             "(default, the true edge of a blurred object; checked against the walls' fitted "
+                             "profiles, and moved to their level when plain walls read a small offset: noise "
+                             "lowers the histogram's plateau), at the threshold itself, or "
                              "'profile': at the half level of blurred boxes fitted to the walls' intensity "
                              "along the normals (noisy or z-blurred walls)")
     add_mask_arguments(parser)
