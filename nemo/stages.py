@@ -725,8 +725,12 @@ def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
     thickness: NaN at its vertices, with a warning, and ``one_wall`` (its labels) in the section.
     ``beyond_view`` marks the rays that met nothing because they left the field of view where the
     image's border cut the surface (:func:`nemo.morphology.beyond_view`; their count in the section).
+    The distances are then averaged over ``smooth`` mean edges of ``mesh_from``
+    (:func:`nemo.morphology.smooth_on_surface`; the width in the mesh unit is the section's
+    ``smooth_width``): a noisy wall's roughness makes each ray's distance scatter.
     """
-    from nemo.morphology import beyond_view
+    from nemo.mesh import mean_edge_length
+    from nemo.morphology import beyond_view, smooth_on_surface
     from nemo.morphology import thickness as ray_thickness
 
     p = nconfig.section("thickness", params)
@@ -744,6 +748,9 @@ def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
     outside = np.zeros(len(d), dtype=bool) if one_wall.all() else beyond_view(
         mesh_from, mesh_to, np.isnan(d) & ~one_wall, p["direction"])
     p["beyond_view"] = int(outside.sum())
+    p["smooth_width"] = float(p["smooth"]) * mean_edge_length(mesh_from) if np.isfinite(d).any() else 0.0
+    if p["smooth_width"] > 0:
+        d = smooth_on_surface(mesh_from, d, p["smooth_width"])[0]  # NaN (no hit, one wall) stays NaN
     df = pd.DataFrame({"vertex": np.arange(len(d), dtype=np.int64), "thickness": d, "beyond_view": outside})
     return _labelled(df, mesh_from), p
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nemo.cli.common import add_common, output_path, positive
+from nemo.cli.common import add_common, non_negative, output_path, positive
 
 HELP = "distance from one surface to another along the vertex normals (ray casting)"
 DESCRIPTION = """\
@@ -12,7 +12,10 @@ For every vertex V of MESH_FROM a ray is cast along its outward normal N (or aga
 both) to MESH_TO; the first hit V* gives d = (V* - V)·N (paper eq. inter-mesh-distance):
 positive when MESH_TO lies outside along N, negative when inside. No hit, or a hit farther than
 --max-distance, gives NaN (never a made-up value). MESH_TO may be MESH_FROM itself (the wall
-thickness of a closed shell: use --direction inward).
+thickness of a closed shell: use --direction inward). The distances are then averaged over the
+surface (--smooth mean edges; a diffusion along the mesh that stays on MESH_FROM): each ray's
+distance scatters by the walls' roughness on a noisy image; --smooth 0 keeps the paper's
+per-vertex distances.
 
 Output columns: vertex, thickness (mesh unit, usually µm).
 
@@ -28,6 +31,10 @@ def add_arguments(parser) -> None:
                         help="along +N, -N, or the closer hit of both (default outward)")
     parser.add_argument("--max-distance", type=positive(float), metavar="UM",
                         help="hits farther than this count as misses (NaN)")
+    parser.add_argument("--smooth", type=non_negative, metavar="EDGES",
+                        help="average the distances over the surface, width in mean edge lengths of MESH_FROM "
+                             "(default 3: a noisy wall's roughness scatters each ray's distance; 0 = the paper's "
+                             "per-vertex distances)")
     add_common(parser, output_help="output table (.parquet)")
 
 

@@ -49,7 +49,7 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
     """
     from nemo import stages
     from nemo.mesh import load_mesh, mean_edge_length
-    from nemo.morphology import curvature, measure, thickness
+    from nemo.morphology import curvature, measure
     from nemo.surface import split_mesh
 
     mesh = load_mesh(mesh_path)
@@ -76,7 +76,7 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
     thick = {}
     if outer is not None:
         t0 = time.perf_counter()
-        d = thickness(surf, outer, direction="outward")
+        d = stages.thickness(surf, outer, {})[0]["thickness"].to_numpy()  # as the workflow's thickness rule
         t_thick = time.perf_counter() - t0
         d0 = shell_thickness(p, truth["inner"], truth["outer"])
         err = np.abs(d - d0)
