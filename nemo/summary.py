@@ -36,10 +36,10 @@ from nemo.track import link_objects
 FRAME_COLUMNS = (
     "t", "c", "layer", "object", "object_id", "surface", "n_objects", "walls", "regions", "centre_x", "centre_y",
     "centre_z", "snr", "saturated", "area", "volume", "euler_characteristic", "closed", "H_mean", "K_mean",
-    "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "thickness_mean", "thickness_median", "thickness_valid",
-    "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median", "coherency_noise",
-    "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum", "defects_faint",
-    "rejected_zeros", "qc_pass", "qc_flags",
+    "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "curvature_noise", "thickness_mean", "thickness_median",
+    "thickness_valid", "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
+    "coherency_noise", "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
+    "defects_faint", "rejected_zeros", "qc_pass", "qc_flags",
 )
 #: Largest |Σ charge − χ| of a closed surface's defects that passes quality control: a missed or
 #: spurious ±½ defect changes the sum by 0.5, the curvature term's discretisation by ≪ 0.1.
@@ -56,6 +56,13 @@ QC_MAX_HOLES = 2
 #: Largest fraction of vertices without a curvature fit that passes (an open surface has a band
 #: along its rim where the fit neighbourhood is cut; most of the surface must still be fitted).
 QC_MAX_CURVATURE_NAN = 0.5
+#: Largest scatter of the curvature fits about their average (``fit_scatter_H``) over the median largest
+#: |principal curvature| that passes: above it H and K per vertex were off by 11-96 % in a review's 90 analyses
+#: of shapes of known curvature (tubes, saddles, oblate rims at SNR 3-10), below it mostly 2-10 %.
+QC_MAX_CURVATURE_NOISE = 0.12
+#: Largest fit radius × the median largest |principal curvature| that passes: a fit wider than the surface's
+#: typical radius of curvature flattens it (a review's torus of an 8 µm tube read H −24 % at 11.3 µm: 1.07).
+QC_MAX_CURVATURE_REACH = 1.0
 #: Largest fraction of a layer's vertices without an intensity (samples outside the image or on
 #: NaN voxels) or without an order value (no tangent plane, no director in reach) that passes.
 QC_MAX_NAN_FRACTION = 0.05
@@ -166,6 +173,19 @@ def _step_params(r: Mapping, table: str, label: int) -> dict:
     return params
 
 
+def _curvature_scales(table: pd.DataFrame, params: Mapping) -> tuple[float, float]:
+    """The curvature fits' scatter about their average (``fit_scatter_H``, :func:`nemo.morphology.curvature`)
+    and their radius (``radius``), each times the median largest |principal curvature| of the table; NaN
+    without them (no averaging, a plane, an older table)."""
+    if not {"k1", "k2"} <= set(table.columns):
+        return math.nan, math.nan
+    k_max = np.fmax(np.abs(table["k1"].to_numpy(dtype=np.float64)), np.abs(table["k2"].to_numpy(dtype=np.float64)))
+    typical = float(np.nanmedian(k_max)) if np.isfinite(k_max).any() else math.nan
+    if not typical > 0:
+        return math.nan, math.nan
+    return _value(params.get("fit_scatter_H")) / typical, _value(params.get("radius")) * typical
+
+
 def _beyond_view(table: pd.DataFrame) -> np.ndarray:
     """The table's ``beyond_view`` (NaN because the field of view ends there: :func:`nemo.stages.peel`,
     :func:`nemo.stages.thickness`); all False for a table without it."""
@@ -273,9 +293,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     holes = (measure.get("n_boundary_loops") or 0) - (measure.get("rim_loops") or 0)
     if holes > QC_MAX_HOLES:
         flags.append(f"surface has {holes} holes besides its rim on the image border (a porous or torn wall?)")
-    missing = row.get("curvature_nan_fraction", math.nan)
-    if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:
-        flags.append(f"no curvature at {100 * missing:.0f} % of vertices (the fit radius reaches the rim)")
+    flags += _curvature_flags(row)
     valid, every = _value(row.get("thickness_valid_in_view")), _value(row.get("thickness_valid"))
     cut = np.isfinite(valid) and bool(row.get("thickness_beyond_view"))  # some rays left the view, some stayed
     valid = valid if cut else every  # none left it, or none stayed: every ray counts
@@ -284,6 +302,25 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     rim_loops = measure.get("rim_loops")  # None: not recorded (an imported surface, an older record)
     cut_by_border = bool(rim_loops) if rim_loops is not None else not closed
     return flags + (_layer_flags(row, closed, chi, cut_by_border) if "n_directors" in row else [])
+
+
+def _curvature_flags(row: Mapping) -> list[str]:
+    """Curvature missing at many vertices, or dominated by the fits' noise."""
+    flags = []
+    missing = row.get("curvature_nan_fraction", math.nan)
+    if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:
+        flags.append(f"no curvature at {100 * missing:.0f} % of vertices (the fit radius reaches the rim)")
+    reach = _value(row.get("curvature_reach"))
+    if np.isfinite(reach) and reach > QC_MAX_CURVATURE_REACH:
+        flags.append(f"curvature fitted over a radius {reach:.2g} × the surface's typical radius of curvature: H and K "
+                     "are flattened (a tube or a neck narrower than the fit; a curvature.radius below the radius of "
+                     "curvature fits it)")
+    noise = _value(row.get("curvature_noise"))
+    if np.isfinite(noise) and noise > QC_MAX_CURVATURE_NOISE:
+        flags.append(f"curvature dominated by noise: the fits scatter by {100 * noise:.0f} % of the surface's typical "
+                     "curvature, so H and K per vertex are uncertain by 10 % or more (a noisy wall, or a surface "
+                     "curved on the scale of a few mesh edges)")
+    return flags
 
 
 def _mask_flags(measure: Mapping) -> list[str]:
@@ -498,6 +535,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["H_fit_mean"] = _finite_mean(cur["H"])
         row["K_fit_mean"] = _finite_mean(cur["K"])
         row["curvature_nan_fraction"] = _nan_fraction(cur["H"])
+        row["curvature_noise"], row["curvature_reach"] = _curvature_scales(cur, _step_params(r, "curvature", label))
     if "thickness" in tables:
         th = tables["thickness"]["thickness"].to_numpy(dtype=np.float64)
         row["thickness_mean"] = _finite_mean(th)

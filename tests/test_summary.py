@@ -38,8 +38,9 @@ def frame_files(tmp_path):
     d.mkdir()
     (d / "measure.json").write_text(json.dumps({"area": 12.5, "volume": 7.0, "euler_characteristic": 2,
                                                 "mean_H": 0.1, "mean_K": 0.01}))
-    write_table(pd.DataFrame({"vertex": [0, 1, 2], "H": [1.0, 2.0, NAN], "K": [0.5, NAN, 1.5]}),
-                d / "curvature.parquet")
+    write_table(pd.DataFrame({"vertex": [0, 1, 2], "H": [1.0, 2.0, NAN], "K": [0.5, NAN, 1.5],
+                              "k1": [1.0, 2.0, NAN], "k2": [-4.0, 0.5, NAN]}),
+                d / "curvature.parquet", parameters={"fit_scatter_H": 0.6, "radius": 0.2})
     write_table(pd.DataFrame({"vertex": [0, 1, 2, 3], "thickness": [1.0, 2.0, 6.0, NAN]}),
                 d / "thickness.parquet")
     write_table(pd.DataFrame({"vertex": [0, 1, 2], "intensity": [1.0, 3.0, NAN]}), d / "layer.parquet")
@@ -64,11 +65,14 @@ def test_frame_summary_means_ignore_nan(frame_files):
         "t": 1, "c": 0, "layer": "basal", "surface": "inner", "area": 12.5, "volume": 7.0,
         "euler_characteristic": 2.0, "H_mean": 0.1, "K_mean": 0.01,
         "H_fit_mean": 1.5, "K_fit_mean": 1.0, "curvature_nan_fraction": 1 / 3,  # NaN dropped
+        "curvature_noise": 0.6 / 3.0,  # the fits' scatter over the median largest |k| (4 and 2)
         "thickness_mean": 3.0, "thickness_median": 2.0, "thickness_valid": 0.75,  # 3 of 4 finite
         "intensity_mean": 2.0, "peel_nan_fraction": 1 / 3, "n_directors": 2, "coherency_mean": 0.3,
         "coherency_median": 0.3, "S_mean": 0.4, "S_median": 0.2, "order_nan_fraction": 0.25,
         "n_defects": 3, "charge_sum": 0.55, "charge_rounded_sum": 0.5, "qc_pass": False,
-        "qc_flags": "thickness found at 75 % of vertices; 33 % of vertices have no layer intensity "
+        "qc_flags": "curvature dominated by noise: the fits scatter by 20 % of the surface's typical curvature, "
+                    "so H and K per vertex are uncertain by 10 % or more (a noisy wall, or a surface curved on the "
+                    "scale of a few mesh edges); thickness found at 75 % of vertices; 33 % of vertices have no layer intensity "
                     "(samples outside the image?); 25 % of vertices have no order value (no tangent "
                     "plane or director in reach); Σ charge 0.55 ≠ χ 2 (3 defects)",
     }
@@ -316,6 +320,14 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"thickness_valid": 0.0, "thickness_valid_in_view": NAN}, {"n_components": 1, "n_boundary_loops": 1},
      ["thickness found at 0 % of vertices"]),
     ({"curvature_nan_fraction": 0.5}, CLOSED, []),
+    ({"curvature_noise": 0.11, "curvature_reach": 0.95}, CLOSED, []),
+    ({"curvature_reach": 1.07}, CLOSED,
+     ["curvature fitted over a radius 1.1 × the surface's typical radius of curvature: H and K are flattened (a "
+      "tube or a neck narrower than the fit; a curvature.radius below the radius of curvature fits it)"]),
+    ({"curvature_noise": NAN}, CLOSED, []),
+    ({"curvature_noise": 0.25}, CLOSED,
+     ["curvature dominated by noise: the fits scatter by 25 % of the surface's typical curvature, so H and K per "
+      "vertex are uncertain by 10 % or more (a noisy wall, or a surface curved on the scale of a few mesh edges)"]),
     ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
     ({"snr": 3.0}, {**CLOSED, "n_objects": 1}, []),
