@@ -734,7 +734,7 @@ def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
     from nemo.morphology import thickness as ray_thickness
 
     p = nconfig.section("thickness", params)
-    one_wall, labels = _one_wall(mesh_from, mesh_to)
+    one_wall, labels = _one_wall(mesh_from, mesh_to, p["direction"])
     p["one_wall"] = labels
     if labels:
         what = "the object has" if labels == [None] else f"object(s) {labels} have"
@@ -755,20 +755,31 @@ def thickness(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh,
     return _labelled(df, mesh_from), p
 
 
-def _one_wall(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh) -> tuple[np.ndarray, list]:
-    """(per vertex of ``mesh_from``: its object is the same surface in ``mesh_to``, those objects'
-    labels; [None] for an unlabelled mesh)."""
+def _one_wall(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh, direction: str) -> tuple[np.ndarray, list]:
+    """(per vertex of ``mesh_from``: its object is the same surface in ``mesh_to`` and has one wall,
+    those objects' labels; [None] for an unlabelled mesh).
+
+    The mesh step's record (``walls`` in the mesh's ``nemo_params``) says whether an object has one
+    wall; a surface without it (built in memory, or another tool's) counts as one wall when it is
+    the same surface twice, unless the rays go ``inward`` (a closed shell's whole surface to itself).
+    """
     def same(a: trimesh.Trimesh, b: trimesh.Trimesh) -> bool:
         return a.faces.shape == b.faces.shape and a.vertices.shape == b.vertices.shape and bool(
             np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices))
 
+    walls = (mesh_from.metadata.get("nemo_params") or {}).get("walls")
+
+    def one_wall(label: int) -> bool:
+        return direction != "inward" if walls is None else objects.value_for(walls, label) == 1
+
     n = len(mesh_from.vertices)
     parts_from, parts_to = objects.parts(mesh_from), objects.parts(mesh_to)
     if parts_from is None or parts_to is None:
-        one = same(mesh_from, mesh_to)
+        one = same(mesh_from, mesh_to) and one_wall(0)
         return np.full(n, one), [None] if one else []
     to = {part.label: part.mesh for part in parts_to}
-    one = [part for part in parts_from if part.label in to and same(part.mesh, to[part.label])]  # per object
+    one = [part for part in parts_from
+           if part.label in to and same(part.mesh, to[part.label]) and one_wall(part.label)]  # per object
     mask = np.zeros(n, dtype=bool)
     for part in one:
         mask[part.vertices] = True

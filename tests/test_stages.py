@@ -1235,3 +1235,29 @@ def test_thickness_is_averaged_over_the_surface_and_keeps_its_misses():
     assert iqr(raw) > 0.35 and iqr(d) < 0.2 * iqr(raw), (iqr(raw), iqr(d))
     assert np.nanmedian(np.abs(d - 5.0)) < 0.7 * np.nanmedian(np.abs(raw - 5.0))
     assert np.nanmedian(d) == pytest.approx(np.nanmedian(raw), abs=0.05)
+
+
+def test_thickness_of_a_shells_whole_surface_to_itself(tmp_path):
+    """One surface holding both walls of a shell (outer sphere R 25, inner R 20 facing the lumen), given
+    as both ends with rays inward: each vertex's ray crosses the wall, 5 µm (a review: all NaN, warned as
+    one wall, though `nemo thickness --help` offers it). Where the mesh step recorded the walls, the
+    record decides: an object of one wall (``walls`` 1) stays NaN, a shell's whole surface (``walls``
+    2) is measured; without a record the same surface with rays outward counts as one wall."""
+    from nemo.mesh import load_mesh, save_mesh
+
+    outer = trimesh.creation.icosphere(subdivisions=4, radius=25.0)
+    inner = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    whole = make_mesh(np.vstack([outer.vertices, inner.vertices]),
+                      np.vstack([outer.faces, inner.faces[:, ::-1] + len(outer.vertices)]), orient_outward=False)
+    d = stages.thickness(whole, whole, {"direction": "inward", "smooth": 0})[0]["thickness"].to_numpy()
+    assert np.isfinite(d).all() and np.abs(np.abs(d) - 5.0).max() < 0.3
+    with pytest.warns(NemoWarning, match="one wall"):  # no record, rays outward: the same surface twice
+        assert stages.thickness(whole, whole, {})[0]["thickness"].isna().all()
+    for walls, measured in ((2, True), (1, False)):
+        whole.metadata["nemo_params"] = {"walls": walls}
+        save_mesh(whole, tmp_path / f"w{walls}.ply")
+        again = load_mesh(tmp_path / f"w{walls}.ply", manifold=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NemoWarning)
+            d = stages.thickness(again, again, {"direction": "inward"})[0]["thickness"].to_numpy()
+        assert np.isfinite(d).any() == measured
