@@ -13,10 +13,10 @@ both) to MESH_TO; the first hit V* gives d = (V* - V)·N (paper eq. inter-mesh-d
 positive when MESH_TO lies outside along N, negative when inside. No hit, or a hit farther than
 --max-distance, gives NaN (never a made-up value). MESH_TO may be MESH_FROM itself (the wall
 thickness of a closed shell from its whole surface, both walls in one mesh: use --direction
-inward); an object `nemo mesh` found to have one wall (a droplet, split auto) has none: NaN. The distances are then averaged over the
-surface (--smooth mean edges; a diffusion along the mesh that stays on MESH_FROM): each ray's
-distance scatters by the walls' roughness on a noisy image; --smooth 0 keeps the paper's
-per-vertex distances.
+inward); an object `nemo mesh` found to have one wall (a droplet, split auto) has none: NaN.
+The distances are then averaged over the surface (--smooth mean edges; a diffusion along the
+mesh that stays on MESH_FROM): each ray's distance scatters by the walls' roughness on a noisy
+image; --smooth 0 keeps the paper's per-vertex distances.
 
 Output columns: vertex, thickness (mesh unit, usually µm).
 
