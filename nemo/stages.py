@@ -219,6 +219,8 @@ def mesh(
                     info["n_loops"], info["n_vertices"])
     p["wall_rim_loops"] = _wall_rim_loops(meshes, info, len(found) if p["keep"] == "all" and len(found) > 1 else 0)
     p["rim_loops"] = p["wall_rim_loops"]["whole"]
+    for name, m in meshes.items():  # as a saved wall keeps it (its walls tell the thickness step one-wall objects)
+        m.metadata["nemo_params"] = wall_params(p, name)
     return meshes, p
 
 
@@ -759,15 +761,17 @@ def _one_wall(mesh_from: trimesh.Trimesh, mesh_to: trimesh.Trimesh, direction: s
     """(per vertex of ``mesh_from``: its object is the same surface in ``mesh_to`` and has one wall,
     those objects' labels; [None] for an unlabelled mesh).
 
-    The mesh step's record (``walls`` in the mesh's ``nemo_params``) says whether an object has one
-    wall; a surface without it (built in memory, or another tool's) counts as one wall when it is
-    the same surface twice, unless the rays go ``inward`` (a closed shell's whole surface to itself).
+    The mesh step's record (``walls`` in the mesh's ``nemo_params``, as :func:`mesh` leaves it on its
+    meshes and the saved walls keep it) says whether an object has one wall; a surface without it
+    (another tool's, or ``split: none``, which counts nothing) counts as one wall when it is the same
+    surface twice, unless the rays go ``inward`` (a closed shell's whole surface to itself).
     """
     def same(a: trimesh.Trimesh, b: trimesh.Trimesh) -> bool:
         return a.faces.shape == b.faces.shape and a.vertices.shape == b.vertices.shape and bool(
             np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices))
 
-    walls = (mesh_from.metadata.get("nemo_params") or {}).get("walls")
+    record = mesh_from.metadata.get("nemo_params") or {}
+    walls = None if record.get("split") == "none" else record.get("walls")  # split: none counts no walls
 
     def one_wall(label: int) -> bool:
         return direction != "inward" if walls is None else objects.value_for(walls, label) == 1

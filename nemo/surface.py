@@ -1940,7 +1940,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     on :data:`EDGE_CHECK_RAYS` rays).
 
     Where the walls are plain boxes (``misfit`` ≤ :data:`EDGE_CHECK_MAX_MISFIT`), ``offset`` is the
-    profiles' level minus the half level over the walls' fitted contrast. A small offset, between
+    profiles' level minus the half level over the walls' fitted contrast. A small positive offset, between
     :data:`EDGE_CHECK_MIN_CORRECTION` and :data:`EDGE_CHECK_MAX_OFFSET`, of walls whose boxes the
     half level cuts at :data:`EDGE_CHECK_MIN_CORRECTED_SHARE` of their height or more (noise that
     lowers the histogram's plateau) is ``corrected``: the caller meshes at ``level_profile``. Beyond
@@ -1951,8 +1951,9 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     walls refused because they are thinner than the blur (their blurred crest stays below the
     profiles' level on more than :data:`nemo.refine.PROFILE_MAX_BELOW_CREST` of the rays, and the
     level at least :data:`EDGE_CHECK_MIN_LEVEL_SHARE` of the boxes' height: the boxes are the meshed
-    walls, not bright fibres on a dim wall) get ``thinner_than_blur``, that share of the rays: they
-    come out about as thick as the blur, warned and flagged too.
+    walls, not bright fibres on a dim wall; at least :data:`EDGE_CHECK_MIN_FITTED` of the rays fitted)
+    get ``thinner_than_blur``, that share of the rays: they come out about as thick as the blur,
+    warned and flagged too.
     """
     from nemo.refine import PROFILE_MAX_BELOW_CREST, wall_profile_level
 
@@ -1969,7 +1970,8 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     if record["misfit"] is None or record["misfit"] > EDGE_CHECK_MAX_MISFIT:
         return record
     if found is None:  # plain walls the fit refused: too few fits, or walls thinner than the blur
-        if (info["below_crest"] or 0.0) > PROFILE_MAX_BELOW_CREST and info["level_share"] >= EDGE_CHECK_MIN_LEVEL_SHARE:
+        if ((info["below_crest"] or 0.0) > PROFILE_MAX_BELOW_CREST and info["level_share"] >= EDGE_CHECK_MIN_LEVEL_SHARE
+                and info["fitted"] >= EDGE_CHECK_MIN_FITTED * info["rays"]):  # not a noisy mesh whose rays miss
             record["thinner_than_blur"] = float(info["below_crest"])
             logger.warning("the walls are thinner than the image's blur on %.0f %% of their profiles (their blurred "
                            "crests stay below the profiles' own half level): they come out about as thick as the "
@@ -1977,7 +1979,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
                            "z-elongated PSF; psf: deconvolves by a known PSF)", 100 * record["thinner_than_blur"])
         return record
     record["offset"] = offset = float((found - level) / info["contrast"])
-    record["corrected"] = (EDGE_CHECK_MIN_CORRECTION <= abs(offset) <= EDGE_CHECK_MAX_OFFSET
+    record["corrected"] = (EDGE_CHECK_MIN_CORRECTION <= offset <= EDGE_CHECK_MAX_OFFSET  # the plateau lowered by noise
                            and info["level_share"] >= EDGE_CHECK_MIN_CORRECTED_SHARE)
     if record["corrected"]:
         logger.info("the walls' own profiles put their edges at level %.4g, %+.0f %% of their contrast from the half "
@@ -2012,6 +2014,9 @@ EDGE_CHECK_MIN_CORRECTED_SHARE = 0.35
 #: tell walls thinner than the blur: those read 0.17-0.27 (a 1 µm membrane under σz 1.5 µm; 2-4 µm walls under
 #: σz 2-3 µm), the synthetic vesicles' 10 µm walls 0.06-0.07 (their boxes fit the bright fibres, not the dim wall).
 EDGE_CHECK_MIN_LEVEL_SHARE = 0.12
+#: Least share of the rays with a fitted wall at which refused ones tell walls thinner than the blur: those fit
+#: 99-100 % of their rays; an under-blurred noisy wall whose rays miss it fitted 45 % (a review's false flag).
+EDGE_CHECK_MIN_FITTED = 0.6
 
 
 def _level_surface(padded: np.ndarray, level: float, spacing: tuple[float, float, float], step: int,

@@ -514,6 +514,32 @@ def test_profile_edge_keeps_the_half_level_on_a_wall_thinner_than_the_blur(caplo
     assert mesh.euler_number == half.euler_number == 4  # the membrane's two closed sides
 
 
+def test_the_half_level_is_corrected_upward_only(monkeypatch):
+    """Noise lowers the histogram's plateau, so a plain wall's profiles read a level above the half
+    level, and only such an offset is corrected; profiles read below it (not what noise does: a review
+    found them re-meshed with that reason) leave the half level as it is."""
+    import nemo.refine as refine_module
+
+    found = refine_module.wall_profile_level
+
+    def shifted(*args, **kwargs):  # the walls' fitted level 6 % of their contrast off the half level
+        level, info = found(*args, **kwargs)
+        return args[5] + shift * info["contrast"], info
+
+    monkeypatch.setattr(refine_module, "wall_profile_level", shifted)
+    vol, _ = _thin_shell((1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 10.0, seed=1, R=15.0, T=6.0)
+    sigma = auto_sigma(vol, (1.0, 1.0, 1.0))[0]
+    records = {}
+    for shift in (0.06, -0.06):
+        mesh = reconstruct(vol, (1.0, 1.0, 1.0), sigma=sigma, keep="all")
+        records[shift] = mesh.metadata["nemo_surface"]
+    up, down = records[0.06], records[-0.06]
+    assert up["edge_check"]["corrected"] and up["level"] == pytest.approx(up["edge_check"]["level_profile"])
+    assert up["level"] > up["edge_check"]["level_half"]
+    assert not down["edge_check"]["corrected"] and down["level"] == down["edge_check"]["level_half"]
+    assert down["edge_check"]["offset"] == pytest.approx(-0.06, abs=1e-6)
+
+
 def test_the_half_level_check_flags_a_wall_thinner_than_the_blur(caplog):
     """The same 1 µm membrane at the default half level: its profiles' level is refused (their crests
     stay below it), and rather than no check the record says the walls are thinner than the blur, with

@@ -1253,11 +1253,25 @@ def test_thickness_of_a_shells_whole_surface_to_itself(tmp_path):
     assert np.isfinite(d).all() and np.abs(np.abs(d) - 5.0).max() < 0.3
     with pytest.warns(NemoWarning, match="one wall"):  # no record, rays outward: the same surface twice
         assert stages.thickness(whole, whole, {})[0]["thickness"].isna().all()
-    for walls, measured in ((2, True), (1, False)):
-        whole.metadata["nemo_params"] = {"walls": walls}
-        save_mesh(whole, tmp_path / f"w{walls}.ply")
-        again = load_mesh(tmp_path / f"w{walls}.ply", manifold=False)
+    for record, measured in (({"walls": 2}, True), ({"walls": 1}, False), ({"walls": 1, "split": "none"}, True)):
+        whole.metadata["nemo_params"] = record  # split: none records one wall without counting (a review)
+        save_mesh(whole, tmp_path / "w.ply")
+        again = load_mesh(tmp_path / "w.ply", manifold=False)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", NemoWarning)
             d = stages.thickness(again, again, {"direction": "inward"})[0]["thickness"].to_numpy()
         assert np.isfinite(d).any() == measured
+
+
+def test_a_droplets_walls_from_the_mesh_step_have_no_thickness_either_way():
+    """A droplet (one wall, ``split: auto``) meshed in memory: its walls carry the mesh step's record, so
+    the thickness from its outer to its inner surface is NaN with rays inward too (a review: without the
+    record the API returned the droplet's chords, 23.8 µm for an R 12 µm ball)."""
+    zz, yy, xx = np.mgrid[:36, :36, :36]
+    vol = 20.0 + 100.0 * (np.sqrt((zz - 17.5) ** 2 + (yy - 17.5) ** 2 + (xx - 17.5) ** 2) < 12.0)
+    meshes, p = stages.mesh(vol, (1.0, 1.0, 1.0), {})
+    assert p["walls"] == 1 and meshes["inner"].metadata["nemo_params"]["walls"] == 1
+    for direction in ("outward", "inward"):
+        with pytest.warns(NemoWarning, match="one wall"):
+            df, tp = stages.thickness(meshes["outer"], meshes["inner"], {"direction": direction})
+        assert df["thickness"].isna().all() and tp["one_wall"] == [None]

@@ -39,8 +39,9 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
     (:func:`nemo.stages.curvature`, ``radius_source`` ``default``); errors are
     |est − exact| / RMS(exact) over the vertices (the relative error for a sphere). Shells are
     split into inner/outer walls (``nemo.surface.split_mesh``) and the thickness from the inner
-    wall along its normals is compared with the exact normal-ray distance (µm and in voxels of
-    the largest spacing).
+    wall along its normals, as the workflow's thickness step gives it at its defaults
+    (:func:`nemo.stages.thickness`: averaged over ``thickness.smooth`` mean edges), is compared
+    with the exact normal-ray distance (µm and in voxels of the largest spacing).
 
     Returns
     -------
@@ -76,7 +77,7 @@ def score_shape(mesh_path: str | os.PathLike, truth: dict) -> list[dict]:
     thick = {}
     if outer is not None:
         t0 = time.perf_counter()
-        d = stages.thickness(surf, outer, {})[0]["thickness"].to_numpy()  # as the workflow's thickness rule
+        d = stages.thickness(surf, outer, {})[0]["thickness"].to_numpy()  # the thickness rule at its defaults
         t_thick = time.perf_counter() - t0
         d0 = shell_thickness(p, truth["inner"], truth["outer"])
         err = np.abs(d - d0)
