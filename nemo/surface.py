@@ -1942,8 +1942,11 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     Where the walls are plain boxes (``misfit`` ≤ :data:`EDGE_CHECK_MAX_MISFIT`), ``offset`` is the
     profiles' level minus the half level over the walls' fitted contrast. A small positive offset, between
     :data:`EDGE_CHECK_MIN_CORRECTION` and :data:`EDGE_CHECK_MAX_OFFSET`, of walls whose boxes the
-    half level cuts at :data:`EDGE_CHECK_MIN_CORRECTED_SHARE` of their height or more (noise that
-    lowers the histogram's plateau) is ``corrected``: the caller meshes at ``level_profile``. Beyond
+    half level cuts at :data:`EDGE_CHECK_MIN_CORRECTED_SHARE` of their height or more, and no larger
+    than the image's noise explains (``offset_snr``, the offset × the SNR of :func:`image_noise`, at
+    most :data:`EDGE_CHECK_MAX_NOISE_OFFSET`: noise lowers the histogram's plateau; a bright sheet
+    inside the wall shifts the profiles' level more) is ``corrected``: the caller meshes at
+    ``level_profile``. Beyond
     :data:`EDGE_CHECK_MAX_OFFSET` a warning says the walls are placed outward (thin or z-blurred
     walls: their crests never reach the plateau the half level is taken from) or inward, and the
     summary's quality control flags the frame. Textured walls (fibres by the surfaces) and walls
@@ -1979,8 +1982,11 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
                            "z-elongated PSF; psf: deconvolves by a known PSF)", 100 * record["thinner_than_blur"])
         return record
     record["offset"] = offset = float((found - level) / info["contrast"])
-    record["corrected"] = (EDGE_CHECK_MIN_CORRECTION <= offset <= EDGE_CHECK_MAX_OFFSET  # the plateau lowered by noise
-                           and info["level_share"] >= EDGE_CHECK_MIN_CORRECTED_SHARE)
+    if (EDGE_CHECK_MIN_CORRECTION <= offset <= EDGE_CHECK_MAX_OFFSET
+            and info["level_share"] >= EDGE_CHECK_MIN_CORRECTED_SHARE):  # what noise lowering the plateau does
+        snr = image_noise(source, level)["snr"]
+        record["offset_snr"] = None if snr is None else offset * snr
+        record["corrected"] = snr is not None and offset * snr <= EDGE_CHECK_MAX_NOISE_OFFSET
     if record["corrected"]:
         logger.info("the walls' own profiles put their edges at level %.4g, %+.0f %% of their contrast from the half "
                     "level %.4g (noise lowers the histogram's plateau): meshed at the profiles' level",
@@ -2007,6 +2013,10 @@ EDGE_CHECK_MAX_OFFSET = 0.1
 #: Smallest offset of the half level from plain walls' profiles' level (over their contrast) that is corrected:
 #: noise-free plain walls read 0.002-0.02, where the half level is right and the profiles' level 0.04 µm off.
 EDGE_CHECK_MIN_CORRECTION = 0.03
+#: Largest offset × the image's SNR that is corrected: noise lowers the histogram's plateau by about 0.15-0.31 /
+#: SNR of the contrast on plain walls (8-bit and 16-bit, clipped or not; independent data), while a bright sheet
+#: inside the wall (0.74-1.53) or a thin z-blurred wall (0.73-2.4) offsets the level by more than noise explains.
+EDGE_CHECK_MAX_NOISE_OFFSET = 0.45
 #: Smallest height of the half level over the fitted boxes' at which the half level is corrected: plain walls read
 #: 0.42-0.49 to SNR 3; a bright sheet inside a wall 0.25 (its boxes fit the sheet), walls thinner than the blur 0.17-0.27.
 EDGE_CHECK_MIN_CORRECTED_SHARE = 0.35
