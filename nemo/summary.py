@@ -325,8 +325,8 @@ def _curvature_flags(row: Mapping) -> list[str]:
     noise = _value(row.get("curvature_noise"))
     if np.isfinite(noise) and noise > QC_MAX_CURVATURE_NOISE:
         flags.append(f"curvature dominated by noise: the fits scatter by {100 * noise:.0f} % of the surface's typical "
-                     "curvature, so H and K per vertex are uncertain by 10 % or more (a noisy wall, or a surface "
-                     "curved on the scale of a few mesh edges)")
+                     "curvature, so H and K per vertex are noisy (median errors of 8 % or more in tests; a noisy wall, "
+                     "or a surface curved on the scale of a few mesh edges)")
     return flags
 
 

@@ -71,8 +71,8 @@ def test_frame_summary_means_ignore_nan(frame_files):
         "coherency_median": 0.3, "S_mean": 0.4, "S_median": 0.2, "order_nan_fraction": 0.25,
         "n_defects": 3, "charge_sum": 0.55, "charge_rounded_sum": 0.5, "qc_pass": False,
         "qc_flags": "curvature dominated by noise: the fits scatter by 20 % of the surface's typical curvature, "
-                    "so H and K per vertex are uncertain by 10 % or more (a noisy wall, or a surface curved on the "
-                    "scale of a few mesh edges); thickness found at 75 % of vertices; 33 % of vertices have no layer intensity "
+                    "so H and K per vertex are noisy (median errors of 8 % or more in tests; a noisy wall, or a "
+                    "surface curved on the scale of a few mesh edges); thickness found at 75 % of vertices; 33 % of vertices have no layer intensity "
                     "(samples outside the image?); 25 % of vertices have no order value (no tangent "
                     "plane or director in reach); Σ charge 0.55 ≠ χ 2 (3 defects)",
     }
@@ -327,7 +327,8 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"curvature_noise": NAN}, CLOSED, []),
     ({"curvature_noise": 0.25}, CLOSED,
      ["curvature dominated by noise: the fits scatter by 25 % of the surface's typical curvature, so H and K per "
-      "vertex are uncertain by 10 % or more (a noisy wall, or a surface curved on the scale of a few mesh edges)"]),
+      "vertex are noisy (median errors of 8 % or more in tests; a noisy wall, or a surface curved on the scale of a "
+      "few mesh edges)"]),
     ({"curvature_nan_fraction": 0.65}, CLOSED, ["no curvature at 65 % of vertices (the fit radius reaches the rim)"]),
     ({"snr": 2.4}, CLOSED, ["low signal-to-noise ratio 2.4 in the segmented channel"]),
     ({"snr": 3.0}, {**CLOSED, "n_objects": 1}, []),
