@@ -73,8 +73,8 @@ def test_frame_summary_means_ignore_nan(frame_files):
         "qc_flags": "curvature dominated by noise: the fits scatter by 20 % of the surface's typical curvature, "
                     "so H and K per vertex are noisy (median errors of 8 % or more in tests; a noisy wall, or a "
                     "surface curved on the scale of a few mesh edges); thickness found at 75 % of vertices; 33 % of "
-                    "vertices have no layer intensity (samples outside the image?); 25 % of vertices have no order value (no tangent "
-                    "plane or director in reach); Σ charge 0.55 ≠ χ 2 (3 defects)",
+                    "vertices have no layer intensity (samples outside the image?); 25 % of vertices have no order "
+                    "value (no tangent plane or director in reach); Σ charge 0.55 ≠ χ 2 (3 defects)",
     }
     for key, value in expected.items():
         if isinstance(value, str):
