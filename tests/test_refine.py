@@ -492,10 +492,8 @@ def test_profile_edge_stays_at_the_half_level_without_walls_in_reach(caplog):
     assert np.median(_radial(mesh, c)) == pytest.approx(45.0, abs=0.3)
 
 
-def test_profile_edge_keeps_the_half_level_on_a_wall_thinner_than_the_blur(caplog):
-    """A 1 µm membrane under a 1.5 µm z-PSF never reaches its box's half height: the fitted level
-    (~50 for a crest of ~35) would tear the surface (37 pieces, χ 52 in a review). The level stays the
-    half level, warned, recorded with the fraction of rays whose crest is below it (57 %)."""
+def _membrane():
+    """A 1 µm membrane (R 15-16 µm) under a 1.5 µm z-PSF at 1 × 0.5 × 0.5 µm voxels: (image, spacing)."""
     spacing, psf = (1.0, 0.5, 0.5), (1.5, 0.5, 0.5)
     shape, c = _setup(15.0, 1.0, spacing, psf)
 
@@ -503,7 +501,14 @@ def test_profile_edge_keeps_the_half_level_on_a_wall_thinner_than_the_blur(caplo
         r = np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
         return (r >= 15.0) & (r < 16.0)
 
-    vol = _image(shape, spacing, membrane, psf, sub=2)
+    return _image(shape, spacing, membrane, psf, sub=2), spacing
+
+
+def test_profile_edge_keeps_the_half_level_on_a_wall_thinner_than_the_blur(caplog):
+    """A 1 µm membrane under a 1.5 µm z-PSF never reaches its box's half height: the fitted level
+    (~50 for a crest of ~35) would tear the surface (37 pieces, χ 52 in a review). The level stays the
+    half level, warned, recorded with the fraction of rays whose crest is below it (57 %)."""
+    vol, spacing = _membrane()
     with caplog.at_level("WARNING", logger="nemo"):
         mesh = reconstruct(vol, spacing, keep="all", edge="profile")
     half = reconstruct(vol, spacing, keep="all")
@@ -548,14 +553,7 @@ def test_the_half_level_check_flags_a_wall_thinner_than_the_blur(caplog):
     stay below it), and rather than no check the record says the walls are thinner than the blur, with
     a warning (and a QC flag, tests/test_summary.py; a 2 µm wall under σz 2 µm read 4.5 µm unflagged in
     a review)."""
-    spacing, psf = (1.0, 0.5, 0.5), (1.5, 0.5, 0.5)
-    shape, c = _setup(15.0, 1.0, spacing, psf)
-
-    def membrane(x, y, z):
-        r = np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
-        return (r >= 15.0) & (r < 16.0)
-
-    vol = _image(shape, spacing, membrane, psf, sub=2)
+    vol, spacing = _membrane()
     with caplog.at_level("WARNING", logger="nemo"):
         check = reconstruct(vol, spacing, keep="all").metadata["nemo_surface"]["edge_check"]
     assert check["offset"] is None and check["misfit"] < 0.03 and check["thinner_than_blur"] > 0.3
