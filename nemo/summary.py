@@ -57,8 +57,9 @@ QC_MAX_HOLES = 2
 #: along its rim where the fit neighbourhood is cut; most of the surface must still be fitted).
 QC_MAX_CURVATURE_NAN = 0.5
 #: Largest scatter of the curvature fits about their average (``fit_scatter_H``) over the median largest
-#: |principal curvature| that passes: above it H and K per vertex were off by 11-96 % in a review's 90 analyses
-#: of shapes of known curvature (tubes, saddles, oblate rims at SNR 3-10), below it mostly 2-10 %.
+#: |principal curvature| that passes: above it H per vertex was off by 11-96 % in a review's 90 analyses of
+#: shapes of known curvature (tubes, saddles, oblate rims at SNR 3-10; another review's R 10 µm droplet at 0.13:
+#: 7.5 %), below it mostly 2-10 %.
 QC_MAX_CURVATURE_NOISE = 0.12
 #: Largest fit radius × the median largest |principal curvature| that passes: a fit wider than the surface's
 #: typical radius of curvature flattens it (a review's torus of an 8 µm tube read H −24 % at 11.3 µm: 1.07).
@@ -312,7 +313,8 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
 
 
 def _curvature_flags(row: Mapping) -> list[str]:
-    """Curvature missing at many vertices, or dominated by the fits' noise."""
+    """Curvature missing at many vertices, fitted over more than the surface's radius of curvature, or
+    dominated by the fits' noise."""
     flags = []
     missing = row.get("curvature_nan_fraction", math.nan)
     if np.isfinite(missing) and missing > QC_MAX_CURVATURE_NAN:

@@ -1969,7 +1969,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     record = {"rays": info["rays"], "fitted": info["fitted"], "misfit": info.get("misfit"), "offset": None,
               "limit": EDGE_CHECK_MAX_OFFSET, "level_profile": None if found is None else float(found) * scale,
               "thinner_than_blur": None, "level_share": info.get("level_share"), "corrected": False,
-              "level_half": float(level) * scale}
+              "offset_snr": None, "level_half": float(level) * scale}
     if record["misfit"] is None or record["misfit"] > EDGE_CHECK_MAX_MISFIT:
         return record
     if found is None:  # plain walls the fit refused: too few fits, or walls thinner than the blur
