@@ -64,8 +64,8 @@ QC_MAX_CURVATURE_NOISE = 0.12
 #: Largest fit radius × the median largest |principal curvature| that passes: a fit wider than the surface's
 #: typical radius of curvature flattens it (a review's torus of an 8 µm tube read H −24 % at 11.3 µm: 1.07).
 QC_MAX_CURVATURE_REACH = 1.0
-#: Least typical curvature, times the fit radius, that the curvature's noise is compared with: a sphere fitted at
-#: 0.6 of its radius reads 1.7, an open cap of R 60 µm at 18 µm 0.3; flatter surfaces count as this curved.
+#: Least typical curvature, times the surface's size √(A/4π), that the curvature's noise is compared with: a
+#: sphere reads 1, an open cap of R 60 µm cut to 40 µm across ~0.3; flatter surfaces count as this curved.
 CURVATURE_FLAT = 0.25
 #: Largest fraction of a layer's vertices without an intensity (samples outside the image or on
 #: NaN voxels) or without an order value (no tangent plane, no director in reach) that passes.
@@ -177,21 +177,22 @@ def _step_params(r: Mapping, table: str, label: int) -> dict:
     return params
 
 
-def _curvature_scales(table: pd.DataFrame, params: Mapping) -> tuple[float, float]:
+def _curvature_scales(table: pd.DataFrame, params: Mapping, area: float) -> tuple[float, float]:
     """The curvature fits' scatter about their average (``fit_scatter_H``, :func:`nemo.morphology.curvature`)
     over the surface's typical curvature, and their radius (``radius``) times it; the typical curvature is
-    the median largest |principal curvature| of the table, at least :data:`CURVATURE_FLAT` / the radius
-    (a plane's curvatures are the fits' noise: the ratio would read ~1 on any plane); NaN without them."""
+    the median largest |principal curvature| of the table, at least :data:`CURVATURE_FLAT` / the surface's
+    size √(area / 4π) (a plane's curvatures are the fits' noise: the ratio would read ~1 on any plane;
+    a sphere's is 1 / its size); NaN without them."""
     if not {"k1", "k2"} <= set(table.columns):
         return math.nan, math.nan
     k_max = np.fmax(np.abs(table["k1"].to_numpy(dtype=np.float64)), np.abs(table["k2"].to_numpy(dtype=np.float64)))
     typical = float(np.nanmedian(k_max)) if np.isfinite(k_max).any() else math.nan
-    radius = _value(params.get("radius"))
-    if np.isfinite(radius) and radius > 0:  # a nearly flat surface: its curvature is itself the fits' noise
-        typical = max(typical, CURVATURE_FLAT / radius) if np.isfinite(typical) else CURVATURE_FLAT / radius
+    if np.isfinite(area) and area > 0:  # a nearly flat surface: its curvature is itself the fits' noise
+        flat = CURVATURE_FLAT / math.sqrt(area / (4 * math.pi))
+        typical = max(typical, flat) if np.isfinite(typical) else flat
     if not typical > 0:
         return math.nan, math.nan
-    return _value(params.get("fit_scatter_H")) / typical, radius * typical
+    return _value(params.get("fit_scatter_H")) / typical, _value(params.get("radius")) * typical
 
 
 def _beyond_view(table: pd.DataFrame) -> np.ndarray:
@@ -544,7 +545,8 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
         row["H_fit_mean"] = _finite_mean(cur["H"])
         row["K_fit_mean"] = _finite_mean(cur["K"])
         row["curvature_nan_fraction"] = _nan_fraction(cur["H"])
-        row["curvature_noise"], row["curvature_reach"] = _curvature_scales(cur, _step_params(r, "curvature", label))
+        row["curvature_noise"], row["curvature_reach"] = _curvature_scales(cur, _step_params(r, "curvature", label),
+                                                                           row["area"])
     if "thickness" in tables:
         th = tables["thickness"]["thickness"].to_numpy(dtype=np.float64)
         row["thickness_mean"] = _finite_mean(th)

@@ -607,14 +607,19 @@ def test_an_empty_frame_gets_one_flag_that_says_so(frame_files, tmp_path):
 def test_curvature_noise_of_a_nearly_flat_surface_is_not_its_own_curvature():
     """On a plane the median largest |k| is the fits' own noise, so their scatter over it reads ~1
     whatever the noise (a review: a plane of 0.02 µm roughness flagged). The typical curvature is at
-    least 0.25 / the fit radius; a sphere's own curvature is above that and sets the ratio."""
+    least 0.25 / the surface's size √(A/4π); a sphere's own curvature (1 / its size) is above that and
+    sets the ratio, however large the sphere (a big vesicle fitted at a small radius keeps its ratio)."""
     from nemo.summary import _curvature_scales
 
     rng = np.random.default_rng(0)
     k = rng.normal(0.0, 2e-4, (2, 500))
     plane = pd.DataFrame({"k1": k.max(0), "k2": k.min(0)})
-    noise, reach = _curvature_scales(plane, {"fit_scatter_H": 1.9e-4, "radius": 15.0})
-    assert noise == pytest.approx(1.9e-4 * 15.0 / 0.25) and noise < 0.12 and reach == pytest.approx(0.25)
-    sphere = pd.DataFrame({"k1": np.full(500, 0.1), "k2": np.full(500, 0.1)})  # R 10 µm, fitted at 6 µm
-    noise, reach = _curvature_scales(sphere, {"fit_scatter_H": 0.02, "radius": 6.0})
-    assert noise == pytest.approx(0.2) and reach == pytest.approx(0.6)
+    area = 100.0 * 100.0  # a 100 µm square: size 28.2 µm
+    noise, reach = _curvature_scales(plane, {"fit_scatter_H": 1.9e-4, "radius": 15.0}, area)
+    size = np.sqrt(area / (4 * np.pi))
+    assert noise == pytest.approx(1.9e-4 * size / 0.25) and noise < 0.12 and reach == pytest.approx(15.0 * 0.25 / size)
+    for radius, fitted in ((10.0, 6.0), (200.0, 12.0)):
+        sphere = pd.DataFrame({"k1": np.full(500, 1 / radius), "k2": np.full(500, 1 / radius)})
+        noise, reach = _curvature_scales(sphere, {"fit_scatter_H": 0.2 / radius, "radius": fitted},
+                                         4 * np.pi * radius**2)
+        assert noise == pytest.approx(0.2) and reach == pytest.approx(fitted / radius)
