@@ -585,7 +585,9 @@ def import_mesh(path: str | os.PathLike, volume: np.ndarray | None, spacing: tup
     Returns
     -------
     meshes : dict
-        ``whole`` and, when split, ``inner`` and ``outer``.
+        ``whole`` and, when split, ``inner`` and ``outer``, each with the record in its
+        ``metadata["nemo_params"]`` as :func:`mesh` leaves it (its ``walls`` tell the thickness step
+        one-wall objects).
     resolved : dict
         The section with ``source``, ``mesh_unit``, ``scale`` (per axis x, y, z), ``extent_ratio``
         and ``n_objects``.
@@ -612,7 +614,10 @@ def import_mesh(path: str | os.PathLike, volume: np.ndarray | None, spacing: tup
     mesh.metadata["nemo_surface"] = {"method": "imported", "source": str(path)}
     p.update(source=str(path), mesh_unit=given, scale=scale.tolist(), extent_ratio=ratio,
              n_objects=len(find_objects(mesh)), noise=None, snr=None, saturated=None, background=None)
-    return _walls(mesh, p, centre), p
+    meshes = _walls(mesh, p, centre)
+    for name, m in meshes.items():  # as mesh() leaves it: its walls tell the thickness step one-wall objects
+        m.metadata["nemo_params"] = wall_params(p, name)
+    return meshes, p
 
 
 def _mesh_scale(mesh_unit: str, unit: str, spacing) -> np.ndarray:

@@ -628,6 +628,20 @@ def test_import_mesh_splits_a_shell_and_keeps_nemo_units(tmp_path):
     assert stages.object_radius(meshes["outer"]) == pytest.approx(14, rel=0.02)
 
 
+def test_imported_walls_carry_the_mesh_steps_record(ball_image, tmp_path):
+    """An imported surface's walls carry the record as meshed ones do: a droplet (one wall, ``split: auto``)
+    has no thickness with rays inward either (without the record the same surface twice with rays inward
+    counted as a shell's whole surface: the droplet's chords, ~24 µm for an R 12 µm ball)."""
+    volume, spacing = ball_image
+    _sphere(12.0, (20, 22, 18)).export(tmp_path / "s.stl")
+    meshes, params = stages.import_mesh(tmp_path / "s.stl", volume, spacing, {}, mesh_unit="um")
+    assert params["walls"] == 1
+    assert all(m.metadata["nemo_params"]["walls"] == 1 for m in meshes.values())
+    with pytest.warns(NemoWarning, match="one wall"):
+        df, tp = stages.thickness(meshes["outer"], meshes["inner"], {"direction": "inward"})
+    assert df["thickness"].isna().all() and tp["one_wall"] == [None]
+
+
 def test_cli_mesh_from_mesh(ball_image, tmp_path, run_cli):
     from nemo.io import write_hyperstack
     from nemo.mesh import load_mesh
