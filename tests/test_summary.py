@@ -246,6 +246,34 @@ def test_frame_summary_flags_walls_that_change_over_time(frame_files, tmp_path):
     assert flagged == [False] * 9 + [True]
 
 
+def test_frame_summary_flags_a_level_corrected_unlike_its_series(frame_files, tmp_path):
+    """The half level's correction (``edge_check.corrected``) has limits a time-lapse can cross: the time
+    point corrected where most were not (and the one not corrected where most were) is flagged; a series
+    corrected throughout, a tie and frames without a check are not."""
+    measure = json.loads(frame_files["measure"].read_text())
+
+    def series(corrected):
+        records = []
+        for t, value in enumerate(corrected):
+            path = tmp_path / f"level{t}.json"
+            check = None if value is None else {"corrected": value, "offset": 0.06}
+            path.write_text(json.dumps({**measure, "edge_check": check}))
+            records.append({**frame_files, "t": t, "measure": path, "thickness": None})
+        return frame_summary(records)
+
+    flag = "corrected from the walls' profiles"
+    out = series([False, False, True, False])
+    assert out["level_corrected"].tolist() == [False, False, True, False]
+    assert out["qc_flags"].str.contains(flag).tolist() == [False, False, True, False]
+    assert "as it was not in most time points" in out["qc_flags"][2] and not out["qc_pass"][2]
+    out = series([True, None, False, True])
+    assert out["qc_flags"].str.contains(flag).tolist() == [False, False, True, False]
+    assert "not corrected from the walls' profiles, as it was in most" in out["qc_flags"][2]
+    assert pd.isna(out["level_corrected"][1])
+    for values in ([True, True, True], [True, False], [None, None]):
+        assert not series(values)["qc_flags"].str.contains(flag).any()
+
+
 def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
     """Records without curvature, thickness or layer tables give NaN / <NA> there; missing
     measure values (null) are NaN; rows are sorted by t, c, layer whatever the input order."""
