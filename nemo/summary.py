@@ -35,7 +35,7 @@ from nemo.track import link_objects
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
     "t", "c", "layer", "object", "object_id", "surface", "n_objects", "walls", "regions", "centre_x", "centre_y",
-    "centre_z", "snr", "saturated", "level_corrected", "area", "volume", "euler_characteristic", "closed", "H_mean", "K_mean",
+    "centre_z", "snr", "saturated", "level_correction", "area", "volume", "euler_characteristic", "closed", "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "curvature_noise", "thickness_mean", "thickness_median",
     "thickness_valid", "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
     "coherency_noise", "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
@@ -439,7 +439,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
     out = pd.DataFrame(rows, columns=list(FRAME_COLUMNS))
     out = out.astype({"t": "int64", "c": "int64", "object": "int64", "walls": "Int64", "regions": "Int64", "n_directors": "Int64",
                       "n_defects": "Int64", "defects_faint": "Int64", "rejected_zeros": "Int64", "qc_pass": "bool",
-                      "qc_flags": "str", "closed": "bool", "level_corrected": "boolean"})
+                      "qc_flags": "str", "closed": "bool"})
     _flag_changed_walls(out)
     _flag_changed_level(out)
     _flag_cut_objects(out)
@@ -474,26 +474,28 @@ def _flag_changed_walls(out: pd.DataFrame) -> None:
 
 
 def _flag_changed_level(out: pd.DataFrame) -> None:
-    """Flag (in place) the rows whose half level was corrected from the walls' profiles where most frames of
-    their series were not, or not where most were (``level_corrected``, :func:`nemo.surface._edge_check`).
+    """Flag (in place) the rows whose half level was moved towards the walls' profiles' level by more than half
+    the way unlike the median frame of their series (``level_correction``, :func:`nemo.surface._edge_check`).
 
-    The correction has limits (an offset of 0.03–0.1 of the contrast, the offset × SNR at most 0.45 ...): a
-    time-lapse whose walls sit near one moves its walls, and steps its thickness, between time points. Only
-    a strict majority decides (a tie, e.g. two frames, is not flagged).
+    The correction's soft limits keep frames near a limit close together; a frame flagged here moved its walls,
+    and stepped its thickness, against the rest of its series (the walls' profiles changed: brightness, noise).
     """
-    known = out[out["level_corrected"].notna() & ~(out["snr"] < QC_EMPTY_SNR)]  # an empty frame has its own flag
-    series = ["c", "layer", "surface"]
-    for _, g in known.groupby(series, dropna=False):  # a loop over the few series
-        corrected = g["level_corrected"].astype(bool)
-        n_corrected = int(corrected.sum())
-        if 2 * n_corrected == len(g):
-            continue
-        usual = 2 * n_corrected > len(g)
-        for i in g.index[(corrected != usual).to_numpy()]:  # the few flagged rows
-            _add_flag(out, i, f"the half level {'not ' if usual else ''}corrected from the walls' profiles, as it "
-                              f"was{' not' if not usual else ''} in most time points: the walls and their thickness "
-                              "step between frames (edge_check in the mesh step's parameters; a numeric mesh.threshold "
-                              "gives every frame one level)")
+    known = out[out["level_correction"].notna() & ~(out["snr"] < QC_EMPTY_SNR)]  # an empty frame has its own flag
+    usual = known.groupby(["c", "layer", "surface"], dropna=False)["level_correction"].transform("median")
+    for i in known.index[(known["level_correction"] - usual).abs().to_numpy() > 0.5]:  # the few flagged rows
+        more = out.at[i, "level_correction"] > usual.at[i]
+        _add_flag(out, i, f"the half level moved {100 * out.at[i, 'level_correction']:.0f} % of the way to the walls' "
+                          f"profiles' level, the series' median {100 * usual.at[i]:.0f} %: its walls step "
+                          f"{'thinner' if more else 'thicker'} than the series' (edge_check in the mesh step's "
+                          "parameters; a numeric mesh.threshold gives every frame one level)")
+
+
+def _level_correction(check: Mapping | None) -> float:
+    """The share of the way from the half level to the walls' profiles' level the mesh step moved the surface
+    (:func:`nemo.surface._edge_check`; an older record's ``corrected`` counts whole); NaN without a check."""
+    if not check:
+        return math.nan
+    return _value(check.get("correction", 1.0 if check.get("corrected") else 0.0))
 
 
 def _add_flag(out: pd.DataFrame, i, flag: str) -> None:
@@ -562,7 +564,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
            "n_objects": m.get("n_objects"), "walls": value_for(m.get("walls"), label),
            "regions": value_for(m.get("regions"), label), "snr": _value(m.get("snr")),
            "saturated": _value(m.get("saturated")),
-           "level_corrected": (m.get("edge_check") or {}).get("corrected"),  # None: no check (a mask, a psf ...)
+           "level_correction": _level_correction(m.get("edge_check")),
            "centre_x": _value(centre[0]), "centre_y": _value(centre[1]), "centre_z": _value(centre[2]),
            "H_mean": _value(mo.get("mean_H")), "K_mean": _value(mo.get("mean_K"))}
     if "curvature" in tables:

@@ -246,33 +246,35 @@ def test_frame_summary_flags_walls_that_change_over_time(frame_files, tmp_path):
     assert flagged == [False] * 9 + [True]
 
 
-def test_frame_summary_flags_a_level_corrected_unlike_its_series(frame_files, tmp_path):
-    """The half level's correction (``edge_check.corrected``) has limits a time-lapse can cross: the time
-    point corrected where most were not (and the one not corrected where most were) is flagged; a series
-    corrected throughout, a tie and frames without a check are not."""
+def test_frame_summary_flags_a_level_correction_unlike_its_series(frame_files, tmp_path):
+    """The half level's correction (``edge_check.correction``, the share of the way to the walls' profiles' level)
+    is ``level_correction``; the time point moved more than half the way unlike its series' median is flagged; a
+    series that agrees, a tie of two frames and frames without a check (NaN) are not; an older record's
+    ``corrected`` counts whole."""
     measure = json.loads(frame_files["measure"].read_text())
 
-    def series(corrected):
+    def series(corrections):
         records = []
-        for t, value in enumerate(corrected):
+        for t, value in enumerate(corrections):
             path = tmp_path / f"level{t}.json"
-            check = None if value is None else {"corrected": value, "offset": 0.06}
+            check = None if value is None else {"corrected": value > 0, "correction": value, "offset": 0.06}
             path.write_text(json.dumps({**measure, "edge_check": check}))
             records.append({**frame_files, "t": t, "measure": path, "thickness": None})
         return frame_summary(records)
 
-    flag = "corrected from the walls' profiles"
-    out = series([False, False, True, False])
-    assert out["level_corrected"].tolist() == [False, False, True, False]
+    flag = "of the way to the walls' profiles' level"
+    out = series([0.0, 0.1, 1.0, 0.0])
+    assert out["level_correction"].tolist() == [0.0, 0.1, 1.0, 0.0]
+    assert out["qc_flags"].str.contains(flag).tolist() == [False, False, True, False] and not out["qc_pass"][2]
+    assert "moved 100 % of the way" in out["qc_flags"][2] and "walls step thinner" in out["qc_flags"][2]
+    out = series([1.0, None, 0.0, 0.8])
     assert out["qc_flags"].str.contains(flag).tolist() == [False, False, True, False]
-    assert "as it was not in most time points" in out["qc_flags"][2] and not out["qc_pass"][2]
-    out = series([True, None, False, True])
-    assert out["qc_flags"].str.contains(flag).tolist() == [False, False, True, False]
-    assert "not corrected from the walls' profiles, as it was in most" in out["qc_flags"][2]
-    assert pd.isna(out["level_corrected"][1])
-    for values in ([True, True, True], [True, False], [None, None]):
-        assert not series(values)["qc_flags"].str.contains(flag).any()
-
+    assert "walls step thicker" in out["qc_flags"][2] and pd.isna(out["level_correction"][1])
+    for values in ([0.5, 0.6, 0.4], [1.0, 0.0], [None, None], [0.45, 0.55, 0.5, 0.0]):
+        assert not series(values)["qc_flags"].str.contains(flag).any(), values
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps({**measure, "edge_check": {"corrected": True, "offset": 0.05}}))
+    assert frame_summary([{**frame_files, "measure": path}])["level_correction"][0] == 1.0
 
 def test_frame_summary_morphology_only_and_sorting(frame_files, tmp_path):
     """Records without curvature, thickness or layer tables give NaN / <NA> there; missing
