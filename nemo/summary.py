@@ -474,20 +474,25 @@ def _flag_changed_walls(out: pd.DataFrame) -> None:
 
 
 def _flag_changed_level(out: pd.DataFrame) -> None:
-    """Flag (in place) the rows whose half level was moved towards the walls' profiles' level by more than half
-    the way unlike the median frame of their series (``level_correction``, :func:`nemo.surface._edge_check`).
+    """Flag (in place) the time points whose half level was moved towards the walls' profiles' level by more than
+    half the way unlike the series' median time point (``level_correction``, :func:`nemo.surface._edge_check`).
 
-    The correction's soft limits keep frames near a limit close together; a frame flagged here moved its walls,
-    and stepped its thickness, against the rest of its series (the walls' profiles changed: brightness, noise).
+    The correction's soft limits keep frames near a limit close together; a time point flagged here moved its
+    walls, and stepped their thickness, against the rest of its series (the walls' profiles changed: brightness,
+    noise). The level is the frame's (one mesh step for all its objects), so each time point counts once,
+    whatever its number of objects (a review: two-object time points outvoted the rest).
     """
     known = out[out["level_correction"].notna() & ~(out["snr"] < QC_EMPTY_SNR)]  # an empty frame has its own flag
-    usual = known.groupby(["c", "layer", "surface"], dropna=False)["level_correction"].transform("median")
-    for i in known.index[(known["level_correction"] - usual).abs().to_numpy() > 0.5]:  # the few flagged rows
-        more = out.at[i, "level_correction"] > usual.at[i]
-        _add_flag(out, i, f"the half level moved {100 * out.at[i, 'level_correction']:.0f} % of the way to the walls' "
-                          f"profiles' level, the series' median {100 * usual.at[i]:.0f} %: its walls step "
-                          f"{'thinner' if more else 'thicker'} than the series' (edge_check in the mesh step's "
-                          "parameters; a numeric mesh.threshold gives every frame one level)")
+    for _, rows in known.groupby(["c", "layer", "surface"], dropna=False):  # a loop over the few series
+        per_t = rows.groupby("t")["level_correction"].median()
+        usual = float(per_t.median())
+        for t in per_t.index[(per_t - usual).abs().to_numpy() > 0.5]:  # the few flagged time points
+            share = float(per_t[t])
+            for i in rows.index[(rows["t"] == t).to_numpy()]:
+                _add_flag(out, i, f"the half level moved {100 * share:.0f} % of the way to the walls' profiles' level, "
+                                  f"the series' median {100 * usual:.0f} %: its walls step "
+                                  f"{'thinner' if share > usual else 'thicker'} than the series' (edge_check in the mesh "
+                                  "step's parameters; mesh.edge: profile meshes every frame at its walls' own level)")
 
 
 def _level_correction(check: Mapping | None) -> float:

@@ -272,6 +272,19 @@ def test_frame_summary_flags_a_level_correction_unlike_its_series(frame_files, t
     assert "walls step thicker" in out["qc_flags"][2] and pd.isna(out["level_correction"][1])
     for values in ([0.5, 0.6, 0.4], [1.0, 0.0], [None, None], [0.45, 0.55, 0.5, 0.0]):
         assert not series(values)["qc_flags"].str.contains(flag).any(), values
+    # each time point counts once, whatever its objects (keep: all): two two-object time points corrected, three
+    # one-object ones not: the two are flagged (a review: counted by rows, 4 to 3, the three were)
+    records = []
+    for t, value in enumerate([1.0, 1.0, 0.0, 0.0, 0.0]):
+        path = tmp_path / f"objects{t}.json"
+        n = 2 if value else 1
+        path.write_text(json.dumps({**measure, "objects": [{**measure, "object": k} for k in range(n)],
+                                    "edge_check": {"corrected": value > 0, "correction": value}}))
+        records.append({**frame_files, "t": t, "measure": path, "thickness": None})
+    out = frame_summary(records)
+    assert len(out) == 7 and out.groupby("t")["qc_flags"].agg(lambda f: f.str.contains(flag).all()).tolist() == [
+        True, True, False, False, False]
+    assert not out[out["t"] >= 2]["qc_flags"].str.contains(flag).any()
     path = tmp_path / "old.json"
     path.write_text(json.dumps({**measure, "edge_check": {"corrected": True, "offset": 0.05}}))
     assert frame_summary([{**frame_files, "measure": path}])["level_correction"][0] == 1.0
