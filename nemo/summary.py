@@ -286,7 +286,8 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
                      "thickness overestimated (lower the gain or the exposure)")
     check = measure.get("edge_check") or {}  # the mesh step's (nemo.surface._edge_check), with its limit
     offset = check.get("offset")
-    if offset is not None and abs(offset) > check.get("limit", math.inf):
+    left = None if offset is None else abs(offset) * (1.0 - _level_correction(check))  # what the correction leaves
+    if left is not None and left > check.get("limit", math.inf):
         flags.append(f"the walls' own profiles put their edges {100 * abs(offset):.0f} % of the contrast "
                      f"{'above' if offset > 0 else 'below'} the half level: walls placed "
                      f"{'outward, thickness overestimated' if offset > 0 else 'inward, thickness underestimated'} "
@@ -474,8 +475,9 @@ def _flag_changed_walls(out: pd.DataFrame) -> None:
 
 
 def _flag_changed_level(out: pd.DataFrame) -> None:
-    """Flag (in place) the time points whose half level was moved towards the walls' profiles' level by more than
-    half the way unlike the series' median time point (``level_correction``, :func:`nemo.surface._edge_check`).
+    """Flag (in place) the time points whose share of the way the half level was moved towards the walls' profiles'
+    level (``level_correction``, :func:`nemo.surface._edge_check`) differs by more than 0.5 from the series' median
+    time point's, either way.
 
     The correction's soft limits keep frames near a limit close together; a time point flagged here moved its
     walls, and stepped their thickness, against the rest of its series (the walls' profiles changed: brightness,

@@ -1947,12 +1947,12 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     most :data:`EDGE_CHECK_MAX_NOISE_OFFSET`: noise lowers the histogram's plateau; a bright sheet
     inside the wall shifts the profiles' level more) is ``corrected``: the caller meshes at
     ``level_profile``, or ``correction`` (0-1) of the way to it where a value lies within the soft width of
-    its limit (:data:`EDGE_CHECK_SOFT_OFFSET`, :data:`EDGE_CHECK_SOFT_NOISE_OFFSET`). Beyond
-    :data:`EDGE_CHECK_MAX_OFFSET` a warning says the walls are placed outward (thin or z-blurred
-    walls: their crests never reach the plateau the half level is taken from) or inward, and the
-    summary's quality control flags the frame. Textured walls (fibres by the surfaces) and walls
-    the fit refuses get ``offset`` None: their profiles say nothing reliable about the level. Plain
-    walls refused because they are thinner than the blur (their blurred crest stays below the
+    its limit (:data:`EDGE_CHECK_SOFT_OFFSET`, :data:`EDGE_CHECK_SOFT_NOISE_OFFSET`). Where the offset the
+    correction leaves, ``offset`` × (1 − ``correction``), exceeds :data:`EDGE_CHECK_MAX_OFFSET` a warning
+    says the walls are placed outward (thin or z-blurred walls: their crests never reach the plateau the
+    half level is taken from) or inward, and the summary's quality control flags the frame. Textured walls
+    (fibres by the surfaces) and walls the fit refuses get ``offset`` None: their profiles say nothing
+    reliable about the level. Plain walls refused because they are thinner than the blur (their blurred crest stays below the
     profiles' level on more than :data:`nemo.refine.PROFILE_MAX_BELOW_CREST` of the rays, and the
     level at least :data:`EDGE_CHECK_MIN_LEVEL_SHARE` of the boxes' height: the boxes are the meshed
     walls, not bright fibres on a dim wall; at least :data:`EDGE_CHECK_MIN_FITTED` of the rays fitted)
@@ -1996,7 +1996,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
         logger.info("the walls' own profiles put their edges at level %.4g, %+.0f %% of their contrast from the half "
                     "level %.4g (noise lowers the histogram's plateau): meshed at %s", found * scale, 100 * offset,
                     level * scale, "the profiles' level" if share == 1 else f"{100 * share:.0f} % of the way to it")
-    elif abs(offset) > EDGE_CHECK_MAX_OFFSET:
+    if abs(offset) * (1.0 - record["correction"]) > EDGE_CHECK_MAX_OFFSET:  # what the correction leaves
         logger.warning("the walls' own profiles put their edges at level %.4g, the half level is %.4g (%+.0f %% of "
                        "the walls' contrast): the walls come out %s (thin or z-blurred walls, whose crests never "
                        "reach the plateau the half level is taken from); mesh.edge: profile meshes at the profiles' "
@@ -2006,9 +2006,11 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
 
 
 def _soft_limit(value: float, limit: float, width: float, above: bool = False) -> float:
-    """1 well below ``limit`` (well above with ``above``), 0 well beyond it, linear over ``limit`` ± ``width`` / 2."""
+    """1 well below ``limit`` (well above with ``above``), 0 well beyond it, linear over ``limit`` ± ``width`` / 2;
+    0 for NaN. Within 1e-9 of 0 or 1 it is 0 or 1 (the ramp's ends in floating point: 0.02 read 1e-16)."""
     t = (value - limit) / width + 0.5
-    return float(np.clip(t if above else 1.0 - t, 0.0, 1.0))
+    share = float(np.clip(t if above else 1.0 - t, 0.0, 1.0)) if np.isfinite(t) else 0.0
+    return 0.0 if share < 1e-9 else 1.0 if share > 1.0 - 1e-9 else share
 
 
 #: Rays of the half level's check (:func:`_edge_check`; ``edge: profile`` fits 4 000): the median over 500
@@ -2029,9 +2031,10 @@ EDGE_CHECK_MIN_CORRECTION = 0.03
 #: inside the wall (0.74-1.53) or a thin z-blurred wall (0.73-2.4) offsets the level by more than noise explains.
 EDGE_CHECK_MAX_NOISE_OFFSET = 0.45
 #: Widths of the correction's soft limits (:func:`_soft_limit`): the share of the way to the profiles' level
-#: (``correction``) falls from 1 to 0 across the offset's limits (0.03, 0.1) ± 0.01 and the offset × SNR's (0.45)
-#: ± 0.05, so a time-lapse whose walls sit near a limit is not meshed at levels a whole correction apart: the
-#: validation shells at SNR 10 read offsets 0.029, 0.030, 0.031 on three seeds (corrected only the last, by 0.35 µm).
+#: (``correction``) rises from 0 to 1 across the offset's lower limit 0.03 ± 0.01 and falls to 0 across its upper
+#: limit 0.1 ± 0.01 and the offset × SNR's 0.45 ± 0.05, so a time-lapse whose walls sit near a limit is not meshed
+#: at levels a whole correction apart: the validation shells at SNR 10 read offsets 0.029, 0.030, 0.031 on three
+#: seeds (corrected only the last, by 0.35 µm). The warning and the QC judge the offset the correction leaves.
 EDGE_CHECK_SOFT_OFFSET = 0.02
 EDGE_CHECK_SOFT_NOISE_OFFSET = 0.1
 #: Smallest height of the half level over the fitted boxes' at which the half level is corrected: plain walls read
