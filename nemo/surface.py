@@ -1946,11 +1946,12 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     than the image's noise explains (``offset_snr``, the offset × the SNR of :func:`image_noise`, at
     most :data:`EDGE_CHECK_MAX_NOISE_OFFSET`: noise lowers the histogram's plateau; a bright sheet
     inside the wall shifts the profiles' level more) is ``corrected``: the caller meshes at
-    ``level_profile``, or ``correction`` (0-1) of the way to it where a value lies within the soft width of
-    its limit (:data:`EDGE_CHECK_SOFT_OFFSET`, :data:`EDGE_CHECK_SOFT_NOISE_OFFSET`). Where the offset the
-    correction leaves, ``offset`` × (1 − ``correction``), exceeds :data:`EDGE_CHECK_MAX_OFFSET` a warning
-    says the walls are placed outward (thin or z-blurred walls: their crests never reach the plateau the
-    half level is taken from) or inward, and the summary's quality control flags the frame. Textured walls
+    ``level_profile``, or ``correction`` (0-1) of the way to it where a value lies within the soft
+    width of its limit (:data:`EDGE_CHECK_SOFT_OFFSET`, :data:`EDGE_CHECK_SOFT_NOISE_OFFSET`,
+    :data:`EDGE_CHECK_SOFT_SHARE`). Where the offset the correction leaves, ``offset`` ×
+    (1 − ``correction``), exceeds :data:`EDGE_CHECK_MAX_OFFSET` a warning says the walls are placed
+    outward (thin or z-blurred walls: their crests never reach the plateau the half level is taken
+    from) or inward, and the summary's quality control flags the frame. Textured walls
     (fibres by the surfaces) and walls the fit refuses get ``offset`` None: their profiles say nothing
     reliable about the level. Plain walls refused because they are thinner than the blur (their blurred crest stays below the
     profiles' level on more than :data:`nemo.refine.PROFILE_MAX_BELOW_CREST` of the rays, and the
@@ -1985,7 +1986,8 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     record["offset"] = offset = float((found - level) / info["contrast"])
     share = (_soft_limit(offset, EDGE_CHECK_MIN_CORRECTION, EDGE_CHECK_SOFT_OFFSET, above=True)
              * _soft_limit(offset, EDGE_CHECK_MAX_OFFSET, EDGE_CHECK_SOFT_OFFSET))
-    if share > 0 and info["level_share"] >= EDGE_CHECK_MIN_CORRECTED_SHARE:  # what noise lowering the plateau does
+    share *= _soft_limit(info["level_share"], EDGE_CHECK_MIN_CORRECTED_SHARE, EDGE_CHECK_SOFT_SHARE, above=True)
+    if share > 0:  # what noise lowering the plateau does
         snr = image_noise(source, level)["snr"]
         record["offset_snr"] = None if snr is None else offset * snr
         if snr is not None:
@@ -2036,6 +2038,9 @@ EDGE_CHECK_MAX_NOISE_OFFSET = 0.45
 #: at levels a whole correction apart: the validation shells at SNR 10 read offsets 0.029, 0.030, 0.031 on three
 #: seeds (corrected only the last, by 0.35 µm). The warning and the QC judge the offset the correction leaves.
 EDGE_CHECK_SOFT_OFFSET = 0.02
+#: ... and across the level's share of the boxes' height 0.35 ± 0.05 (:data:`EDGE_CHECK_MIN_CORRECTED_SHARE`: plain
+#: walls 0.42-0.49, a bright sheet inside a wall 0.25; z-blurred shells at SNR 3 read 0.34-0.39).
+EDGE_CHECK_SOFT_SHARE = 0.1
 EDGE_CHECK_SOFT_NOISE_OFFSET = 0.1
 #: Smallest height of the half level over the fitted boxes' at which the half level is corrected: plain walls read
 #: 0.42-0.49 to SNR 3; a bright sheet inside a wall 0.25 (its boxes fit the sheet), walls thinner than the blur 0.17-0.27.

@@ -561,7 +561,9 @@ def test_the_half_level_correction_has_soft_limits(monkeypatch, caplog):
 
     def shifted(*args, **kwargs):  # the walls' fitted level this share of their contrast above the half level
         level, info = found(*args, **kwargs)
-        return args[5] + shift * info["contrast"], info
+        return args[5] + shift * info["contrast"], {**info, **share_of_height}
+
+    share_of_height = {}
 
     monkeypatch.setattr(refine_module, "wall_profile_level", shifted)
     records = {}
@@ -589,6 +591,15 @@ def test_the_half_level_correction_has_soft_limits(monkeypatch, caplog):
                                     keep="all").metadata["nemo_surface"]["edge_check"]
     assert 0.4 < checks[0.045]["offset_snr"] < 0.5 and 0.0 < checks[0.045]["correction"] < 1.0
     assert checks[0.06]["offset_snr"] > 0.5 and checks[0.06]["correction"] == 0.0 and not checks[0.06]["corrected"]
+    # the level's share of the boxes' height: 0.35 ± 0.05 (plain walls 0.42-0.49, a sheet inside a wall 0.25)
+    vol, _ = _thin_shell((1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 5.0, seed=1, R=15.0, T=6.0)
+    shift = 0.06
+    for height, share in ((0.30, 0.0), (0.35, 0.5), (0.40, 1.0)):
+        share_of_height = {"level_share": height}
+        check = reconstruct(vol, (1.0, 1.0, 1.0), sigma=auto_sigma(vol, (1.0, 1.0, 1.0))[0],
+                            keep="all").metadata["nemo_surface"]["edge_check"]
+        assert check["correction"] == pytest.approx(share, abs=1e-6), height
+
 
 def test_the_half_level_check_flags_a_wall_thinner_than_the_blur(caplog):
     """The same 1 µm membrane at the default half level: its profiles' level is refused (their crests
