@@ -295,7 +295,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     if check.get("thinner_than_blur"):
         flags.append(f"the walls are thinner than the image's blur on {100 * check['thinner_than_blur']:.0f} % of "
                      "their profiles: they come out about as thick as the blur, thickness overestimated (a z-elongated "
-                     "PSF? psf: deconvolves by a known PSF)")
+                     "PSF? psf: deconvolves by a known PSF; or a bright film by the wall's surface)")
     if (measure.get("n_components") or 1) > 1:
         flags.append(f"surface has {measure['n_components']} pieces")
     if closed and np.isfinite(chi) and chi < QC_MIN_EULER:

@@ -1981,7 +1981,8 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
             logger.warning("the walls are thinner than the image's blur on %.0f %% of their profiles (their blurred "
                            "crests stay below the profiles' own half level): they come out about as thick as the "
                            "blur, placed outward, thickness overestimated (a membrane or thin wall under a "
-                           "z-elongated PSF; psf: deconvolves by a known PSF)", 100 * record["thinner_than_blur"])
+                           "z-elongated PSF; psf: deconvolves by a known PSF; or a bright film by the wall's "
+                           "surface, whose blur the profiles read)", 100 * record["thinner_than_blur"])
         return record
     record["offset"] = offset = float((found - level) / info["contrast"])
     share = (_soft_limit(offset, EDGE_CHECK_MIN_CORRECTION, EDGE_CHECK_SOFT_OFFSET, above=True)
