@@ -220,7 +220,7 @@ def mesh(
     p["wall_rim_loops"] = _wall_rim_loops(meshes, info, len(found) if p["keep"] == "all" and len(found) > 1 else 0)
     p["rim_loops"] = p["wall_rim_loops"]["whole"]
     for name, m in meshes.items():  # as a saved wall keeps it (its walls tell the thickness step one-wall objects)
-        m.metadata["nemo_params"] = dict(wall_params(p, name))  # its own copy: a caller's update of p stays off it
+        m.metadata["nemo_params"] = dict(wall_params(p, name))  # each its own copy: a caller's update of p stays off it
     return meshes, p
 
 
@@ -616,7 +616,7 @@ def import_mesh(path: str | os.PathLike, volume: np.ndarray | None, spacing: tup
              n_objects=len(find_objects(mesh)), noise=None, snr=None, saturated=None, background=None)
     meshes = _walls(mesh, p, centre)
     for name, m in meshes.items():  # as mesh() leaves it: its walls tell the thickness step one-wall objects
-        m.metadata["nemo_params"] = wall_params(p, name)
+        m.metadata["nemo_params"] = dict(wall_params(p, name))
     return meshes, p
 
 

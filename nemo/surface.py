@@ -1951,10 +1951,10 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     :data:`EDGE_CHECK_SOFT_SHARE`). Where the offset the correction leaves, ``offset`` ×
     (1 − ``correction``), exceeds :data:`EDGE_CHECK_MAX_OFFSET` a warning says the walls are placed
     outward (thin or z-blurred walls: their crests never reach the plateau the half level is taken
-    from) or inward, and the summary's quality control flags the frame. Textured walls
-    (fibres by the surfaces) and walls the fit refuses get ``offset`` None: their profiles say nothing
-    reliable about the level. Plain walls refused because they are thinner than the blur (their blurred crest stays below the
-    profiles' level on more than :data:`nemo.refine.PROFILE_MAX_BELOW_CREST` of the rays, and the
+    from) or inward, and the summary's quality control flags the frame. Textured walls (fibres by the
+    surfaces) and walls the fit refuses get ``offset`` None: their profiles say nothing reliable about
+    the level. Plain walls refused because they are thinner than the blur (their blurred crest stays below
+    the profiles' level on more than :data:`nemo.refine.PROFILE_MAX_BELOW_CREST` of the rays, and the
     level at least :data:`EDGE_CHECK_MIN_LEVEL_SHARE` of the boxes' height: the boxes are the meshed
     walls, not bright fibres on a dim wall; at least :data:`EDGE_CHECK_MIN_FITTED` of the rays fitted)
     get ``thinner_than_blur``, that share of the rays: they come out about as thick as the blur,
@@ -2039,10 +2039,10 @@ EDGE_CHECK_MAX_NOISE_OFFSET = 0.45
 #: at levels a whole correction apart: the validation shells at SNR 10 read offsets 0.029, 0.030, 0.031 on three
 #: seeds (corrected only the last, by 0.35 µm). The warning and the QC judge the offset the correction leaves.
 EDGE_CHECK_SOFT_OFFSET = 0.02
+EDGE_CHECK_SOFT_NOISE_OFFSET = 0.1
 #: ... and across the level's share of the boxes' height 0.35 ± 0.05 (:data:`EDGE_CHECK_MIN_CORRECTED_SHARE`: plain
 #: walls 0.42-0.49, a bright sheet inside a wall 0.25; z-blurred shells at SNR 3 read 0.34-0.39).
 EDGE_CHECK_SOFT_SHARE = 0.1
-EDGE_CHECK_SOFT_NOISE_OFFSET = 0.1
 #: Smallest height of the half level over the fitted boxes' at which the half level is corrected: plain walls read
 #: 0.42-0.49 to SNR 3; a bright sheet inside a wall 0.25 (its boxes fit the sheet), walls thinner than the blur 0.17-0.27.
 EDGE_CHECK_MIN_CORRECTED_SHARE = 0.35
