@@ -248,9 +248,9 @@ def test_frame_summary_flags_walls_that_change_over_time(frame_files, tmp_path):
 
 def test_frame_summary_flags_a_level_correction_unlike_its_series(frame_files, tmp_path):
     """The half level's correction (``edge_check.correction``, the share of the way to the walls' profiles' level)
-    is ``level_correction``; the time point moved more than half the way unlike its series' median is flagged; a
-    series that agrees, a tie of two frames and frames without a check (NaN) are not; an older record's
-    ``corrected`` counts whole."""
+    is ``level_correction``; the time point whose share differs by more than 0.5 from its series' median time
+    point's, either way, is flagged; a series that agrees, a tie of two frames and frames without a check (NaN) are
+    not; an older record's ``corrected`` counts whole."""
     measure = json.loads(frame_files["measure"].read_text())
 
     def series(corrections):
