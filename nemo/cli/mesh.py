@@ -97,8 +97,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--edge", choices=("half", "threshold", "profile"), default=None,
                         help="with yen/otsu: surface half-way between object and background intensity "
                              "(default, the true edge of a blurred object; checked against the walls' fitted "
-                             "profiles, and moved to their level when plain walls read a small offset: noise "
-                             "lowers the histogram's plateau), at the threshold itself, or "
+                             "profiles, and moved to their level when plain walls read a small offset, part of the "
+                             "way near the limits: noise lowers the histogram's plateau), at the threshold itself, or "
                              "'profile': at the half level of blurred boxes fitted to the walls' intensity "
                              "along the normals (noisy or z-blurred walls)")
     add_mask_arguments(parser)
