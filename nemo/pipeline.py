@@ -379,8 +379,8 @@ def morphology_frame(volume, info, mask, sections, out: Path, written: list, tim
         meshes, params = _mesh_or_import(volume, info, mask, sections["mesh"], psf=psf, deconvolved=deconvolved,
                                          mask_regions=mask_regions)
         params.update(frame or {})
+        stages.stamp_walls(meshes, params)  # again, with the frame's t and c
         for name, m in meshes.items():
-            m.metadata["nemo_params"] = stages.wall_params(params, name)
             save_mesh(m, out / layout.MESH[name])
             written.append(layout.MESH[name])
         # read back, as the workflow's next jobs do (PLY stores float32 vertices)

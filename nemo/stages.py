@@ -219,8 +219,7 @@ def mesh(
                     info["n_loops"], info["n_vertices"])
     p["wall_rim_loops"] = _wall_rim_loops(meshes, info, len(found) if p["keep"] == "all" and len(found) > 1 else 0)
     p["rim_loops"] = p["wall_rim_loops"]["whole"]
-    for name, m in meshes.items():  # as a saved wall keeps it (its walls tell the thickness step one-wall objects)
-        m.metadata["nemo_params"] = dict(wall_params(p, name))  # each its own copy: a caller's update of p stays off it
+    stamp_walls(meshes, p)
     return meshes, p
 
 
@@ -230,6 +229,14 @@ def _wall_rim_loops(meshes: dict[str, trimesh.Trimesh], whole_rim: dict, n_objec
     cut object is not cut); ``whole_rim`` is :func:`nemo.geometry.rim` of ``meshes["whole"]``."""
     border = np.asarray(meshes["whole"].vertices)[whole_rim["vertices"]]  # where the image border cuts it
     return {name: _rim_loops(m, n_objects, border) for name, m in meshes.items()}
+
+
+def stamp_walls(meshes: dict[str, trimesh.Trimesh], params: dict) -> None:
+    """Leave the mesh step's record on each wall, ``metadata["nemo_params"]`` (:func:`wall_params`, each its own
+    copy, so a caller's later update of ``params`` stays off it): a saved wall keeps it, and its ``walls`` tell
+    the thickness step one-wall objects."""
+    for name, m in meshes.items():
+        m.metadata["nemo_params"] = dict(wall_params(params, name))
 
 
 def wall_params(params: dict, name: str) -> dict:
@@ -615,8 +622,7 @@ def import_mesh(path: str | os.PathLike, volume: np.ndarray | None, spacing: tup
     p.update(source=str(path), mesh_unit=given, scale=scale.tolist(), extent_ratio=ratio,
              n_objects=len(find_objects(mesh)), noise=None, snr=None, saturated=None, background=None)
     meshes = _walls(mesh, p, centre)
-    for name, m in meshes.items():  # as mesh() leaves it: its walls tell the thickness step one-wall objects
-        m.metadata["nemo_params"] = dict(wall_params(p, name))
+    stamp_walls(meshes, p)
     return meshes, p
 
 

@@ -1988,13 +1988,11 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     share = (_soft_limit(offset, EDGE_CHECK_MIN_CORRECTION, EDGE_CHECK_SOFT_OFFSET, above=True)
              * _soft_limit(offset, EDGE_CHECK_MAX_OFFSET, EDGE_CHECK_SOFT_OFFSET))
     share *= _soft_limit(info["level_share"], EDGE_CHECK_MIN_CORRECTED_SHARE, EDGE_CHECK_SOFT_SHARE, above=True)
-    if share > 0:  # what noise lowering the plateau does
-        snr = image_noise(source, level)["snr"]
-        record["offset_snr"] = None if snr is None else offset * snr
-        if snr is not None:
-            share *= _soft_limit(offset * snr, EDGE_CHECK_MAX_NOISE_OFFSET, EDGE_CHECK_SOFT_NOISE_OFFSET)
-            record["correction"] = share
-            record["corrected"] = share > 0
+    snr = image_noise(source, level)["snr"] if share > 0 else None  # what noise lowering the plateau explains
+    if snr is not None:
+        record["offset_snr"] = offset * snr
+        share *= _soft_limit(offset * snr, EDGE_CHECK_MAX_NOISE_OFFSET, EDGE_CHECK_SOFT_NOISE_OFFSET)
+        record["correction"], record["corrected"] = share, share > 0
     if record["corrected"]:
         logger.info("the walls' own profiles put their edges at level %.4g, %+.0f %% of their contrast from the half "
                     "level %.4g (noise lowers the histogram's plateau): meshed at %s", found * scale, 100 * offset,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
@@ -519,26 +521,46 @@ def test_profile_edge_keeps_the_half_level_on_a_wall_thinner_than_the_blur(caplo
     assert mesh.euler_number == half.euler_number == 4  # the membrane's two closed sides
 
 
+def _shifted_profile_level(monkeypatch) -> dict:
+    """Make the walls' fitted level ``shift`` × their contrast above the half level (and override the fit's
+    ``info`` keys), as the returned dict's ``shift`` and ``info`` say when the mesh step runs."""
+    import nemo.refine as refine_module
+
+    found = refine_module.wall_profile_level
+    setting = {"shift": 0.0, "info": {}}
+
+    def shifted(*args, **kwargs):
+        level, info = found(*args, **kwargs)
+        return args[5] + setting["shift"] * info["contrast"], {**info, **setting["info"]}
+
+    monkeypatch.setattr(refine_module, "wall_profile_level", shifted)
+    return setting
+
+
+@functools.cache
+def _plain_shell(snr: float) -> np.ndarray:
+    """A plain 6 µm wall (R 15 µm, 1 µm voxels and PSF) at ``snr``, made once per SNR."""
+    return _thin_shell((1.0, 1.0, 1.0), (1.0, 1.0, 1.0), snr, seed=1, R=15.0, T=6.0)[0]
+
+
+def _plain_shell_surface(snr: float) -> dict:
+    """The mesh step's record (``nemo_surface``) of :func:`_plain_shell` at its defaults."""
+    vol = _plain_shell(snr)
+    return reconstruct(vol, (1.0, 1.0, 1.0), sigma=auto_sigma(vol, (1.0, 1.0, 1.0))[0],
+                       keep="all").metadata["nemo_surface"]
+
+
 def test_the_half_level_is_corrected_upward_only(monkeypatch):
     """Noise lowers the histogram's plateau, so a plain wall's profiles read a level above the half
     level, by about 0.2 / SNR of the contrast, and only such an offset is corrected; profiles read below
     it (not what noise does: a review found them re-meshed with that reason), or above it by more than
     the noise explains (a bright sheet inside the wall: a review's walls moved 0.3 µm inward), leave
     the half level as it is."""
-    import nemo.refine as refine_module
-
-    found = refine_module.wall_profile_level
-
-    def shifted(*args, **kwargs):  # the walls' fitted level 6 % of their contrast off the half level
-        level, info = found(*args, **kwargs)
-        return args[5] + shift * info["contrast"], info
-
-    monkeypatch.setattr(refine_module, "wall_profile_level", shifted)
+    fitted = _shifted_profile_level(monkeypatch)
     records = {}
     for snr, shift in ((5.0, 0.05), (5.0, -0.05), (10.0, 0.08)):
-        vol, _ = _thin_shell((1.0, 1.0, 1.0), (1.0, 1.0, 1.0), snr, seed=1, R=15.0, T=6.0)
-        mesh = reconstruct(vol, (1.0, 1.0, 1.0), sigma=auto_sigma(vol, (1.0, 1.0, 1.0))[0], keep="all")
-        records[shift] = mesh.metadata["nemo_surface"]
+        fitted["shift"] = shift
+        records[shift] = _plain_shell_surface(snr)
     up, down, sheet = records[0.05], records[-0.05], records[0.08]
     assert up["edge_check"]["corrected"] and up["level"] == pytest.approx(up["edge_check"]["level_profile"])
     assert up["level"] > up["edge_check"]["level_half"] and up["edge_check"]["offset_snr"] < 0.45
@@ -555,26 +577,15 @@ def test_the_half_level_correction_has_soft_limits(monkeypatch, caplog):
     seed, and only one was corrected: 0.35 µm thinner); across the upper limit (0.1) the share falls to 0, and the
     warning (and the QC) judge the offset the correction leaves (a review: 0.104 moved 28 % and warned of nothing,
     while the QC flagged it)."""
-    import nemo.refine as refine_module
-
-    found = refine_module.wall_profile_level
-
-    def shifted(*args, **kwargs):  # the walls' fitted level this share of their contrast above the half level
-        level, info = found(*args, **kwargs)
-        return args[5] + shift * info["contrast"], {**info, **share_of_height}
-
-    share_of_height = {}
-
-    monkeypatch.setattr(refine_module, "wall_profile_level", shifted)
-    records = {}
-    logs = {}
+    fitted = _shifted_profile_level(monkeypatch)
+    records, logs = {}, {}
     for snr, shift in ((5.0, 0.015), (5.0, 0.025), (5.0, 0.03), (5.0, 0.035), (5.0, 0.06), (3.0, 0.085), (3.0, 0.1),
                        (3.0, 0.12)):
-        vol, _ = _thin_shell((1.0, 1.0, 1.0), (1.0, 1.0, 1.0), snr, seed=1, R=15.0, T=6.0)
+        fitted["shift"] = shift
         caplog.clear()
         with caplog.at_level("WARNING", logger="nemo"):
-            mesh = reconstruct(vol, (1.0, 1.0, 1.0), sigma=auto_sigma(vol, (1.0, 1.0, 1.0))[0], keep="all")
-        records[shift], logs[shift] = mesh.metadata["nemo_surface"], caplog.text
+            records[shift] = _plain_shell_surface(snr)
+        logs[shift] = caplog.text
     expected = {0.015: 0.0, 0.025: 0.25, 0.03: 0.5, 0.035: 0.75, 0.06: 1.0, 0.085: 1.0, 0.1: 0.5, 0.12: 0.0}
     assert "the walls come out outward" in logs[0.12] and "the walls come out" not in logs[0.1]  # 0.1 × 0.5 left
     for shift, share in expected.items():
@@ -584,20 +595,17 @@ def test_the_half_level_correction_has_soft_limits(monkeypatch, caplog):
         assert level == pytest.approx(check["level_half"] + share * (check["level_profile"] - check["level_half"]))
     # the offset × SNR's soft limit, at SNR ≈ 9.4: 0.06 × 9.4 = 0.57 (more than noise explains) corrects nothing,
     # 0.045 × 9.4 = 0.42, within 0.45 ± 0.05, part of the way
-    vol, _ = _thin_shell((1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 10.0, seed=1, R=15.0, T=6.0)
     checks = {}
     for shift in (0.045, 0.06):
-        checks[shift] = reconstruct(vol, (1.0, 1.0, 1.0), sigma=auto_sigma(vol, (1.0, 1.0, 1.0))[0],
-                                    keep="all").metadata["nemo_surface"]["edge_check"]
+        fitted["shift"] = shift
+        checks[shift] = _plain_shell_surface(10.0)["edge_check"]
     assert 0.4 < checks[0.045]["offset_snr"] < 0.5 and 0.0 < checks[0.045]["correction"] < 1.0
     assert checks[0.06]["offset_snr"] > 0.5 and checks[0.06]["correction"] == 0.0 and not checks[0.06]["corrected"]
     # the level's share of the boxes' height: 0.35 ± 0.05 (plain walls 0.42-0.49, a sheet inside a wall 0.25)
-    vol, _ = _thin_shell((1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 5.0, seed=1, R=15.0, T=6.0)
-    shift = 0.06
+    fitted["shift"] = 0.06
     for height, share in ((0.30, 0.0), (0.35, 0.5), (0.40, 1.0)):
-        share_of_height = {"level_share": height}
-        check = reconstruct(vol, (1.0, 1.0, 1.0), sigma=auto_sigma(vol, (1.0, 1.0, 1.0))[0],
-                            keep="all").metadata["nemo_surface"]["edge_check"]
+        fitted["info"] = {"level_share": height}
+        check = _plain_shell_surface(5.0)["edge_check"]
         assert check["correction"] == pytest.approx(share, abs=1e-6), height
 
 

@@ -190,9 +190,9 @@ def run(args) -> int:
     paths = {name: out if name == "whole" else _sibling(out, name) for name in meshes}
     _check_side_outputs(paths, input_files(args))
     spheres = {}
+    stages.stamp_walls(meshes, params)  # again, with the frame's t and c
     for name, mesh in meshes.items():
         path = paths[name]
-        mesh.metadata["nemo_params"] = stages.wall_params(params, name)
         save_mesh(mesh, path)
         line = _describe(name, mesh) + f" -> {path}"
         if params["fit_sphere"]:
