@@ -80,7 +80,7 @@ def run_frame(
     c: int = 0,
     spacing: tuple[float, float, float] | None = None,
     dataset: str | None = None,
-    psf: tuple[float, float, float] | None = None,
+    psf: tuple[float, float, float] | str | None = None,
     mask: dict | None = None,
     layers: bool = True,
 ) -> dict:
@@ -101,9 +101,10 @@ def run_frame(
     dataset : str, optional
         Take image, spacing, PSF, mask, segmented channel and section overrides from
         ``datasets.NAME``.
-    psf : (σz, σy, σx), optional
+    psf : (σz, σy, σx) or "auto", optional
         The PSF's standard deviations, overriding the dataset's (:mod:`nemo.psf`: the image is
-        deconvolved by it before meshing and peeling), for every channel; a list of them (or
+        deconvolved by it before meshing and peeling; ``"auto"`` assumes it from the voxel size,
+        :func:`nemo.psf.assumed_psf`), for every channel; a list of them (or
         None) per channel, in channel order, gives each channel its own, as ``datasets.NAME.psf``
         does (:func:`nemo.psf.channel_psf`): the mesh takes the segmented channel's, the peels
         channel ``c``'s.

@@ -15,6 +15,12 @@ deconvolving the whole PSF localises defects better than deconvolving only its e
 voxel on every axis needs nothing and the stack is returned unchanged. The price: Richardson-Lucy
 moves a sharpened edge towards its bright side (0.3 µm for σ 2.5 µm), so a thick, clean shell,
 unbiased without it, reads 0.3 µm thinner; thin, noisy or z-blurred walls gain far more.
+
+Without a measured PSF, ``psf: auto`` assumes one from the voxel size (:func:`assumed_psf`): a stack
+sampled at the Nyquist rate has two voxels per FWHM along each axis, so σ ≈ 0.85 voxel. On the
+confocal-like vesicles of issue 12 (dz = 2.5 dx, σz ≈ 0.9 dz) it localises defects as well as the
+true PSF; on a stack sampled three times coarser than its PSF in z it over-sharpens and loses
+defects (docs/validation.md, "A PSF assumed from the voxel size"), so it is opt-in.
 """
 
 from __future__ import annotations
@@ -34,33 +40,41 @@ DECONVOLVE_ITERATIONS = 30
 #: A PSF narrower than this fraction of the voxel on every axis is not deconvolved.
 MIN_PSF_PER_VOXEL = 0.25
 
+#: The PSF ``psf: auto`` assumes, in voxels along each axis: Nyquist sampling puts two voxels in a
+#: FWHM of 2.355 σ, so σ = 2 / 2.355 voxel.
+ASSUMED_PSF_PER_VOXEL = 2 / 2.355
+
+#: The ``psf`` value that assumes the PSF from the voxel size (:func:`assumed_psf`).
+AUTO = "auto"
+
 
 def is_per_channel(spec) -> bool:
     """Whether a ``psf`` setting lists one PSF per channel (a list of PSFs or nulls), not one PSF."""
     return isinstance(spec, (list, tuple)) and len(spec) > 0 and all(
-        item is None or isinstance(item, (list, tuple)) for item in spec)
+        item is None or item == AUTO or isinstance(item, (list, tuple)) for item in spec)
 
 
 def check_psf_spec(spec, name: str = "psf"):
-    """A ``psf`` setting: None, one PSF for every channel (σz, σy, σx), or one per channel.
+    """A ``psf`` setting: None, one PSF for every channel (σz, σy, σx) or ``"auto"``, or one per channel.
 
     Parameters
     ----------
-    spec : None, sequence of 3 numbers, or sequence of (3 numbers or None)
-        The last form gives channel c the PSF ``spec[c]`` (None: that channel is not deconvolved).
+    spec : None, "auto", sequence of 3 numbers, or sequence of (3 numbers, "auto" or None)
+        The last form gives channel c the PSF ``spec[c]`` (None: that channel is not deconvolved);
+        ``"auto"`` assumes it from the voxel size (:func:`assumed_psf`).
     name : str
         The config key or option, for the message.
 
     Returns
     -------
-    None, tuple of 3 floats, or list of (tuple of 3 floats or None)
+    None, "auto", tuple of 3 floats, or list of (tuple of 3 floats, "auto" or None)
     """
     if not is_per_channel(spec):
         return check_psf(spec, name)
     return [check_psf(item, f"{name}[{c}]") for c, item in enumerate(spec)]
 
 
-def channel_psf(spec, c: int, name: str = "psf") -> tuple[float, float, float] | None:
+def channel_psf(spec, c: int, name: str = "psf") -> tuple[float, float, float] | str | None:
     """The PSF of channel ``c`` under a ``psf`` setting (:func:`check_psf_spec`).
 
     Raises
@@ -77,26 +91,47 @@ def channel_psf(spec, c: int, name: str = "psf") -> tuple[float, float, float] |
     return spec[c]
 
 
-def check_psf(psf, name: str = "psf") -> tuple[float, float, float] | None:
-    """``psf`` as three non-negative floats (σz, σy, σx), or None; a wrong value is named.
+def check_psf(psf, name: str = "psf") -> tuple[float, float, float] | str | None:
+    """``psf`` as three non-negative floats (σz, σy, σx), ``"auto"`` or None; a wrong value is named.
 
     Parameters
     ----------
-    psf : sequence of 3 numbers or None
+    psf : sequence of 3 numbers, "auto" or None
     name : str
         What the caller calls it (a config key or an option), for the message.
     """
-    if psf is None:
-        return None
+    if psf is None or psf == AUTO:
+        return psf
     try:
         values = tuple(float(v) for v in psf)
     except (TypeError, ValueError):
         raise NemoError(f"{name} must be three numbers σz σy σx (the PSF's standard deviations in the "
-                        f"image's unit), got {psf!r}") from None
+                        f"image's unit) or auto (assumed from the voxel size), got {psf!r}") from None
     if len(values) != 3 or not all(np.isfinite(values)) or min(values) < 0:
         raise NemoError(f"{name} must be three numbers σz σy σx ≥ 0 (the PSF's standard deviations in the "
                         f"image's unit), got {psf!r}")
     return values
+
+
+def assumed_psf(spacing) -> tuple[float, float, float]:
+    """The PSF ``psf: auto`` assumes: :data:`ASSUMED_PSF_PER_VOXEL` voxel along each axis.
+
+    Parameters
+    ----------
+    spacing : (dz, dy, dx)
+        Voxel size in the image's unit.
+
+    Returns
+    -------
+    (σz, σy, σx) in the image's unit
+    """
+    return tuple(round(ASSUMED_PSF_PER_VOXEL * float(d), 6) for d in spacing)
+
+
+def resolve_psf(psf, spacing, name: str = "psf") -> tuple[float, float, float] | None:
+    """``psf`` (:func:`check_psf`) with ``"auto"`` replaced by :func:`assumed_psf` of ``spacing``."""
+    psf = check_psf(psf, name)
+    return assumed_psf(spacing) if psf == AUTO else psf
 
 
 def richardson_lucy_gaussian(volume: np.ndarray, sigma_vox: tuple[float, float, float],
@@ -165,8 +200,9 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
         One channel of one time point.
     spacing : (float, float, float)
         Voxel size (dz, dy, dx) in the image's unit.
-    psf : (float, float, float) or None
-        The PSF's standard deviations (σz, σy, σx) in the image's unit; None = no PSF given.
+    psf : (float, float, float), "auto" or None
+        The PSF's standard deviations (σz, σy, σx) in the image's unit; ``"auto"`` assumes them
+        from ``spacing`` (:func:`assumed_psf`); None = no PSF given.
     iterations : int
         Richardson-Lucy iterations.
 
@@ -176,11 +212,13 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
         Float32 where deconvolved (NaN where ``volume`` was not finite); ``volume`` itself where
         nothing was to be done.
     record : dict
-        ``psf``, ``sigma_voxels`` (the PSF in voxels), ``iterations`` (0 if none), ``seconds``.
+        ``psf``, ``sigma_voxels`` (the PSF in voxels), ``assumed`` (``psf`` was ``"auto"``),
+        ``iterations`` (0 if none), ``seconds``.
     """
-    psf = check_psf(psf)
+    assumed = check_psf(psf) == AUTO
+    psf = resolve_psf(psf, spacing)
     if psf is None:
-        return volume, {"psf": None, "sigma_voxels": None, "iterations": 0, "seconds": 0.0}
+        return volume, {"psf": None, "sigma_voxels": None, "assumed": False, "iterations": 0, "seconds": 0.0}
     if not (isinstance(iterations, (int, np.integer)) and not isinstance(iterations, bool) and iterations >= 1):
         raise NemoError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
     sigma_vox = tuple(float(s) / float(d) for s, d in zip(psf, spacing))
@@ -188,7 +226,7 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
         if sv > n / 2:
             raise NemoError(f"psf σ{axis} {s:g} is {sv:.3g} voxels, more than half the stack's {n} along {axis}: "
                             "give the PSF's standard deviations in the image's unit (FWHM / 2.355), e.g. µm")
-    record = {"psf": list(psf), "sigma_voxels": list(sigma_vox), "iterations": 0, "seconds": 0.0}
+    record = {"psf": list(psf), "sigma_voxels": list(sigma_vox), "assumed": assumed, "iterations": 0, "seconds": 0.0}
     if max(sigma_vox) < MIN_PSF_PER_VOXEL:
         logger.info("PSF σ %s is below %.2g voxel on every axis: nothing to deconvolve", psf, MIN_PSF_PER_VOXEL)
         return volume, record
@@ -270,8 +308,9 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
     volume : ndarray, shape (Z, Y, X)
         The stack read from the image (returned when the file records no deconvolution).
     spacing : (dz, dy, dx)
-    psf : (σz, σy, σx)
-        The PSF the caller was given: it must be the file's.
+    psf : (σz, σy, σx) or "auto"
+        The PSF the caller was given (``"auto"``: the one :func:`assumed_psf` gives ``spacing``): it
+        must be the file's.
     t, c : int
         The frame the caller analyses: it must be the file's.
 
@@ -299,7 +338,7 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
         raise NemoError(f"cannot read the deconvolved stack {path}: {exc}; make it with nemo deconvolve") from None
     if not (isinstance(meta, dict) and meta.get("format") == DECONVOLVED_FORMAT):
         raise NemoError(f"{path} is not a deconvolved stack written by nemo deconvolve: make it with nemo deconvolve")
-    given = check_psf(psf)
+    given = resolve_psf(psf, spacing)
     made = {"the frame": ([meta["t"], meta["c"]], [int(t), int(c)]),
             "the PSF": (meta["record"]["psf"], None if given is None else list(given)),
             "the stack's shape": (meta["shape"], [int(n) for n in np.shape(volume)]),

@@ -43,7 +43,7 @@ from nemo import objects
 from nemo._log import OBJECTS_LOGGED, listed, logger, quiet_objects
 from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
-from nemo.psf import deconvolve
+from nemo.psf import AUTO, deconvolve, resolve_psf
 from nemo.summary import QC_MIN_SNR
 from nemo.tables import SCHEMAS
 
@@ -67,7 +67,7 @@ def mesh(
     mask: np.ndarray | None = None,
     unit: str = "um",
     centre: np.ndarray | None = None,
-    psf: tuple[float, float, float] | None = None,
+    psf: tuple[float, float, float] | str | None = None,
     deconvolved: tuple[np.ndarray, dict] | None = None,
     mask_regions: np.ndarray | None = None,
 ) -> tuple[dict[str, trimesh.Trimesh], dict]:
@@ -95,7 +95,7 @@ def mesh(
         The ``mesh`` section.
     mask : ndarray of bool, shape (Z, Y, X), optional
         Object mask used instead of the threshold.
-    psf : (σz, σy, σx), optional
+    psf : (σz, σy, σx) or "auto", optional
         The PSF's standard deviations: the image is meshed deconvolved by it
         (:func:`nemo.psf.deconvolve`; noise, SNR and saturation are still those of the image).
     deconvolved : (ndarray, dict), optional
@@ -161,8 +161,7 @@ def mesh(
         sharp, threshold = _deconvolved(volume, spacing, p, psf, unit, deconvolved)
     else:  # a mask is meshed as given (the layers are still peeled from the deconvolved image)
         sharp, threshold = volume, p["threshold"]
-        p["deconvolution"] = {**deconvolve(None, spacing, None)[1], "psf": None if psf is None else list(psf),
-                              "reason": "a mask: meshed as given"}
+        p["deconvolution"] = _mask_record(spacing, psf)
     p["sigma_auto"] = None
     if p["sigma"] is None and volume is not None and mask is None:
         p["sigma"], p["sigma_auto"] = auto_sigma(sharp, spacing, p["step"], threshold=threshold)
@@ -273,6 +272,13 @@ def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> int
     return np.bincount(objects.vertex_labels(mesh)[vertices], minlength=n_objects).astype(int).tolist()
 
 
+def _mask_record(spacing, psf) -> dict:
+    """The mesh's deconvolution record where a mask is meshed as given: nothing deconvolved, the PSF named."""
+    given = resolve_psf(psf, spacing)
+    return {**deconvolve(None, spacing, None)[1], "psf": None if given is None else list(given),
+            "assumed": psf == AUTO, "reason": "a mask: meshed as given"}
+
+
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
                  deconvolved: tuple[np.ndarray, dict] | None) -> tuple[np.ndarray, str | float]:
     """The image to mesh (deconvolved by ``psf``, :func:`nemo.psf.deconvolve`) and its threshold.
@@ -291,7 +297,7 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
 
     if psf is not None:
         _check_finite(volume)  # before the deconvolution's seconds: the mesh step refuses it anyway
-        if unit == "pixel":
+        if unit == "pixel" and psf != AUTO:
             warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give "
                           "datasets.NAME.spacing (--spacing) to give the psf in µm", NemoWarning, stacklevel=3)
     sharp, record = deconvolved or deconvolve(volume, spacing, psf)
@@ -809,7 +815,7 @@ def peel(
     params: dict,
     shift: np.ndarray | None = None,
     return_profile: bool = False,
-    psf: tuple[float, float, float] | None = None,
+    psf: tuple[float, float, float] | str | None = None,
     deconvolved: tuple[np.ndarray, dict] | None = None,
     shift_beyond_view: np.ndarray | None = None,
 ):

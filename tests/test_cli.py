@@ -333,10 +333,13 @@ for label, opts in {"img.valid (not ours)": ["--deconvolved", "{img.valid}", "--
          expect="error")
 case("mesh:--from-mesh mesh.whole --deconvolved", "mesh", "{img.valid}", "--from-mesh", "{mesh.whole}", "--psf", "2",
      "1", "1", "--deconvolved", "{img.valid}", "-o", "{out}/m.ply", expect="error")
+case("deconvolve:--psf auto", "deconvolve", "{img.valid}", "--psf", "auto", "-o", "{out}/d.tif", expect="ok",
+     outputs=[_out("{out}/d.tif", "deconvolved")])
 case("mesh:--psf 2 1 1", "mesh", "{img.valid}", "-o", "{out}/m.ply", "--psf", "2", "1", "1", expect="ok", outputs=MESH_OUT)
 for label, opts in {"--psf -1 1 1": ["--psf", "-1", "1", "1"], "--psf 1e9 1 1": ["--psf", "1e9", "1", "1"],
                     "--psf nan 1 1": ["--psf", "nan", "1", "1"],
-                    "--psf 1 1": ["--psf", "1", "1"]}.items():
+                    "--psf 1 1": ["--psf", "1", "1"], "--psf auto 1": ["--psf", "auto", "1"],
+                    "--psf automatic": ["--psf", "automatic"]}.items():
     case(f"mesh:{label}", "mesh", "{img.valid}", "-o", "{out}/m.ply", *opts, expect="error")
 case("mesh:--mask img.valid --mask-labels 99", "mesh", "{img.valid}", "--mask", "{img.valid}", "--mask-labels", "99",
      "-o", "{out}/m.ply", expect="error")
@@ -784,10 +787,10 @@ def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():
     mesh.metadata["nemo_params"] = {"deconvolution": {"psf": [2.0, 1.0, 1.0]}, "t": 0, "c": 0}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 1)
-        _check_same_psf(mesh, [2.0, 1.0, 1.0], "m.ply", 0)
+        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 1, (2.0, 1.0, 1.0))
+        _check_same_psf(mesh, [2.0, 1.0, 1.0], "m.ply", 0, (2.0, 1.0, 1.0))
     with pytest.warns(NemoWarning, match="was made with --psf 2 1 1"):
-        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 0)
+        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 0, (2.0, 1.0, 1.0))
 
 
 def test_deconvolved_once_meshes_and_peels_as_deconvolving_again(corpus, tmp_path, capsys):

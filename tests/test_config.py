@@ -351,6 +351,17 @@ def test_a_layer_reaches_out_of_an_object_of_one_wall_when_its_range_lies_mostly
     assert config.reaches_out_of_one_wall(layer) is out
 
 
+def test_psf_auto_is_a_psf_and_other_words_are_named():
+    """datasets.NAME.psf: auto (alone or for one channel) is valid; another word is refused naming
+    the key and the forms a PSF takes."""
+    from nemo import config
+
+    for psf in ("auto", [None, "auto"]):
+        assert config.validate({"datasets": {"a": {"path": "a.tif", "psf": psf}}})["datasets"]["a"]["psf"] == psf
+    with pytest.raises(NemoError, match=r"'datasets.a.psf': \"automatic\" is not a PSF.*auto \(assumed from the voxel"):
+        config.validate({"datasets": {"a": {"path": "a.tif", "psf": "automatic"}}})
+
+
 def test_edge_profile_with_a_psf_is_refused_naming_the_dataset():
     """``mesh.edge: profile`` (global or the dataset's own) and a dataset's ``psf``: one error naming
     the key; either alone, or the psf on another dataset, is fine."""

@@ -151,6 +151,33 @@ def test_a_written_deconvolution_reads_back_bit_for_bit_and_only_for_its_frame(t
     assert back is raw and rec["iterations"] == 0 and path.stat().st_size < 2000
 
 
+def test_auto_assumes_a_nyquist_sampled_psf_from_the_voxel_size(tmp_path):
+    """psf: auto is σ = 2 / 2.355 voxel on each axis (two voxels per FWHM): a z edge blurred by that
+    PSF at 2.5 µm planes is sharpened in place as by the PSF given; the record names it assumed, and
+    a deconvolution written with auto reads back for auto at its spacing only."""
+    from nemo.psf import assumed_psf, check_psf_spec, read_deconvolved, write_deconvolved
+
+    spacing = (2.5, 1.0, 1.0)
+    sigma = assumed_psf(spacing)
+    assert sigma == pytest.approx((2.5 * 2 / 2.355, 2 / 2.355, 2 / 2.355))
+    assert 2.355 * sigma[0] == pytest.approx(2 * spacing[0])  # the FWHM spans two planes
+    assert check_psf("auto") == "auto" and check_psf_spec([None, "auto"]) == [None, "auto"]
+    stack, z = _z_edge(sigma[0], spacing[0], n=150)
+    out, record = deconvolve(stack, spacing, "auto")
+    given, _ = deconvolve(stack, spacing, sigma)
+    assert np.array_equal(out, given) and record["assumed"] and record["psf"] == list(sigma)
+    before, mid_before = _edge_sigma_and_middle(stack.mean(axis=(1, 2)), z)
+    after, mid_after = _edge_sigma_and_middle(out.mean(axis=(1, 2)), z)
+    assert after < 0.7 * before and abs(mid_after - 30.0) < 0.1 * sigma[0], (before, after, mid_after)
+    path = tmp_path / "d.tif"
+    write_deconvolved(path, out, record, stack, spacing, 0, 0, "x.tif")
+    assert read_deconvolved(path, stack, spacing, "auto", 0, 0)[1] == record
+    assert read_deconvolved(path, stack, spacing, sigma, 0, 0)[1] == record  # the same numbers given
+    with pytest.raises(NemoError, match="made for the PSF"):
+        read_deconvolved(path, stack, spacing, (3.0, 1.0, 1.0), 0, 0)
+    assert not deconvolve(stack, spacing, (3.0, 1.0, 1.0))[1]["assumed"]
+
+
 def test_one_psf_or_one_per_channel():
     """psf: one PSF for every channel, or a list in channel order (null: that channel is not
     deconvolved); a list too short for a channel is refused with the fix."""

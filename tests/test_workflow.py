@@ -968,6 +968,11 @@ def test_each_channel_is_deconvolved_by_its_own_psf(tmp_path):
     proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c2.yaml", cfg))
     peel = [line for line in proc.stdout.splitlines() if " peel " in line and "--c 1" in line]
     assert peel and not any("--psf" in line or "--deconvolved" in line for line in peel), peel
+    cfg["datasets"]["two"]["psf"] = [None, "auto"]  # channel 1's assumed from the voxel size, by each step alike
+    proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c5.yaml", cfg))
+    auto = [line for line in proc.stdout.splitlines() if "--psf" in line]
+    assert {cmd for cmd in ("deconvolve", "mesh", "peel") for line in auto if f" {cmd} " in line} == {"deconvolve", "peel"}
+    assert all("--psf auto " in line and "--c 1" in line for line in auto), auto
     cfg["datasets"]["two"]["psf"] = [[2.0, 1.0, 1.0], None, [3.0, 1.0, 1.0]]  # three PSFs for two channels
     proc = smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c4.yaml", cfg))
     assert "datasets.two.psf lists 3 PSFs but the image has 2 channels" in proc.stderr, proc.stderr[-2000:]
@@ -1002,17 +1007,20 @@ def test_curvature_options_reach_the_curvature_job(tmp_path):
 
 
 @pytest.mark.slow  # > 1 min on 2 cores (the default suite stays under ~15 min)
-def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
+@pytest.mark.parametrize("psf, used", [([2.0, 1.0, 1.0], [2.0, 1.0, 1.0]),
+                                      pytest.param("auto", [1.698514, 0.849257, 0.849257], id="auto",
+                                                   marks=pytest.mark.slow)])
+def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path, psf, used):
     """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
     mesh and both peels use that one deconvolution (their provenance records the same run),
     `nemo run` with the same config gives the same tables, a new PSF reruns the deconvolution, the
     mesh and the peels (and what depends on them), not the synthesis, and a peel's parameter
-    reruns that peel alone."""
+    reruns that peel alone. ``psf: auto``: the PSF assumed from the 2 × 1 × 1 µm voxels, alike."""
     from nemo import layout
     from nemo.mesh import load_mesh
     from nemo.tables import read_provenance, read_table
 
-    cfg = {"datasets": {"z": {"path": "z.tif", "psf": [2.0, 1.0, 1.0],
+    cfg = {"datasets": {"z": {"path": "z.tif", "psf": psf,
                               "synthetic": {"radius": 30, "spacing": [2, 1, 1], "blur": [2, 1, 1], "seed": 3}}},
            "curvature": None, "thickness": None,
            "layers": {"fibres": {"surface": "inner", "range": [0, 4]}, "deep": {"surface": "inner", "range": [4, 8]}},
@@ -1022,7 +1030,7 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
     mesh_params = load_mesh(frame / layout.MESH["inner"]).metadata["nemo_params"]
     peel_params = read_provenance(frame / layout.layer_file("layer", "fibres"))["parameters"]
     for record in (mesh_params["deconvolution"], peel_params["deconvolution"]):
-        assert record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0, record
+        assert record["psf"] == used and record["assumed"] == (psf == "auto") and record["iterations"] > 0, record
     deep = read_provenance(frame / layout.layer_file("layer", "deep"))["parameters"]["deconvolution"]
     assert peel_params["deconvolution"]["seconds"] == deep["seconds"] == mesh_params["deconvolution"]["seconds"]
     assert (tmp_path / "results" / "z" / "logs" / "deconvolve" / "t0_c0.log").exists()
@@ -1037,13 +1045,13 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path):
                                           read_table(tmp_path / "run" / layout.layer_file(kind, layer)))
         record = read_provenance(tmp_path / "run" / layout.layer_file("layer", layer))["parameters"]["deconvolution"]
         rule = read_provenance(frame / layout.layer_file("layer", layer))["parameters"]["deconvolution"]
-        assert record.keys() == rule.keys() and record["psf"] == [2.0, 1.0, 1.0] and record["iterations"] > 0
+        assert record.keys() == rule.keys() and record["psf"] == used and record["iterations"] > 0
         assert record["seconds"] == once["seconds"], (record, once)  # the same deconvolution, not another
     cfg["datasets"]["z"]["psf"] = [2.5, 1.0, 1.0]
     counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c2.yaml", cfg)))
     assert counts.get("deconvolve") == counts.get("mesh") == 1 and counts.get("peel") == 2, counts
     assert "synth_z" not in counts, counts
-    cfg["datasets"]["z"]["psf"] = [2.0, 1.0, 1.0]  # back to the PSF the results were made with
+    cfg["datasets"]["z"]["psf"] = psf  # back to the PSF the results were made with
     cfg["layers"]["deep"]["range"] = [4, 9]  # a peel's parameter: that peel, not the deconvolution or the mesh
     counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c3.yaml", cfg)))
     assert counts.get("peel") == 1 and "deconvolve" not in counts and "mesh" not in counts, counts

@@ -34,11 +34,13 @@ def add_common(
             help="voxel size in µm, overriding the file's calibration",
         )
         parser.add_argument(
-            "--psf", type=non_negative, nargs=3, metavar=("SZ", "SY", "SX"),
+            "--psf", nargs="+", action=PsfAction, metavar="SZ SY SX | auto",
             help="the microscope's PSF as Gaussian standard deviations in the image's unit, usually µm "
                  "(FWHM / 2.355): the image is deconvolved by it (Richardson-Lucy, 30 iterations) before "
-                 "meshing and peeling (an automatic mesh level is taken on the image before); give the "
-                 "same to nemo mesh and nemo peel (default: none)",
+                 "meshing and peeling (an automatic mesh level is taken on the image before); auto assumes "
+                 "a stack sampled at the Nyquist rate, σ = 0.85 voxel on each axis (right when it was; "
+                 "over-sharpens a stack sampled coarser than its PSF); give the same to nemo mesh and "
+                 "nemo peel (default: none)",
         )
         if deconvolved:
             parser.add_argument(
@@ -95,6 +97,22 @@ def non_negative(text: str) -> float:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be ≥ 0, got {text}")
     return value
+
+
+class PsfAction(argparse.Action):
+    """``--psf SZ SY SX`` (three numbers ≥ 0) or ``--psf auto``: stored as a tuple of floats or "auto"."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if values == ["auto"]:
+            setattr(namespace, self.dest, "auto")
+            return
+        if len(values) != 3:
+            parser.error(f"argument {option_string}: give three numbers SZ SY SX or auto, got {' '.join(values)} "
+                         "(put the image and the mesh before the options)")
+        try:
+            setattr(namespace, self.dest, tuple(non_negative(v) for v in values))
+        except argparse.ArgumentTypeError as exc:
+            parser.error(f"argument {option_string}: {exc}")
 
 
 def seed(text: str) -> int:

@@ -68,11 +68,14 @@ def _read_shift(spec: str, n_vertices: int) -> tuple[np.ndarray, np.ndarray | No
     return values, beyond
 
 
-def _check_same_psf(mesh, psf, mesh_path, c: int) -> None:
+def _check_same_psf(mesh, psf, mesh_path, c: int, spacing) -> None:
     """Warn when the mesh was made from this channel deconvolved with another PSF than ``psf`` (a mesh
-    of another channel had that channel's PSF)."""
+    of another channel had that channel's PSF; ``"auto"`` is the one assumed from ``spacing``)."""
+    from nemo.psf import resolve_psf
+
     params = mesh.metadata.get("nemo_params") or {}
     made = (params.get("deconvolution") or {}).get("psf")
+    psf = resolve_psf(psf, spacing, "--psf")
     given = None if psf is None else [float(v) for v in psf]
     if made is not None and made != given and params.get("c", c) == c:
         warnings.warn(f"the mesh {mesh_path} was made with --psf {' '.join(f'{v:g}' for v in made)}, this peel "
@@ -108,7 +111,7 @@ def run(args) -> int:
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
     check_mesh_image(mesh, info.spacing, info.unit, mesh_name=f"the mesh {args.mesh}",
                      image_name=f"the image {args.image}")
-    _check_same_psf(mesh, args.psf, args.mesh, args.c)
+    _check_same_psf(mesh, args.psf, args.mesh, args.c, info.spacing)
     if mesh.metadata.get("spacing") is None:  # made elsewhere: check its scale against the image
         warn_if_mesh_off_object(mesh, volume, info.spacing, mesh_name=f"the mesh {args.mesh}")
     deconvolved = deconvolved_for(args, volume, info.spacing)

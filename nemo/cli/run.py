@@ -48,7 +48,7 @@ def run(args) -> int:
     from nemo.pipeline import run_frame
 
     spacing = tuple(args.spacing) if args.spacing else None
-    psf = tuple(args.psf) if args.psf else None
+    psf = args.psf
     mask = mask_options(args)
     if args.print_config:
         import yaml

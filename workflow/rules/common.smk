@@ -465,7 +465,7 @@ def calibration_opts(wildcards):
     d = DATA[wildcards.dataset]
     values = {"spacing": d["spacing"], "psf": channel_psf(d["psf"], int(wildcards.c))}
     return " ".join(
-        f"--{key} {' '.join(str(v) for v in value)}"
+        f"--{key} {value if isinstance(value, str) else ' '.join(str(v) for v in value)}"
         for key, value in values.items()
         if value
     )
