@@ -83,7 +83,7 @@ def _messages(errors) -> list[str]:
             msg = f"{e.instance!r} is not valid: " + "; or ".join(sorted({c.message for c in e.context}))
         if e.validator == "anyOf" and e.absolute_path and e.absolute_path[-1] == "psf":
             msg = (f"{json.dumps(e.instance, default=str)} is not a PSF: give three numbers [σz, σy, σx] ≥ 0 (the image's "
-                   "unit), auto (assumed from the voxel size), or a list of them per channel in channel order (null: a "
+                   "unit), auto (its z blur estimated from the image), or a list of them per channel in channel order (null: a "
                    "channel not deconvolved)")
         if e.validator == "pattern" and "propertyNames" in e.schema_path:
             msg = (f"the name {e.instance!r} is not allowed: use letters, digits, '-' "

@@ -103,8 +103,8 @@ def run_frame(
         ``datasets.NAME``.
     psf : (σz, σy, σx) or "auto", optional
         The PSF's standard deviations, overriding the dataset's (:mod:`nemo.psf`: the image is
-        deconvolved by it before meshing and peeling; ``"auto"`` assumes it from the voxel size,
-        :func:`nemo.psf.assumed_psf`), for every channel; a list of them (or
+        deconvolved by it before meshing and peeling; ``"auto"`` estimates its z blur from the
+        image, :func:`nemo.psf.estimate_psf`), for every channel; a list of them (or
         None) per channel, in channel order, gives each channel its own, as ``datasets.NAME.psf``
         does (:func:`nemo.psf.channel_psf`): the mesh takes the segmented channel's, the peels
         channel ``c``'s.

@@ -16,11 +16,10 @@ voxel on every axis needs nothing and the stack is returned unchanged. The price
 moves a sharpened edge towards its bright side (0.3 µm for σ 2.5 µm), so a thick, clean shell,
 unbiased without it, reads 0.3 µm thinner; thin, noisy or z-blurred walls gain far more.
 
-Without a measured PSF, ``psf: auto`` assumes one from the voxel size (:func:`assumed_psf`): a stack
-sampled at the Nyquist rate has two voxels per FWHM along each axis, so σ ≈ 0.85 voxel. On the
-confocal-like vesicles of issue 12 (dz = 2.5 dx, σz ≈ 0.9 dz) it localises defects as well as the
-true PSF; on a stack sampled three times coarser than its PSF in z it over-sharpens and loses
-defects (docs/validation.md, "A PSF assumed from the voxel size"), so it is opt-in.
+Without a measured PSF, ``psf: auto`` estimates the blur along z beyond the lateral blur from the
+image's own autocovariance (:func:`estimate_z_blur`) and deconvolves that alone (:func:`estimate_psf`):
+it is what turns the directors where the normal is oblique (docs/validation.md, "The PSF's z blur
+estimated from the image").
 """
 
 from __future__ import annotations
@@ -40,18 +39,37 @@ DECONVOLVE_ITERATIONS = 30
 #: A PSF narrower than this fraction of the voxel on every axis is not deconvolved.
 MIN_PSF_PER_VOXEL = 0.25
 
-#: The PSF ``psf: auto`` assumes, in voxels along each axis: Nyquist sampling puts two voxels in a
-#: FWHM of 2.355 σ, so σ = 2 / 2.355 voxel.
-ASSUMED_PSF_PER_VOXEL = 2 / 2.355
-
-#: The ``psf`` value that assumes the PSF from the voxel size (:func:`assumed_psf`).
+#: The ``psf`` value that estimates the PSF's z blur from the image (:func:`estimate_psf`).
 AUTO = "auto"
+
+#: :func:`estimate_z_blur`'s high-pass, in voxels along the longest axis: it removes the object's
+#: large shapes (walls, whose orientations are not balanced in a cut or elongated object) and keeps
+#: the texture the PSF blurs.
+ESTIMATE_HIGHPASS_VOXELS = 1.5
+
+#: Above this relative misfit the image's autocovariance is not that of an isotropic object
+#: blurred along z (measured: closed and cut vesicles 0.02-0.06, a flat textured sheet 0.7):
+#: no estimate.
+ESTIMATE_MAX_MISFIT = 0.2
+
+#: At most this many planes (rows) are used for the lateral (axial) lags: the cost stays ~1 s.
+ESTIMATE_MAX_SLICES = 64
+
+#: An extra z blur below this fraction of the plane spacing is not deconvolved: sampling in planes
+#: itself blurs by 0.29 dz, and deconvolving less than that amplified noise and cost a defect on
+#: a stack sampled three times coarser than its PSF (docs/validation.md).
+ESTIMATE_MIN_Z_BLUR_PER_PLANE = 0.5
+
+
+def is_auto(psf) -> bool:
+    """Whether a ``psf`` value is ``"auto"`` (a string, not a PSF: arrays compare element-wise)."""
+    return isinstance(psf, str) and psf == AUTO
 
 
 def is_per_channel(spec) -> bool:
     """Whether a ``psf`` setting lists one PSF per channel (a list of PSFs or nulls), not one PSF."""
     return isinstance(spec, (list, tuple)) and len(spec) > 0 and all(
-        item is None or item == AUTO or isinstance(item, (list, tuple)) for item in spec)
+        item is None or is_auto(item) or isinstance(item, (list, tuple)) for item in spec)
 
 
 def check_psf_spec(spec, name: str = "psf"):
@@ -61,7 +79,7 @@ def check_psf_spec(spec, name: str = "psf"):
     ----------
     spec : None, "auto", sequence of 3 numbers, or sequence of (3 numbers, "auto" or None)
         The last form gives channel c the PSF ``spec[c]`` (None: that channel is not deconvolved);
-        ``"auto"`` assumes it from the voxel size (:func:`assumed_psf`).
+        ``"auto"`` estimates it from the image (:func:`estimate_psf`).
     name : str
         The config key or option, for the message.
 
@@ -100,38 +118,117 @@ def check_psf(psf, name: str = "psf") -> tuple[float, float, float] | str | None
     name : str
         What the caller calls it (a config key or an option), for the message.
     """
-    if psf is None or psf == AUTO:
+    if psf is None or is_auto(psf):
         return psf
     try:
         values = tuple(float(v) for v in psf)
     except (TypeError, ValueError):
         raise NemoError(f"{name} must be three numbers σz σy σx (the PSF's standard deviations in the "
-                        f"image's unit) or auto (assumed from the voxel size), got {psf!r}") from None
+                        f"image's unit) or auto (estimated from the image), got {psf!r}") from None
     if len(values) != 3 or not all(np.isfinite(values)) or min(values) < 0:
         raise NemoError(f"{name} must be three numbers σz σy σx ≥ 0 (the PSF's standard deviations in the "
                         f"image's unit), got {psf!r}")
     return values
 
 
-def assumed_psf(spacing) -> tuple[float, float, float]:
-    """The PSF ``psf: auto`` assumes: :data:`ASSUMED_PSF_PER_VOXEL` voxel along each axis.
+def _lag_covariances(hp: np.ndarray, axis: int, lags: int, slices: int) -> np.ndarray:
+    """Covariance of ``hp`` (zero mean) with itself shifted by 1 … ``lags`` voxels along ``axis``,
+    over at most ``slices`` evenly spaced slices across another axis (the cost bound)."""
+    across = 1 if axis == 0 else 0
+    keep = np.unique(np.linspace(0, hp.shape[across] - 1, min(slices, hp.shape[across])).astype(int))
+    sub = np.take(hp, keep, axis=across)
+    n = sub.shape[axis]
+    return np.array([np.mean(np.take(sub, range(n - k), axis=axis) * np.take(sub, range(k, n), axis=axis))
+                     for k in range(1, lags + 1)])
+
+
+def _z_blur_misfit(beta: float, lateral: np.ndarray, axial: np.ndarray, widths: np.ndarray,
+                   cov: np.ndarray, weights: np.ndarray) -> tuple[float, np.ndarray]:
+    """Least-squares misfit of an isotropic autocovariance Σ a_j exp(−r² / 2 w_j²) (a_j ≥ 0), blurred
+    along z by a Gaussian of variance 2 β, to the measured lateral and axial lag covariances."""
+    from scipy.optimize import nnls
+
+    w2 = widths**2
+    factor = np.sqrt(w2 / (w2 + 2 * beta))  # the z blur's share of each component's peak
+    model = np.vstack([factor * np.exp(-lateral[:, None] ** 2 / (2 * w2)),
+                       factor * np.exp(-axial[:, None] ** 2 / (2 * (w2 + 2 * beta)))])
+    amplitudes, misfit = nnls(model * weights[:, None], cov * weights)
+    return misfit, amplitudes
+
+
+def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
+    """The PSF's blur along z beyond its lateral blur, β = σz² − σxy², from the image itself.
+
+    The image's autocovariance at lags of one voxel and more (white noise adds nothing there) is
+    fitted as that of an object whose own autocovariance is isotropic (a closed or cut vesicle,
+    an organoid: its walls and texture face every way), Σ a_j exp(−r² / 2 w_j²) with a_j ≥ 0,
+    blurred along z by a Gaussian of variance 2 β; β is the best fit's on a grid to (3 dz)².
+    The image is high-passed first (:data:`ESTIMATE_HIGHPASS_VOXELS`). An object whose
+    autocovariance is not isotropic (a flat sheet) misfits and gives no estimate.
 
     Parameters
     ----------
+    volume : ndarray, shape (Z, Y, X)
     spacing : (dz, dy, dx)
-        Voxel size in the image's unit.
 
     Returns
     -------
-    (σz, σy, σx) in the image's unit
+    dict
+        ``beta`` (µm², None without an estimate), ``misfit`` (relative), ``reason`` (None, or why
+        there is no estimate).
     """
-    return tuple(round(ASSUMED_PSF_PER_VOXEL * float(d), 6) for d in spacing)
+    dz, dy, dx = (float(v) for v in spacing)
+    vol = np.nan_to_num(np.asarray(volume, dtype=np.float32), nan=float(np.nanmean(volume)))
+    highpass = ESTIMATE_HIGHPASS_VOXELS * max(dz, dy, dx)
+    if min(vol.shape) < 8:
+        return {"beta": None, "misfit": None, "reason": f"the stack is too small ({vol.shape}) to estimate a PSF"}
+    hp = vol - ndi.gaussian_filter(vol, (highpass / dz, highpass / dy, highpass / dx), mode="nearest")
+    hp -= hp.mean()
+    n_lat = min(int(np.ceil(3 * highpass / min(dx, dy))), vol.shape[2] // 2, vol.shape[1] // 2)
+    n_ax = min(max(3, int(np.ceil(3 * highpass / dz))), vol.shape[0] // 2)
+    lateral = np.arange(1, n_lat + 1) * (dx + dy) / 2
+    axial = np.arange(1, n_ax + 1) * dz
+    cov = np.concatenate([(_lag_covariances(hp, 2, n_lat, ESTIMATE_MAX_SLICES)
+                           + _lag_covariances(hp, 1, n_lat, ESTIMATE_MAX_SLICES)) / 2,
+                          _lag_covariances(hp, 0, n_ax, ESTIMATE_MAX_SLICES)])
+    if not np.isfinite(cov).all() or cov.max() <= 0:
+        return {"beta": None, "misfit": None, "reason": "the image has no texture to estimate a PSF from"}
+    cov = cov / cov.max()
+    weights = np.concatenate([np.ones(n_lat), np.full(n_ax, np.sqrt(n_lat / n_ax))])  # each axis counts alike
+    widths = np.geomspace(0.5 * min(dx, dy), 3 * highpass, 10)
+    betas = np.linspace(0.0, (3 * dz) ** 2, 301)
+    misfits = [_z_blur_misfit(b, lateral, axial, widths, cov, weights)[0] for b in betas]
+    best = int(np.argmin(misfits))
+    misfit = float(misfits[best] / np.linalg.norm(cov * weights))
+    if misfit > ESTIMATE_MAX_MISFIT:
+        return {"beta": None, "misfit": round(misfit, 4),
+                "reason": f"the image's autocovariance is not that of an isotropic object blurred along z (misfit "
+                          f"{misfit:.2f} > {ESTIMATE_MAX_MISFIT}; a flat sheet?)"}
+    return {"beta": round(float(betas[best]), 4), "misfit": round(misfit, 4), "reason": None}
 
 
-def resolve_psf(psf, spacing, name: str = "psf") -> tuple[float, float, float] | None:
-    """``psf`` (:func:`check_psf`) with ``"auto"`` replaced by :func:`assumed_psf` of ``spacing``."""
-    psf = check_psf(psf, name)
-    return assumed_psf(spacing) if psf == AUTO else psf
+def estimate_psf(volume: np.ndarray, spacing) -> tuple[tuple[float, float, float] | None, dict]:
+    """The PSF ``psf: auto`` deconvolves by: the z blur beyond the lateral blur, from the image.
+
+    σz = √β with β from :func:`estimate_z_blur`, and no lateral blur (which the object's own
+    texture hides). None where there is no estimate, or where √β is below
+    :data:`ESTIMATE_MIN_Z_BLUR_PER_PLANE` × dz (nothing worth deconvolving).
+
+    Returns
+    -------
+    psf : (σz, 0, 0) in the image's unit, or None (not deconvolved)
+    estimate : dict
+        :func:`estimate_z_blur`'s record; ``reason`` says why the PSF is None.
+    """
+    dz = float(spacing[0])
+    estimate = estimate_z_blur(volume, spacing)
+    if estimate["beta"] is None:
+        return None, estimate
+    sigma_z = float(np.sqrt(estimate["beta"]))
+    if sigma_z < ESTIMATE_MIN_Z_BLUR_PER_PLANE * dz:
+        return None, {**estimate, "reason": f"the z blur beyond the lateral, {sigma_z:.3g}, is below "
+                                            f"{ESTIMATE_MIN_Z_BLUR_PER_PLANE} × the planes' {dz:g}: nothing to deconvolve"}
+    return (round(sigma_z, 4), 0.0, 0.0), estimate
 
 
 def richardson_lucy_gaussian(volume: np.ndarray, sigma_vox: tuple[float, float, float],
@@ -201,8 +298,8 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
     spacing : (float, float, float)
         Voxel size (dz, dy, dx) in the image's unit.
     psf : (float, float, float), "auto" or None
-        The PSF's standard deviations (σz, σy, σx) in the image's unit; ``"auto"`` assumes them
-        from ``spacing`` (:func:`assumed_psf`); None = no PSF given.
+        The PSF's standard deviations (σz, σy, σx) in the image's unit; ``"auto"`` estimates its z
+        blur from ``volume`` (:func:`estimate_psf`); None = no PSF given.
     iterations : int
         Richardson-Lucy iterations.
 
@@ -212,13 +309,17 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
         Float32 where deconvolved (NaN where ``volume`` was not finite); ``volume`` itself where
         nothing was to be done.
     record : dict
-        ``psf``, ``sigma_voxels`` (the PSF in voxels), ``assumed`` (``psf`` was ``"auto"``),
-        ``iterations`` (0 if none), ``seconds``.
+        ``psf``, ``sigma_voxels`` (the PSF in voxels), ``estimated`` (``psf`` was ``"auto"``) and
+        ``estimate`` (:func:`estimate_psf`'s record, or None), ``iterations`` (0 if none), ``seconds``.
     """
-    assumed = check_psf(psf) == AUTO
-    psf = resolve_psf(psf, spacing)
+    estimated, estimate = is_auto(check_psf(psf)), None
+    if estimated:
+        psf, estimate = estimate_psf(volume, spacing)
+        logger.info("psf: auto: %s", f"z blur {psf[0]:g} estimated" if psf else estimate["reason"])
+    psf = check_psf(psf)
     if psf is None:
-        return volume, {"psf": None, "sigma_voxels": None, "assumed": False, "iterations": 0, "seconds": 0.0}
+        return volume, {"psf": None, "sigma_voxels": None, "estimated": estimated, "estimate": estimate,
+                        "iterations": 0, "seconds": 0.0}
     if not (isinstance(iterations, (int, np.integer)) and not isinstance(iterations, bool) and iterations >= 1):
         raise NemoError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
     sigma_vox = tuple(float(s) / float(d) for s, d in zip(psf, spacing))
@@ -226,7 +327,8 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
         if sv > n / 2:
             raise NemoError(f"psf σ{axis} {s:g} is {sv:.3g} voxels, more than half the stack's {n} along {axis}: "
                             "give the PSF's standard deviations in the image's unit (FWHM / 2.355), e.g. µm")
-    record = {"psf": list(psf), "sigma_voxels": list(sigma_vox), "assumed": assumed, "iterations": 0, "seconds": 0.0}
+    record = {"psf": list(psf), "sigma_voxels": list(sigma_vox), "estimated": estimated, "estimate": estimate,
+              "iterations": 0, "seconds": 0.0}
     if max(sigma_vox) < MIN_PSF_PER_VOXEL:
         logger.info("PSF σ %s is below %.2g voxel on every axis: nothing to deconvolve", psf, MIN_PSF_PER_VOXEL)
         return volume, record
@@ -309,8 +411,7 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
         The stack read from the image (returned when the file records no deconvolution).
     spacing : (dz, dy, dx)
     psf : (σz, σy, σx) or "auto"
-        The PSF the caller was given (``"auto"``: the one :func:`assumed_psf` gives ``spacing``): it
-        must be the file's.
+        The PSF the caller was given: it must be the file's (``"auto"``: the file's was estimated).
     t, c : int
         The frame the caller analyses: it must be the file's.
 
@@ -338,9 +439,10 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
         raise NemoError(f"cannot read the deconvolved stack {path}: {exc}; make it with nemo deconvolve") from None
     if not (isinstance(meta, dict) and meta.get("format") == DECONVOLVED_FORMAT):
         raise NemoError(f"{path} is not a deconvolved stack written by nemo deconvolve: make it with nemo deconvolve")
-    given = resolve_psf(psf, spacing)
+    given = check_psf(psf)
+    made_psf = "auto" if meta["record"].get("estimated") else meta["record"]["psf"]
     made = {"the frame": ([meta["t"], meta["c"]], [int(t), int(c)]),
-            "the PSF": (meta["record"]["psf"], None if given is None else list(given)),
+            "the PSF": (made_psf, given if given is None or is_auto(given) else list(given)),
             "the stack's shape": (meta["shape"], [int(n) for n in np.shape(volume)]),
             "the spacing": (meta["spacing"], [float(v) for v in spacing])}
     fix = "run nemo deconvolve again with this step's image, --t, --c, --spacing and --psf"

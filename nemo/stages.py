@@ -43,7 +43,7 @@ from nemo import objects
 from nemo._log import OBJECTS_LOGGED, listed, logger, quiet_objects
 from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
-from nemo.psf import AUTO, deconvolve, resolve_psf
+from nemo.psf import check_psf, deconvolve, is_auto
 from nemo.summary import QC_MIN_SNR
 from nemo.tables import SCHEMAS
 
@@ -273,10 +273,11 @@ def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> int
 
 
 def _mask_record(spacing, psf) -> dict:
-    """The mesh's deconvolution record where a mask is meshed as given: nothing deconvolved, the PSF named."""
-    given = resolve_psf(psf, spacing)
-    return {**deconvolve(None, spacing, None)[1], "psf": None if given is None else list(given),
-            "assumed": psf == AUTO, "reason": "a mask: meshed as given"}
+    """The mesh's deconvolution record where a mask is meshed as given: nothing deconvolved, the PSF named
+    (``"auto"``: none estimated, the mesh needs none)."""
+    given = check_psf(psf)
+    return {**deconvolve(None, spacing, None)[1], "psf": None if given is None or is_auto(given) else list(given),
+            "estimated": is_auto(given), "reason": "a mask: meshed as given"}
 
 
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
@@ -297,7 +298,7 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
 
     if psf is not None:
         _check_finite(volume)  # before the deconvolution's seconds: the mesh step refuses it anyway
-        if unit == "pixel" and psf != AUTO:
+        if unit == "pixel" and not is_auto(psf):
             warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give "
                           "datasets.NAME.spacing (--spacing) to give the psf in µm", NemoWarning, stacklevel=3)
     sharp, record = deconvolved or deconvolve(volume, spacing, psf)

@@ -744,7 +744,7 @@ def test_peel_warns_when_its_mesh_was_made_with_another_psf(corpus, tmp_path, ca
     inner = tmp_path / "m.inner.ply"
     code, _, err = invoke(["peel", str(corpus["img.valid"]), str(inner), "-o", str(tmp_path / "a.parquet")],
                           capsys, "peel without")
-    assert code == 0 and "was made with --psf 2 1 1" in err and "give nemo peel the same --psf" in err
+    assert code == 0 and "was made with --psf 2.0 1.0 1.0" in err and "give nemo peel the same --psf" in err
     code, _, err = invoke(["peel", str(corpus["img.valid"]), str(inner), "-o", str(tmp_path / "b.parquet"), "--psf",
                            "2", "1", "1"], capsys, "peel with")
     assert code == 0 and "--psf" not in err
@@ -787,10 +787,18 @@ def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():
     mesh.metadata["nemo_params"] = {"deconvolution": {"psf": [2.0, 1.0, 1.0]}, "t": 0, "c": 0}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 1, (2.0, 1.0, 1.0))
-        _check_same_psf(mesh, [2.0, 1.0, 1.0], "m.ply", 0, (2.0, 1.0, 1.0))
-    with pytest.warns(NemoWarning, match="was made with --psf 2 1 1"):
-        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 0, (2.0, 1.0, 1.0))
+        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 1)
+        _check_same_psf(mesh, [2.0, 1.0, 1.0], "m.ply", 0)
+    with pytest.warns(NemoWarning, match="was made with --psf 2.0 1.0 1.0"):
+        _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 0)
+    with pytest.warns(NemoWarning, match="was made with --psf 2.0 1.0 1.0, this peel has another"):
+        _check_same_psf(mesh, "auto", "m.ply", 0)
+    mesh.metadata["nemo_params"]["deconvolution"] = {"psf": [1.7, 0.0, 0.0], "estimated": True}  # psf: auto
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _check_same_psf(mesh, "auto", "m.ply", 0)
+    with pytest.warns(NemoWarning, match="was made with --psf auto, this peel has another"):
+        _check_same_psf(mesh, [1.7, 0.0, 0.0], "m.ply", 0)
 
 
 def test_deconvolved_once_meshes_and_peels_as_deconvolving_again(corpus, tmp_path, capsys):

@@ -358,7 +358,7 @@ def test_psf_auto_is_a_psf_and_other_words_are_named():
 
     for psf in ("auto", [None, "auto"]):
         assert config.validate({"datasets": {"a": {"path": "a.tif", "psf": psf}}})["datasets"]["a"]["psf"] == psf
-    with pytest.raises(NemoError, match=r"'datasets.a.psf': \"automatic\" is not a PSF.*auto \(assumed from the voxel"):
+    with pytest.raises(NemoError, match=r"'datasets.a.psf': \"automatic\" is not a PSF.*auto \(its z blur estimated"):
         config.validate({"datasets": {"a": {"path": "a.tif", "psf": "automatic"}}})
 
 

@@ -107,7 +107,9 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``nemo`` console script."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    from nemo.cli.common import psf_auto_option
+
+    argv = psf_auto_option(sys.argv[1:] if argv is None else list(argv))
     command = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(command if command in COMMANDS else None)
     args, unknown = parser.parse_known_args(argv)

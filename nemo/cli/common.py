@@ -34,14 +34,15 @@ def add_common(
             help="voxel size in µm, overriding the file's calibration",
         )
         parser.add_argument(
-            "--psf", nargs="+", action=PsfAction, metavar="SZ SY SX | auto",
+            "--psf", type=non_negative, nargs=3, metavar=("SZ", "SY", "SX"),
             help="the microscope's PSF as Gaussian standard deviations in the image's unit, usually µm "
                  "(FWHM / 2.355): the image is deconvolved by it (Richardson-Lucy, 30 iterations) before "
-                 "meshing and peeling (an automatic mesh level is taken on the image before); auto assumes "
-                 "a stack sampled at the Nyquist rate, σ = 0.85 voxel on each axis (right when it was; "
-                 "over-sharpens a stack sampled coarser than its PSF); give the same to nemo mesh and "
-                 "nemo peel (default: none)",
+                 "meshing and peeling (an automatic mesh level is taken on the image before); --psf auto "
+                 "estimates the PSF's blur along z beyond the lateral from the image's autocovariance and "
+                 "deconvolves that (an object facing every way: a vesicle, an organoid; not a flat sheet); "
+                 "give the same to nemo mesh and nemo peel (default: none)",
         )
+        parser.add_argument("--psf-auto", dest="psf", action="store_const", const="auto", help=argparse.SUPPRESS)
         if deconvolved:
             parser.add_argument(
                 "--deconvolved", metavar="FILE.tif",
@@ -99,20 +100,18 @@ def non_negative(text: str) -> float:
     return value
 
 
-class PsfAction(argparse.Action):
-    """``--psf SZ SY SX`` (three numbers ≥ 0) or ``--psf auto``: stored as a tuple of floats or "auto"."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        if values == ["auto"]:
-            setattr(namespace, self.dest, "auto")
-            return
-        if len(values) != 3:
-            parser.error(f"argument {option_string}: give three numbers SZ SY SX or auto, got {' '.join(values)} "
-                         "(put the image and the mesh before the options)")
-        try:
-            setattr(namespace, self.dest, tuple(non_negative(v) for v in values))
-        except argparse.ArgumentTypeError as exc:
-            parser.error(f"argument {option_string}: {exc}")
+def psf_auto_option(argv: list[str]) -> list[str]:
+    """``--psf auto`` (or ``--psf=auto``) as the hidden ``--psf-auto``: ``--psf`` itself takes three
+    numbers, so that it never swallows an image or mesh written after it."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] == "--psf" and i + 1 < len(argv) and argv[i + 1] == "auto":
+            out.append("--psf-auto")
+            i += 2
+            continue
+        out.append("--psf-auto" if argv[i] == "--psf=auto" else argv[i])
+        i += 1
+    return out
 
 
 def seed(text: str) -> int:

@@ -33,28 +33,37 @@ def run(args) -> int:
     from nemo._log import step
     from nemo.cli.common import check_outputs_are_not_inputs
     from nemo.io import read_stack
-    from nemo.psf import AUTO, deconvolve, resolve_psf, write_deconvolved
+    from nemo.psf import deconvolve, is_auto, write_deconvolved
 
     if args.psf is None:
         raise NemoError("give the PSF to deconvolve by: --psf SZ SY SX (Gaussian standard deviations, µm), or --psf "
-                        "auto (assumed from the voxel size)")
+                        "auto (its z blur estimated from the image)")
     out = output_path(args.output, (".tif", ".tiff"))
     check_outputs_are_not_inputs(args)
     with step(f"reading {args.image} t={args.t} c={args.c}"):
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
-    if info.unit == "pixel" and args.psf != AUTO:
+    auto = is_auto(args.psf)
+    if info.unit == "pixel" and not auto:
         warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give --spacing "
                       "to give the psf in µm", NemoWarning, stacklevel=2)
-    psf = resolve_psf(args.psf, info.spacing)
-    with step(f"deconvolving {'x'.join(map(str, volume.shape))} voxels by the PSF σ "
-              f"{' '.join(f'{v:g}' for v in psf)}{' (assumed)' if args.psf == AUTO else ''} "
+    said = "its z blur estimated from the image" if auto else f"the PSF σ {' '.join(f'{v:g}' for v in args.psf)}"
+    with step(f"deconvolving {'x'.join(map(str, volume.shape))} voxels by {said} "
               "(Richardson-Lucy, about 1.5 s per million voxels)"):
         sharp, record = deconvolve(volume, info.spacing, args.psf)
     write_deconvolved(out, sharp, record, volume, info.spacing, args.t, args.c, args.image)
-    done = f"{record['iterations']} Richardson-Lucy iterations" if record["iterations"] else "nothing to deconvolve"
-    print(f"deconvolved t={args.t} c={args.c} by σ {' '.join(f'{v:g}' for v in record['psf'])} "
-          f"({done}) -> {out}")
+    print(f"deconvolved t={args.t} c={args.c} {psf_note(record)} -> {out}")
     return 0
+
+
+def psf_note(record: dict) -> str:
+    """What :func:`nemo.psf.deconvolve`'s record says was done, in a few words."""
+    estimated = " (estimated: psf auto)" if record.get("estimated") else ""
+    if record["iterations"]:
+        return (f"by σ {' '.join(f'{v:g}' for v in record['psf'])}{estimated}, "
+                f"{record['iterations']} Richardson-Lucy iterations")
+    if record.get("estimated") and not record["psf"]:
+        return f"not deconvolved: psf auto: {(record.get('estimate') or {}).get('reason')}"
+    return "nothing to deconvolve"
 
 
 def deconvolved_for(args, volume, spacing):

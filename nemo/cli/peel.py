@@ -68,17 +68,18 @@ def _read_shift(spec: str, n_vertices: int) -> tuple[np.ndarray, np.ndarray | No
     return values, beyond
 
 
-def _check_same_psf(mesh, psf, mesh_path, c: int, spacing) -> None:
+def _check_same_psf(mesh, psf, mesh_path, c: int) -> None:
     """Warn when the mesh was made from this channel deconvolved with another PSF than ``psf`` (a mesh
-    of another channel had that channel's PSF; ``"auto"`` is the one assumed from ``spacing``)."""
-    from nemo.psf import resolve_psf
+    of another channel had that channel's PSF; ``"auto"`` matches a mesh whose PSF was estimated)."""
+    from nemo.psf import is_auto
 
     params = mesh.metadata.get("nemo_params") or {}
-    made = (params.get("deconvolution") or {}).get("psf")
-    psf = resolve_psf(psf, spacing, "--psf")
-    given = None if psf is None else [float(v) for v in psf]
+    record = params.get("deconvolution") or {}
+    made = "auto" if record.get("estimated") else record.get("psf")
+    given = psf if psf is None or is_auto(psf) else [float(v) for v in psf]
     if made is not None and made != given and params.get("c", c) == c:
-        warnings.warn(f"the mesh {mesh_path} was made with --psf {' '.join(f'{v:g}' for v in made)}, this peel "
+        said = made if isinstance(made, str) else " ".join(f"{v!r}" for v in made)
+        warnings.warn(f"the mesh {mesh_path} was made with --psf {said}, this peel "
                       f"{'has none' if given is None else 'has another'}: give nemo peel the same --psf",
                       NemoWarning, stacklevel=2)
 
@@ -111,7 +112,7 @@ def run(args) -> int:
         volume, info = read_stack(args.image, t=args.t, c=args.c, spacing=args.spacing)
     check_mesh_image(mesh, info.spacing, info.unit, mesh_name=f"the mesh {args.mesh}",
                      image_name=f"the image {args.image}")
-    _check_same_psf(mesh, args.psf, args.mesh, args.c, info.spacing)
+    _check_same_psf(mesh, args.psf, args.mesh, args.c)
     if mesh.metadata.get("spacing") is None:  # made elsewhere: check its scale against the image
         warn_if_mesh_off_object(mesh, volume, info.spacing, mesh_name=f"the mesh {args.mesh}")
     deconvolved = deconvolved_for(args, volume, info.spacing)

@@ -44,6 +44,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from nemo.cli.deconvolve import psf_note
     from nemo.errors import NemoError
     from nemo.pipeline import run_frame
 
@@ -64,9 +65,8 @@ def run(args) -> int:
     summary = run_frame(args.image, args.output, args.config, t=args.t, c=args.c, spacing=spacing,
                         dataset=args.dataset, psf=psf, mask=mask, layers=not args.no_layers)
     dec = summary["mesh"].get("deconvolution") or {}
-    psf_note = (f", deconvolved by the PSF σ {' '.join(f'{v:g}' for v in dec['psf'])} ({dec['iterations']} iterations)"
-                if dec.get("iterations") else "")
-    print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels{psf_note}")
+    note = f", {psf_note(dec)}" if dec.get("iterations") or dec.get("estimated") else ""
+    print(f"{summary['image']} t={args.t} c={args.c}: mesh step {summary['mesh']['step']} voxels{note}")
     for name, res in summary["layers"].items():
         chk = res["euler_check"]
         order = f"mean S {res['S']['mean']:.3f}" if res["S"]["mean"] is not None else "no order (see the warnings)"
