@@ -204,7 +204,7 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
         return {"beta": None, "misfit": round(misfit, 4),
                 "reason": f"the image's autocovariance is not that of an isotropic object blurred along z (misfit "
                           f"{misfit:.2f} > {ESTIMATE_MAX_MISFIT}; a flat sheet?)"}
-    return {"beta": round(float(betas[best]), 4), "misfit": round(misfit, 4), "reason": None}
+    return {"beta": float(f"{betas[best]:.6g}"), "misfit": round(misfit, 4), "reason": None}  # any unit: digits
 
 
 def estimate_psf(volume: np.ndarray, spacing) -> tuple[tuple[float, float, float] | None, dict]:
@@ -228,7 +228,7 @@ def estimate_psf(volume: np.ndarray, spacing) -> tuple[tuple[float, float, float
     if sigma_z < ESTIMATE_MIN_Z_BLUR_PER_PLANE * dz:
         return None, {**estimate, "reason": f"the z blur beyond the lateral, {sigma_z:.3g}, is below "
                                             f"{ESTIMATE_MIN_Z_BLUR_PER_PLANE} × the planes' {dz:g}: nothing to deconvolve"}
-    return (round(sigma_z, 4), 0.0, 0.0), estimate
+    return (float(f"{sigma_z:.6g}"), 0.0, 0.0), estimate
 
 
 def richardson_lucy_gaussian(volume: np.ndarray, sigma_vox: tuple[float, float, float],

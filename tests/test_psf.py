@@ -220,6 +220,9 @@ def test_a_deconvolution_estimated_reads_back_for_auto_only(tmp_path):
     with pytest.raises(NemoError, match=r"made for the PSF \[.*this step has auto"):
         read_deconvolved(path, image, spacing, "auto", 0, 0)
     assert check_psf(np.array([2.0, 1.0, 1.0])) == (2.0, 1.0, 1.0)
+    from nemo.psf import estimate_psf  # the estimate in any unit: the same in metres as in µm
+
+    assert estimate_psf(image, (2.5e-6, 1e-6, 1e-6))[0][0] == pytest.approx(record["psf"][0] * 1e-6, rel=1e-5)
 
 
 def test_one_psf_or_one_per_channel():
