@@ -164,7 +164,8 @@ def _textured(sigma_z: float, sigma_xy: float, dz: float, dx: float, shape: str 
     r = (np.indices((n, n, n)) - n / 2) * fine
     inside = {"ball": np.sqrt((r**2).sum(0)) < 25, "sheet": np.abs(r[0]) < 0.5,
               "prolate": np.abs((r[0] / 24) ** 2 + (r[1] / 16) ** 2 + (r[2] / 16) ** 2 - 0.85) < 0.15}[shape]
-    image = ndi.gaussian_filter(np.where(inside, texture + (shape == "prolate"), 0.0), (sigma_z / fine, sigma_xy / fine, sigma_xy / fine))
+    wall = float(shape == "prolate")
+    image = ndi.gaussian_filter(np.where(inside, texture + wall, 0.0), (sigma_z / fine, sigma_xy / fine, sigma_xy / fine))
     image = image[::int(round(dz / fine)), ::int(round(dx / fine)), ::int(round(dx / fine))]
     image = image / image[image != 0].std()
     if snr is not None:
