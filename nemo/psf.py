@@ -171,7 +171,7 @@ def z_facing_share(volume: np.ndarray, spacing, scale: float) -> float:
     from skimage.measure import block_reduce
 
     blocks = tuple(max(1, int(scale / 3 / float(d))) for d in spacing)
-    coarse = block_reduce(np.asarray(volume, dtype=np.float32), blocks, np.mean)
+    coarse = block_reduce(np.asarray(volume), blocks, np.nanmean).astype(np.float32)  # no full-size copy
     step = [float(d) * b for d, b in zip(spacing, blocks)]
     smooth = ndi.gaussian_filter(coarse, [scale / s for s in step], mode="nearest")
     grads = np.gradient(smooth, *step) if min(smooth.shape) > 1 else [np.zeros(1)] * 3
@@ -210,7 +210,6 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
     none = {"beta": None, "misfit": None, "z_share": None}
     if min(hp.shape) < 8:
         return {**none, "reason": f"the stack is too small ({hp.shape}) to estimate a PSF"}
-    vol = hp.copy()
     hp -= ndi.gaussian_filter(hp, (highpass / dz, highpass / dy, highpass / dx), mode="nearest")
     hp -= hp.mean()
     n_lat = min(int(np.ceil(3 * highpass / min(dx, dy))), hp.shape[2] // 2, hp.shape[1] // 2)
@@ -236,7 +235,7 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
                                  f"(misfit {misfit:.2f} > {ESTIMATE_MAX_MISFIT}; a flat sheet?)"}
     if best == len(betas) - 1:
         return {**out, "reason": "the best fit is at the search's limit, a z blur of 3 planes: not a blur"}
-    share = z_facing_share(vol, spacing, max(2 * highpass, 3 * np.sqrt(betas[best])))
+    share = z_facing_share(volume, spacing, max(2 * highpass, 3 * np.sqrt(betas[best])))
     out["z_share"] = round(share, 4)
     low, high = ESTIMATE_Z_SHARE
     if not low <= share <= high:
