@@ -776,6 +776,20 @@ def test_the_step_commands_go_through_an_all_zero_channel(corpus, tmp_path, caps
     assert len(read_table(tmp_path / "c.parquet")) == 0  # no candidate examined
 
 
+def test_psf_auto_is_read_wherever_it_stands():
+    """--psf auto (or --psf=auto) before or after the image: the image stays the image, and --psf
+    with three numbers still stops after them (the first --psf auto swallowed what followed it)."""
+    from nemo.cli import build_parser
+    from nemo.cli.common import psf_auto_option
+
+    for argv in (["run", "--psf", "auto", "v.tif", "-o", "out"], ["run", "v.tif", "--psf=auto", "-o", "out"]):
+        args = build_parser("run").parse_args(psf_auto_option(argv))
+        assert args.psf == "auto" and args.image == "v.tif", args
+    args = build_parser("run").parse_args(psf_auto_option(["run", "--psf", "2", "1", "1", "v.tif", "-o", "out"]))
+    assert args.psf == [2.0, 1.0, 1.0] and args.image == "v.tif"
+    assert psf_auto_option(["peel", "auto.tif", "--psf", "1", "1", "1"]) == ["peel", "auto.tif", "--psf", "1", "1", "1"]
+
+
 def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():
     """A mesh of channel 0 deconvolved by channel 0's PSF, peeled on channel 1 with channel 1's
     PSF (datasets.NAME.psf per channel): no warning; on channel 0 with another PSF: the warning."""
