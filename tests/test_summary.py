@@ -416,10 +416,12 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"regions": pd.NA}, CLOSED, []),
     ({"defects_faint": 1, "defect_coherency_min": 0.72}, CLOSED,
      ["1 defect(s) where the fibres are faint (coherency 0.72 below 0.85 of the surface's): a low S there says "
-      "little, the position is uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)"]),
+      "little, the position is uncertain (fibres across a z-elongated PSF fade; where no PSF was given, "
+      "datasets.NAME.psf, or auto, helps)"]),
     ({"defects_faint": 2}, CLOSED,  # a row of frames.parquet: the count only
      ["2 defect(s) where the fibres are faint (coherency below 0.85 of the surface's): a low S there says "
-      "little, the position is uncertain (fibres across a z-elongated PSF fade; giving the PSF helps)"]),
+      "little, the position is uncertain (fibres across a z-elongated PSF fade; where no PSF was given, "
+      "datasets.NAME.psf, or auto, helps)"]),
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
     ({"rejected_zeros": 2}, CLOSED,
