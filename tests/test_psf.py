@@ -212,8 +212,9 @@ def test_no_z_blur_is_estimated_from_a_sheet_or_an_isotropic_psf(tmp_path):
 
 def test_a_deconvolution_estimated_reads_back_for_auto_only(tmp_path):
     """A file nemo deconvolve --psf auto wrote serves --psf auto, not the numbers it estimated, and a
-    file made with numbers does not serve --psf auto; a PSF given as an array is a PSF."""
-    from nemo.psf import read_deconvolved, write_deconvolved
+    file made with numbers does not serve --psf auto; a PSF given as an array is a PSF, and the
+    estimate is the same in metres as in µm."""
+    from nemo.psf import estimate_psf, read_deconvolved, write_deconvolved
 
     image, spacing = _textured(2.2, 0.8, 2.5, 1.0), (2.5, 1.0, 1.0)
     out, record = deconvolve(image, spacing, "auto")
@@ -227,8 +228,7 @@ def test_a_deconvolution_estimated_reads_back_for_auto_only(tmp_path):
     with pytest.raises(NemoError, match=r"made for the PSF \[.*this step has auto"):
         read_deconvolved(path, image, spacing, "auto", 0, 0)
     assert check_psf(np.array([2.0, 1.0, 1.0])) == (2.0, 1.0, 1.0)
-    from nemo.psf import estimate_psf  # the estimate in any unit: the same in metres as in µm
-
+    # the estimate in any unit: the same in metres as in µm
     assert estimate_psf(image, (2.5e-6, 1e-6, 1e-6))[0][0] == pytest.approx(record["psf"][0] * 1e-6, rel=1e-5)
 
 

@@ -1007,7 +1007,7 @@ def test_curvature_options_reach_the_curvature_job(tmp_path):
 
 
 @pytest.mark.slow  # > 1 min on 2 cores (the default suite stays under ~15 min)
-@pytest.mark.parametrize("psf", [[2.0, 1.0, 1.0], pytest.param("auto", id="auto", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("psf", [[2.0, 1.0, 1.0], pytest.param("auto", id="auto")])
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path, psf):
     """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
     mesh and both peels use that one deconvolution (their provenance records the same run),
