@@ -74,6 +74,12 @@ def is_auto(psf) -> bool:
     return isinstance(psf, str) and psf == AUTO
 
 
+def recorded_psf(record: dict) -> list[float] | str | None:
+    """The PSF a deconvolution record (:func:`deconvolve`'s) was made with, as a step is given it:
+    ``"auto"`` where it was estimated, else its numbers (None: none)."""
+    return AUTO if record.get("estimated") else record.get("psf")
+
+
 def is_per_channel(spec) -> bool:
     """Whether a ``psf`` setting lists one PSF per channel (a list of PSFs or nulls), not one PSF."""
     return isinstance(spec, (list, tuple)) and len(spec) > 0 and all(
@@ -349,11 +355,11 @@ def deconvolve(volume: np.ndarray, spacing, psf, iterations: int = DECONVOLVE_IT
         ``psf``, ``sigma_voxels`` (the PSF in voxels), ``estimated`` (``psf`` was ``"auto"``) and
         ``estimate`` (:func:`estimate_psf`'s record, or None), ``iterations`` (0 if none), ``seconds``.
     """
-    estimated, estimate = is_auto(check_psf(psf)), None
+    psf, estimate = check_psf(psf), None
+    estimated = is_auto(psf)
     if estimated:
         psf, estimate = estimate_psf(volume, spacing)
         logger.info("psf: auto: %s", f"z blur {psf[0]:g} estimated" if psf else estimate["reason"])
-    psf = check_psf(psf)
     if psf is None:
         return volume, {"psf": None, "sigma_voxels": None, "estimated": estimated, "estimate": estimate,
                         "iterations": 0, "seconds": 0.0}
@@ -477,9 +483,8 @@ def read_deconvolved(path, volume: np.ndarray, spacing, psf, t: int, c: int) -> 
     if not (isinstance(meta, dict) and meta.get("format") == DECONVOLVED_FORMAT):
         raise NemoError(f"{path} is not a deconvolved stack written by nemo deconvolve: make it with nemo deconvolve")
     given = check_psf(psf)
-    made_psf = "auto" if meta["record"].get("estimated") else meta["record"]["psf"]
     made = {"the frame": ([meta["t"], meta["c"]], [int(t), int(c)]),
-            "the PSF": (made_psf, given if given is None or is_auto(given) else list(given)),
+            "the PSF": (recorded_psf(meta["record"]), given if given is None or is_auto(given) else list(given)),
             "the stack's shape": (meta["shape"], [int(n) for n in np.shape(volume)]),
             "the spacing": (meta["spacing"], [float(v) for v in spacing])}
     fix = "run nemo deconvolve again with this step's image, --t, --c, --spacing and --psf"

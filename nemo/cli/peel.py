@@ -71,11 +71,10 @@ def _read_shift(spec: str, n_vertices: int) -> tuple[np.ndarray, np.ndarray | No
 def _check_same_psf(mesh, psf, mesh_path, c: int) -> None:
     """Warn when the mesh was made from this channel deconvolved with another PSF than ``psf`` (a mesh
     of another channel had that channel's PSF; ``"auto"`` matches a mesh whose PSF was estimated)."""
-    from nemo.psf import is_auto
+    from nemo.psf import is_auto, recorded_psf
 
     params = mesh.metadata.get("nemo_params") or {}
-    record = params.get("deconvolution") or {}
-    made = "auto" if record.get("estimated") else record.get("psf")
+    made = recorded_psf(params.get("deconvolution") or {})
     given = psf if psf is None or is_auto(psf) else [float(v) for v in psf]
     if made is not None and made != given and params.get("c", c) == c:
         said = made if isinstance(made, str) else " ".join(f"{v!r}" for v in made)
