@@ -83,8 +83,8 @@ def _messages(errors) -> list[str]:
             msg = f"{e.instance!r} is not valid: " + "; or ".join(sorted({c.message for c in e.context}))
         if e.validator == "anyOf" and e.absolute_path and e.absolute_path[-1] == "psf":
             msg = (f"{json.dumps(e.instance, default=str)} is not a PSF: give three numbers [σz, σy, σx] ≥ 0 (the image's "
-                   "unit), auto (its z blur estimated from the image), or a list of them per channel in channel order (null: a "
-                   "channel not deconvolved)")
+                   "unit), auto (its z blur estimated from the image, the default), none (not deconvolved), or a list of them "
+                   "per channel in channel order")
         if e.validator == "pattern" and "propertyNames" in e.schema_path:
             msg = (f"the name {e.instance!r} is not allowed: use letters, digits, '-' "
                    f"(and '_', '.' in dataset names), starting with a letter or digit")
@@ -177,12 +177,23 @@ def validate(config: Mapping | None) -> dict:
     return cfg
 
 
+def dataset_default(key: str) -> Any:
+    """The schema's default of the dataset key ``key`` (a frame given without a dataset takes it)."""
+    node = _deref(schema()["properties"]["datasets"])["additionalProperties"]
+    return copy.deepcopy(_deref(_deref(node)["properties"][key]).get("default"))
+
+
 def _check_profile_psf(cfg: Mapping) -> None:
-    """Refuse ``mesh.edge: profile`` on a dataset with a ``psf`` (:func:`nemo.stages.mesh` says why)."""
+    """Refuse ``mesh.edge: profile`` on a dataset with a PSF given as numbers (:func:`nemo.stages.mesh`
+    says why; ``auto``, the default, meshes such a frame from the image itself)."""
+    from nemo.psf import is_auto, is_none, is_per_channel
+
     edge = (cfg.get("mesh") or {}).get("edge")
     for name, dataset in (cfg.get("datasets") or {}).items():
         dataset = dataset or {}
-        if dataset.get("psf") is not None and ((dataset.get("mesh") or {}).get("edge") or edge) == "profile":
+        psf = dataset.get("psf")
+        given = [p for p in (psf if is_per_channel(psf) else [psf]) if not (is_none(p) or is_auto(p))]
+        if given and ((dataset.get("mesh") or {}).get("edge") or edge) == "profile":
             raise NemoError(f"invalid configuration\n  config key 'datasets.{name}.psf': mesh.edge: profile and a psf "
                             "do not go together (the deconvolved walls overshoot at their edges); drop one")
 

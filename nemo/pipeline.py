@@ -50,7 +50,7 @@ def frame_setup(cfg: dict, dataset: str | None, image, spacing, psf=None, mask: 
     seg = d.get("segment_channel")
     m = mask if mask is not None else d
     return {"dataset": dataset, "image": str(image), "spacing": spacing or d.get("spacing"),
-            "psf": check_psf_spec(psf if psf is not None else d.get("psf"), "psf"),
+            "psf": check_psf_spec(psf if psf is not None else d.get("psf", nconfig.dataset_default("psf")), "psf"),
             "mask": m.get("mask"), "mask_labels": m.get("mask_labels"), "mask_threshold": m.get("mask_threshold"),
             "mask_channel": m.get("mask_channel"),
             "surface_mesh": d.get("surface_mesh"), "mesh_unit": d.get("mesh_unit"),
@@ -101,12 +101,13 @@ def run_frame(
     dataset : str, optional
         Take image, spacing, PSF, mask, segmented channel and section overrides from
         ``datasets.NAME``.
-    psf : (σz, σy, σx) or "auto", optional
+    psf : (σz, σy, σx), "auto" or "none", optional
         The PSF's standard deviations, overriding the dataset's (:mod:`nemo.psf`: the image is
-        deconvolved by it before meshing and peeling; ``"auto"`` estimates its z blur from the
-        image, :func:`nemo.psf.estimate_psf`), for every channel; a list of them (or
-        None) per channel, in channel order, gives each channel its own, as ``datasets.NAME.psf``
-        does (:func:`nemo.psf.channel_psf`): the mesh takes the segmented channel's, the peels
+        deconvolved by it before meshing and peeling; ``"auto"``, the default without a
+        dataset, estimates its z blur from the image, :func:`nemo.psf.estimate_psf`;
+        ``"none"`` deconvolves nothing), for every channel; a list of them per channel, in
+        channel order, gives each channel its own, as ``datasets.NAME.psf`` does
+        (:func:`nemo.psf.channel_psf`): the mesh takes the segmented channel's, the peels
         channel ``c``'s.
     mask : dict, optional
         ``mask`` (the segmentation's file), ``mask_labels``, ``mask_threshold``, ``mask_channel``

@@ -16,10 +16,11 @@ voxel on every axis needs nothing and the stack is returned unchanged. The price
 moves a sharpened edge towards its bright side (0.3 µm for σ 2.5 µm), so a thick, clean shell,
 unbiased without it, reads 0.3 µm thinner; thin, noisy or z-blurred walls gain far more.
 
-Without a measured PSF, ``psf: auto`` estimates the blur along z beyond the lateral blur from the
-image's own autocovariance (:func:`estimate_z_blur`) and deconvolves that alone (:func:`estimate_psf`):
-it is what turns the directors where the normal is oblique (docs/validation.md, "The PSF's z blur
-estimated from the image").
+Without a measured PSF, ``psf: auto`` (the default) estimates the blur along z beyond the lateral
+blur from the image's own autocovariance (:func:`estimate_z_blur`) and deconvolves that alone
+(:func:`estimate_psf`): it is what turns the directors where the normal is oblique (docs/validation.md,
+"The PSF's z blur estimated from the image"); where the image gives no estimate, or one below half a
+plane, nothing is deconvolved. ``psf: none`` (or None) deconvolves nothing.
 """
 
 from __future__ import annotations
@@ -39,8 +40,11 @@ DECONVOLVE_ITERATIONS = 30
 #: A PSF narrower than this fraction of the voxel on every axis is not deconvolved.
 MIN_PSF_PER_VOXEL = 0.25
 
-#: The ``psf`` value that estimates the PSF's z blur from the image (:func:`estimate_psf`).
+#: The ``psf`` value that estimates the PSF's z blur from the image (:func:`estimate_psf`): the default.
 AUTO = "auto"
+
+#: The ``psf`` value (as null) that deconvolves nothing.
+NONE = "none"
 
 #: :func:`estimate_z_blur`'s high-pass, in voxels along the longest axis: it removes the object's
 #: large shapes (walls, whose orientations are not balanced in a cut or elongated object) and keeps
@@ -76,6 +80,11 @@ ESTIMATE_MIN_Z_BLUR_PER_PLANE = 0.5
 ESTIMATE_SHARE_VOXELS = 2_000_000
 
 
+def is_none(psf) -> bool:
+    """Whether a ``psf`` value deconvolves nothing: None (null) or ``"none"``."""
+    return psf is None or (isinstance(psf, str) and psf == NONE)
+
+
 def is_auto(psf) -> bool:
     """Whether a ``psf`` value is ``"auto"`` (a string, not a PSF: arrays compare element-wise)."""
     return isinstance(psf, str) and psf == AUTO
@@ -90,7 +99,7 @@ def recorded_psf(record: dict) -> list[float] | str | None:
 def is_per_channel(spec) -> bool:
     """Whether a ``psf`` setting lists one PSF per channel (a list of PSFs or nulls), not one PSF."""
     return isinstance(spec, (list, tuple)) and len(spec) > 0 and all(
-        item is None or is_auto(item) or isinstance(item, (list, tuple)) for item in spec)
+        is_none(item) or is_auto(item) or isinstance(item, (list, tuple)) for item in spec)
 
 
 def check_psf_spec(spec, name: str = "psf"):
@@ -98,9 +107,9 @@ def check_psf_spec(spec, name: str = "psf"):
 
     Parameters
     ----------
-    spec : None, "auto", sequence of 3 numbers, or sequence of (3 numbers, "auto" or None)
-        The last form gives channel c the PSF ``spec[c]`` (None: that channel is not deconvolved);
-        ``"auto"`` estimates it from the image (:func:`estimate_psf`).
+    spec : None, "none", "auto", sequence of 3 numbers, or sequence of (3 numbers, "auto" or None)
+        The last form gives channel c the PSF ``spec[c]`` (None or "none": that channel is not
+        deconvolved); ``"auto"`` estimates it from the image (:func:`estimate_psf`).
     name : str
         The config key or option, for the message.
 
@@ -135,17 +144,19 @@ def check_psf(psf, name: str = "psf") -> tuple[float, float, float] | str | None
 
     Parameters
     ----------
-    psf : sequence of 3 numbers, "auto" or None
+    psf : sequence of 3 numbers, "auto", "none" or None (None and "none": not deconvolved)
     name : str
         What the caller calls it (a config key or an option), for the message.
     """
-    if psf is None or is_auto(psf):
+    if is_none(psf):
+        return None
+    if is_auto(psf):
         return psf
     try:
         values = tuple(float(v) for v in psf)
     except (TypeError, ValueError):
         raise NemoError(f"{name} must be three numbers σz σy σx (the PSF's standard deviations in the "
-                        f"image's unit) or auto (estimated from the image), got {psf!r}") from None
+                        f"image's unit), auto (estimated from the image) or none, got {psf!r}") from None
     if len(values) != 3 or not all(np.isfinite(values)) or min(values) < 0:
         raise NemoError(f"{name} must be three numbers σz σy σx ≥ 0 (the PSF's standard deviations in the "
                         f"image's unit), got {psf!r}")

@@ -153,15 +153,7 @@ def mesh(
     shape = (volume if volume is not None else mask).shape
     if p["step"] is None:
         p["step"] = default_step(shape)
-    if psf is not None and mask is None and p["edge"] == "profile":
-        raise NemoError("mesh.edge: profile and a psf do not go together: the deconvolved walls overshoot at their "
-                        "edges, so blurred boxes do not fit them (a 4 µm wall read 1.8 µm). Drop the psf, or use "
-                        "edge: half (the default; with a psf, the level of the image before deconvolution)")
-    if mask is None:
-        sharp, threshold = _deconvolved(volume, spacing, p, psf, unit, deconvolved)
-    else:  # a mask is meshed as given (the layers are still peeled from the deconvolved image)
-        sharp, threshold = volume, p["threshold"]
-        p["deconvolution"] = _mask_record(spacing, psf)
+    sharp, threshold = _image_to_mesh(volume, spacing, p, check_psf(psf), unit, deconvolved, mask)
     p["sigma_auto"] = None
     if p["sigma"] is None and volume is not None and mask is None:
         p["sigma"], p["sigma_auto"] = auto_sigma(sharp, spacing, p["step"], threshold=threshold)
@@ -272,12 +264,28 @@ def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> int
     return np.bincount(objects.vertex_labels(mesh)[vertices], minlength=n_objects).astype(int).tolist()
 
 
-def _mask_record(spacing, psf) -> dict:
-    """The mesh's deconvolution record where a mask is meshed as given: nothing deconvolved, the PSF named
-    (``"auto"``: none estimated, the mesh needs none)."""
+def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) -> tuple[np.ndarray, str | float]:
+    """The image :func:`mesh` meshes and its threshold: deconvolved by ``psf`` (:func:`_deconvolved`),
+    except a mask, and the walls' profiles under ``psf: auto`` (meshed as given; the layers are still
+    peeled from the deconvolved image). A PSF given as numbers with ``edge: profile`` is refused."""
+    profile = mask is None and p["edge"] == "profile"
+    if profile and psf is not None and not is_auto(psf):
+        raise NemoError("mesh.edge: profile and a psf do not go together: the deconvolved walls overshoot at their "
+                        "edges, so blurred boxes do not fit them (a 4 µm wall read 1.8 µm). Drop the psf, or use "
+                        "edge: half (the default; with a psf, the level of the image before deconvolution)")
+    if mask is None and not (profile and is_auto(psf)):
+        return _deconvolved(volume, spacing, p, psf, unit, deconvolved)
+    p["deconvolution"] = _undeconvolved_record(spacing, psf, "a mask: meshed as given" if mask is not None else
+                                               "mesh.edge: profile fits blurred boxes to the image's own walls")
+    return volume, p["threshold"]
+
+
+def _undeconvolved_record(spacing, psf, reason: str) -> dict:
+    """The mesh's deconvolution record where the image is meshed as given (a mask, ``edge: profile``):
+    nothing deconvolved, the PSF named (``"auto"``: none estimated, the mesh needs none)."""
     given = check_psf(psf)
     return {**deconvolve(None, spacing, None)[1], "psf": None if given is None or is_auto(given) else list(given),
-            "estimated": is_auto(given), "reason": "a mask: meshed as given"}
+            "estimated": is_auto(given), "reason": reason}
 
 
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,

@@ -317,7 +317,9 @@ for name, expect in PIXELS.items():
     case(f"deconvolve:img.{name}", "deconvolve", f"{{img.{name}}}", "--psf", "2", "1", "1", "-o", "{out}/d.tif",
          expect="ok" if name == "zero" else expect,  # a blank frame deconvolves (its mesh is refused)
          outputs=[_out("{out}/d.tif", "deconvolved")])
-case("deconvolve:no --psf", "deconvolve", "{img.valid}", "-o", "{out}/d.tif", expect="error")
+case("deconvolve:no --psf (auto)", "deconvolve", "{img.valid}", "-o", "{out}/d.tif", expect="ok",
+     outputs=[_out("{out}/d.tif", "deconvolved")])
+case("deconvolve:--psf none", "deconvolve", "{img.valid}", "--psf", "none", "-o", "{out}/d.tif", expect="error")
 case("deconvolve:out .parquet", "deconvolve", "{img.valid}", "--psf", "2", "1", "1", "-o", "{out}/d.parquet",
      expect="error")
 case("deconvolve:out = the input image", "deconvolve", "{img.valid}", "--psf", "2", "1", "1", "-o", "{img.valid}",
@@ -327,7 +329,8 @@ case("deconvolve:--t 5", "deconvolve", "{img.valid}", "--psf", "2", "1", "1", "-
 for label, opts in {"img.valid (not ours)": ["--deconvolved", "{img.valid}", "--psf", "2", "1", "1"],
                     "tab.layer": ["--deconvolved", "{tab.layer}", "--psf", "2", "1", "1"],
                     "missing": ["--deconvolved", "{tab.missing}", "--psf", "2", "1", "1"],
-                    "no --psf": ["--deconvolved", "{img.valid}"]}.items():
+                    "no --psf": ["--deconvolved", "{img.valid}"],
+                    "--psf none": ["--deconvolved", "{img.valid}", "--psf", "none"]}.items():
     case(f"mesh:--deconvolved {label}", "mesh", "{img.valid}", "-o", "{out}/m.ply", *opts, expect="error")
     case(f"peel:--deconvolved {label}", "peel", "{img.valid}", "{mesh.inner}", "-o", "{out}/l.parquet", *opts,
          expect="error")
@@ -788,6 +791,21 @@ def test_psf_auto_is_read_wherever_it_stands():
     args = build_parser("run").parse_args(psf_auto_option(["run", "--psf", "2", "1", "1", "v.tif", "-o", "out"]))
     assert args.psf == [2.0, 1.0, 1.0] and args.image == "v.tif"
     assert psf_auto_option(["peel", "auto.tif", "--psf", "1", "1", "1"]) == ["peel", "auto.tif", "--psf", "1", "1", "1"]
+
+
+def test_psf_none_and_the_default_auto_on_the_step_commands():
+    """nemo mesh / peel / deconvolve take the config's default, auto, when --psf is not given; --psf none
+    (or --psf=none, before or after the image) deconvolves nothing; nemo run leaves it to the dataset."""
+    from nemo.cli import build_parser
+    from nemo.cli.common import psf_auto_option, step_psf
+
+    for argv, psf in ((["mesh", "v.tif", "-o", "m.ply"], "auto"), (["mesh", "--psf", "none", "v.tif", "-o", "m.ply"], None),
+                      (["mesh", "v.tif", "--psf=none", "-o", "m.ply"], None),
+                      (["mesh", "v.tif", "--psf", "2", "1", "1", "-o", "m.ply"], (2.0, 1.0, 1.0))):
+        args = build_parser("mesh").parse_args(psf_auto_option(argv))
+        step_psf(args)
+        assert args.psf == psf and args.image == "v.tif", (argv, args)
+    assert build_parser("run").parse_args(["run", "v.tif", "-o", "out"]).psf is None  # the dataset's (auto)
 
 
 def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():

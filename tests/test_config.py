@@ -352,12 +352,20 @@ def test_a_layer_reaches_out_of_an_object_of_one_wall_when_its_range_lies_mostly
 
 
 def test_psf_auto_is_a_psf_and_other_words_are_named():
-    """datasets.NAME.psf: auto (alone or for one channel) is valid; another word is refused naming
-    the key and the forms a PSF takes."""
+    """datasets.NAME.psf: auto (alone or for one channel) and none are valid, auto the default (a frame
+    without a dataset takes it too) and null kept as given (none); another word is refused naming the
+    key and the forms a PSF takes."""
     from nemo import config
+    from nemo.pipeline import frame_setup
+    from nemo.psf import channel_psf
 
-    for psf in ("auto", [None, "auto"]):
+    for psf in ("auto", [None, "auto"], "none", ["none", [2, 1, 1]], None):
         assert config.validate({"datasets": {"a": {"path": "a.tif", "psf": psf}}})["datasets"]["a"]["psf"] == psf
+    cfg = config.validate({"datasets": {"a": {"path": "a.tif"}, "b": {"path": "b.tif", "psf": None}}})
+    assert cfg["datasets"]["a"]["psf"] == "auto" == config.dataset_default("psf")
+    assert frame_setup(cfg, None, "x.tif", None)["psf"] == "auto"  # an image given without a dataset
+    assert frame_setup(cfg, "b", None, None)["psf"] is None and frame_setup(cfg, "b", None, None, psf="none")["psf"] is None
+    assert channel_psf(["none", "auto"], 0) is None and channel_psf(["none", "auto"], 1) == "auto"
     with pytest.raises(NemoError, match=r"'datasets.a.psf': \"automatic\" is not a PSF.*auto \(its z blur estimated"):
         config.validate({"datasets": {"a": {"path": "a.tif", "psf": "automatic"}}})
 
@@ -373,5 +381,6 @@ def test_edge_profile_with_a_psf_is_refused_naming_the_dataset():
             config.validate(cfg)
     ok = config.validate({"mesh": {"edge": "profile"},
                           "datasets": {"a": {"path": "a.tif"}, "b": {"path": "b.tif", "psf": [2, 1, 1],
-                                                                     "mesh": {"edge": "half"}}}})
-    assert ok["mesh"]["edge"] == "profile"
+                                                                     "mesh": {"edge": "half"}},
+                                       "c": {"path": "c.tif", "psf": ["none", "auto"]}}})
+    assert ok["mesh"]["edge"] == "profile" and ok["datasets"]["a"]["psf"] == "auto"  # auto: meshed undeconvolved

@@ -950,6 +950,23 @@ def test_mesh_from_a_mask_deconvolves_nothing():
     np.testing.assert_array_equal(plain["whole"].vertices, given["whole"].vertices)
 
 
+def test_mesh_edge_profile_under_psf_auto_meshes_the_image_itself():
+    """``mesh.edge: profile`` fits blurred boxes to the image's own walls: under ``psf: auto`` (the
+    default) the mesh is made from the image as given, the record saying why, as with no PSF; a PSF
+    given as numbers is refused (deconvolved walls overshoot), ``"none"`` is no PSF."""
+    ball = _z_blurred_ball()
+    params = {"split": "none", "edge": "profile"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NemoWarning)
+        auto, p = stages.mesh(ball, (1.0, 1.0, 1.0), dict(params), psf="auto")
+        plain, _ = stages.mesh(ball, (1.0, 1.0, 1.0), dict(params), psf="none")
+    record = p["deconvolution"]
+    assert record["iterations"] == 0 and record["estimated"] and "profile" in record["reason"], record
+    np.testing.assert_array_equal(auto["whole"].vertices, plain["whole"].vertices)
+    with pytest.raises(NemoError, match="mesh.edge: profile and a psf do not go together"):
+        stages.mesh(ball, (1.0, 1.0, 1.0), dict(params), psf=(2.5, 1.0, 1.0))
+
+
 def _z_blurred_ball() -> np.ndarray:
     """A ball of radius 10 µm (1 µm voxels) blurred by σ 2.5 / 1 / 1 µm, background 20, plateau 200."""
     from scipy import ndimage as ndi

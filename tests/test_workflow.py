@@ -967,12 +967,14 @@ def test_each_channel_is_deconvolved_by_its_own_psf(tmp_path):
     cfg["datasets"]["two"]["psf"] = [[2.0, 1.0, 1.0], None]  # channel 1 as recorded: not deconvolved
     proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c2.yaml", cfg))
     peel = [line for line in proc.stdout.splitlines() if " peel " in line and "--c 1" in line]
-    assert peel and not any("--psf" in line or "--deconvolved" in line for line in peel), peel
+    assert peel and all("--psf none " in line and "--deconvolved" not in line for line in peel), peel
     cfg["datasets"]["two"]["psf"] = [None, "auto"]  # channel 1's estimated from the image, by each step alike
     proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c5.yaml", cfg))
-    auto = [line for line in proc.stdout.splitlines() if "--psf" in line]
+    auto = [line for line in proc.stdout.splitlines() if "--psf auto" in line]
     assert {cmd for cmd in ("deconvolve", "mesh", "peel") for line in auto if f" {cmd} " in line} == {"deconvolve", "peel"}
     assert all("--psf auto " in line and "--c 1" in line for line in auto), auto
+    mesh = [line for line in proc.stdout.splitlines() if " mesh " in line and " -o " in line]
+    assert mesh and all("--psf none " in line for line in mesh), mesh  # the commands' default is auto: none said
     cfg["datasets"]["two"]["psf"] = [[2.0, 1.0, 1.0], None, [3.0, 1.0, 1.0]]  # three PSFs for two channels
     proc = smk(tmp_path, "-n", "--configfile", write_config(tmp_path / "c4.yaml", cfg))
     assert "datasets.two.psf lists 3 PSFs but the image has 2 channels" in proc.stderr, proc.stderr[-2000:]
@@ -1007,19 +1009,20 @@ def test_curvature_options_reach_the_curvature_job(tmp_path):
 
 
 @pytest.mark.slow  # > 1 min on 2 cores (the default suite stays under ~15 min)
-@pytest.mark.parametrize("psf", [[2.0, 1.0, 1.0], pytest.param("auto", id="auto")])
+@pytest.mark.parametrize("psf", [[2.0, 1.0, 1.0], pytest.param("auto", id="auto (the default: no psf key)")])
 def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path, psf):
     """datasets.NAME.psf through snakemake: the frame is deconvolved once (rule deconvolve) and the
     mesh and both peels use that one deconvolution (their provenance records the same run),
     `nemo run` with the same config gives the same tables, a new PSF reruns the deconvolution, the
     mesh and the peels (and what depends on them), not the synthesis, and a peel's parameter
-    reruns that peel alone. ``psf: auto``: the z blur beyond the lateral (√3 µm here) estimated
-    from the image by each step alike."""
+    reruns that peel alone. ``psf: auto``, the default (the dataset gives no psf): the z blur
+    beyond the lateral (√3 µm here) estimated from the image by each step alike."""
     from nemo import layout
     from nemo.mesh import load_mesh
     from nemo.tables import read_provenance, read_table
 
-    cfg = {"datasets": {"z": {"path": "z.tif", "psf": psf,
+    given = {} if psf == "auto" else {"psf": psf}
+    cfg = {"datasets": {"z": {"path": "z.tif", **given,
                               "synthetic": {"radius": 30, "spacing": [2, 1, 1], "blur": [2, 1, 1], "seed": 3}}},
            "curvature": None, "thickness": None,
            "layers": {"fibres": {"surface": "inner", "range": [0, 4]}, "deep": {"surface": "inner", "range": [4, 8]}},
@@ -1055,7 +1058,8 @@ def test_psf_is_deconvolved_alike_by_the_workflow_and_nemo_run(tmp_path, psf):
     counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c2.yaml", cfg)))
     assert counts.get("deconvolve") == counts.get("mesh") == 1 and counts.get("peel") == 2, counts
     assert "synth_z" not in counts, counts
-    cfg["datasets"]["z"]["psf"] = psf  # back to the PSF the results were made with
+    cfg["datasets"]["z"].pop("psf")
+    cfg["datasets"]["z"].update(given)  # back to the PSF the results were made with
     cfg["layers"]["deep"]["range"] = [4, 9]  # a peel's parameter: that peel, not the deconvolution or the mesh
     counts = job_counts(smk(tmp_path, "-n", "--nolock", "--configfile", write_config(tmp_path / "c3.yaml", cfg)))
     assert counts.get("peel") == 1 and "deconvolve" not in counts and "mesh" not in counts, counts

@@ -38,11 +38,13 @@ def add_common(
             help="the microscope's PSF as Gaussian standard deviations in the image's unit, usually µm "
                  "(FWHM / 2.355): the image is deconvolved by it (Richardson-Lucy, 30 iterations) before "
                  "meshing and peeling (an automatic mesh level is taken on the image before); --psf auto "
-                 "estimates the PSF's blur along z beyond the lateral from the image's autocovariance and "
-                 "deconvolves that (an object facing every way: a vesicle, an organoid; not a flat sheet); "
-                 "give the same to nemo mesh and nemo peel (default: none)",
+                 "(the default) estimates the PSF's blur along z beyond the lateral from the image's "
+                 "autocovariance and deconvolves that where there is one (an object facing every way: a "
+                 "vesicle, an organoid; a flat sheet, a cut or z-elongated object, an isotropic PSF: not "
+                 "deconvolved); --psf none deconvolves nothing; give the same to nemo mesh and nemo peel",
         )
         parser.add_argument("--psf-auto", dest="psf", action="store_const", const="auto", help=argparse.SUPPRESS)
+        parser.add_argument("--psf-none", dest="psf", action="store_const", const="none", help=argparse.SUPPRESS)
         if deconvolved:
             parser.add_argument(
                 "--deconvolved", metavar="FILE.tif",
@@ -101,17 +103,29 @@ def non_negative(text: str) -> float:
 
 
 def psf_auto_option(argv: list[str]) -> list[str]:
-    """``--psf auto`` (or ``--psf=auto``) as the hidden ``--psf-auto``: ``--psf`` itself takes three
-    numbers, so that it never swallows an image or mesh written after it."""
+    """``--psf auto`` / ``--psf none`` (or ``--psf=auto``, ``--psf=none``) as the hidden ``--psf-auto`` /
+    ``--psf-none``: ``--psf`` itself takes three numbers, so that it never swallows an image or mesh
+    written after it."""
+    words = ("auto", "none")
     out, i = [], 0
     while i < len(argv):
-        if argv[i] == "--psf" and i + 1 < len(argv) and argv[i + 1] == "auto":
-            out.append("--psf-auto")
+        if argv[i] == "--psf" and i + 1 < len(argv) and argv[i + 1] in words:
+            out.append(f"--psf-{argv[i + 1]}")
             i += 2
             continue
-        out.append("--psf-auto" if argv[i] == "--psf=auto" else argv[i])
+        word = argv[i].removeprefix("--psf=")
+        out.append(f"--psf-{word}" if argv[i].startswith("--psf=") and word in words else argv[i])
         i += 1
     return out
+
+
+def step_psf(args) -> None:
+    """``args.psf`` of nemo mesh and nemo peel resolved: the config's default (``auto``) when not given,
+    None for ``none``, else three checked numbers (as ``datasets.NAME.psf`` is for nemo run)."""
+    from nemo.config import dataset_default
+    from nemo.psf import check_psf
+
+    args.psf = check_psf(dataset_default("psf") if args.psf is None else args.psf, "--psf")
 
 
 def seed(text: str) -> int:

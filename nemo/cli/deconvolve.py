@@ -14,10 +14,13 @@ standard deviations in the image's unit: Richardson-Lucy, 30 iterations, as nemo
 peel do with --psf) and write it as a float32 TIFF that records the PSF, the frame, the spacing
 and the stack's shape. nemo mesh and nemo peel take it with --deconvolved FILE (and the same
 image, --t, --c, --spacing and --psf, which they check) instead of deconvolving again: the
-workflow deconvolves each frame once this way, as nemo run does in memory. When the PSF is below
-a quarter of a voxel on every axis nothing is deconvolved, and the file holds only that record.
+workflow deconvolves each frame once this way, as nemo run does in memory. --psf auto (the
+default, as for nemo mesh, peel and run) estimates the PSF's z blur beyond the lateral from the
+image. When the PSF is below a quarter of a voxel on every axis, or auto finds no z blur worth
+undoing, nothing is deconvolved, and the file holds only that record (and why).
 
 examples:
+  nemo deconvolve stack.tif --t 0 --c 1 -o deconvolved.tif      # --psf auto
   nemo deconvolve stack.tif --t 0 --c 1 --psf 2.5 0.8 0.8 -o deconvolved.tif
   nemo mesh stack.tif --t 0 --c 1 --psf 2.5 0.8 0.8 --deconvolved deconvolved.tif -o mesh.ply
   nemo peel stack.tif mesh.inner.ply --t 0 --c 1 --psf 2.5 0.8 0.8 --deconvolved deconvolved.tif \\
@@ -31,13 +34,14 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from nemo._log import step
-    from nemo.cli.common import check_outputs_are_not_inputs
+    from nemo.cli.common import check_outputs_are_not_inputs, step_psf
     from nemo.io import read_stack
     from nemo.psf import deconvolve, is_auto, write_deconvolved
 
+    step_psf(args)
     if args.psf is None:
-        raise NemoError("give the PSF to deconvolve by: --psf SZ SY SX (Gaussian standard deviations, µm), or --psf "
-                        "auto (its z blur estimated from the image)")
+        raise NemoError("--psf none: nothing to deconvolve; give the PSF: --psf SZ SY SX (Gaussian standard "
+                        "deviations, µm), or --psf auto (its z blur estimated from the image, the default)")
     out = output_path(args.output, (".tif", ".tiff"))
     check_outputs_are_not_inputs(args)
     with step(f"reading {args.image} t={args.t} c={args.c}"):
@@ -74,5 +78,6 @@ def deconvolved_for(args, volume, spacing):
     if not getattr(args, "deconvolved", None):
         return None
     if args.psf is None:
-        raise NemoError(f"--deconvolved {args.deconvolved}: give the --psf it was made with as well")
+        raise NemoError(f"--deconvolved {args.deconvolved} with --psf none: drop one (a deconvolved frame is used "
+                        "only with the --psf it was made with)")
     return read_deconvolved(args.deconvolved, volume, spacing, args.psf, args.t, args.c)

@@ -154,7 +154,7 @@ def _describe(name: str, mesh) -> str:
 def run(args) -> int:
     from nemo import stages
     from nemo._log import logger
-    from nemo.cli.common import section_params
+    from nemo.cli.common import section_params, step_psf
     from nemo.cli.deconvolve import deconvolved_for
     from nemo.io import read_mask, read_stack
     from nemo.mesh import save_mesh
@@ -162,6 +162,7 @@ def run(args) -> int:
 
     start = time.perf_counter()
     out = output_path(args.output, (".ply", ".obj"))
+    step_psf(args)
     if args.split == "center":
         args.split = "centre"
     volume, info = read_stack(args.image, args.t, args.c, spacing=args.spacing)

@@ -92,6 +92,7 @@ def profile_path(layer_path: str | Path) -> Path:
 def run(args) -> int:
     from nemo import stages
     from nemo._log import step
+    from nemo.cli.common import step_psf
     from nemo.cli.deconvolve import deconvolved_for
     from nemo.io import read_stack
     from nemo.mesh import load_mesh
@@ -99,6 +100,7 @@ def run(args) -> int:
     from nemo.tables import write_table
 
     out = output_path(args.output)
+    step_psf(args)
     dmin, dmax = args.range
     if dmax < dmin:
         raise NemoError(f"--range {dmin:g} {dmax:g}: DMIN must not exceed DMAX")

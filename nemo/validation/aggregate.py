@@ -263,7 +263,8 @@ def _radius_label(shapes: pd.DataFrame) -> pd.Series:
 
 
 #: Vesicle sweeps drawn against SNR, with their legend.
-SNR_SWEEPS = {"snr": "defaults", "snr_psf": "PSF given (deconvolved)"}
+SNR_SWEEPS = {"snr": "defaults (psf: auto)", "snr_psf": "PSF given (deconvolved)",
+              "snr_nopsf": "not deconvolved (psf: none)"}
 
 
 def _plot_snr(cases: pd.DataFrame, shapes: pd.DataFrame | None, outdir: Path, plt) -> list[Path]:
@@ -284,7 +285,7 @@ def _plot_snr_vesicles(cases: pd.DataFrame, outdir: Path, plt) -> list[Path]:
                ("H_relerr_median", "H error, median (sphere)", None)]
     fig, axes = plt.subplots(1, len(metrics), figsize=(3.6 * len(metrics), 3.4))
     for (col, label, col2), ax in zip(metrics, axes):
-        for (sweep, what), colour in zip(SNR_SWEEPS.items(), ("C0", "C1")):
+        for (sweep, what), colour in zip(SNR_SWEEPS.items(), ("C0", "C1", "C2")):
             ss = sub[sub["sweep"] == sweep]
             if col not in ss or not len(ss):
                 continue

@@ -461,9 +461,11 @@ def frame_file(wildcards, name):
 
 
 def calibration_opts(wildcards):
-    """The dataset's --spacing and the frame's channel's --psf (voxel size and PSF), if set."""
+    """The dataset's --spacing, if set, and the frame's channel's --psf (none where it has none: the
+    commands' default is auto, as the dataset's)."""
     d = DATA[wildcards.dataset]
-    values = {"spacing": d["spacing"], "psf": channel_psf(d["psf"], int(wildcards.c))}
+    psf = channel_psf(d["psf"], int(wildcards.c))
+    values = {"spacing": d["spacing"], "psf": "none" if psf is None else psf}
     return " ".join(
         f"--{key} {value if isinstance(value, str) else ' '.join(str(v) for v in value)}"
         for key, value in values.items()
