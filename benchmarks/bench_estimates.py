@@ -3,10 +3,12 @@
 ``nemo run`` on the paper's vesicle (R = 200 µm, 1 µm voxels) twice per round, alternating:
 
 * **defaults**: every length from the data, so the mesh step estimates the noise and runs the
-  blur's topology ladder (``nemo.surface.auto_sigma``) and the curvature step runs the radius
-  pilot (``nemo.morphology.default_radius``) for each wall;
+  blur's topology ladder (``nemo.surface.auto_sigma``), ``psf: auto`` estimates the PSF's z blur
+  (``nemo.psf.estimate_psf``) and the curvature step runs the radius pilot
+  (``nemo.morphology.default_radius``) for each wall;
 * **pinned**: a config that gives the values the defaults resolved to (``mesh.sigma`` and
-  ``curvature.radius`` read from the first run's outputs), so neither estimate runs.
+  ``curvature.radius`` read from the first run's outputs, and ``--psf`` the PSF deconvolved, or
+  none), so no estimate runs.
 
 The difference of the in-process totals (``summary.json``'s ``total_s``) is the estimates'
 cost. The sub-sample snap of the marching-cubes vertices (always on) is reported from its log
@@ -30,10 +32,10 @@ import yaml
 from bench_frame_overhead import vesicle_in_workdir  # same folder
 
 
-def run_frame(image: Path, out: Path, config: Path | None) -> tuple[dict, str]:
-    """``nemo run -v`` into ``out``; its summary.json and log."""
+def run_frame(image: Path, out: Path, config: Path | None, extra: list[str] = ()) -> tuple[dict, str]:
+    """``nemo run -v`` into ``out`` (with ``extra`` options); its summary.json and log."""
     shutil.rmtree(out, ignore_errors=True)
-    cmd = [sys.executable, "-m", "nemo", "run", str(image), "-o", str(out), "-v"]
+    cmd = [sys.executable, "-m", "nemo", "run", str(image), "-o", str(out), "-v", *extra]
     cmd += ["--config", str(config)] if config else []
     done = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads((out / "summary.json").read_text()), done.stderr + done.stdout
@@ -47,6 +49,12 @@ def resolved_values(out: Path) -> dict:
     radius = read_provenance(out / "curvature_inner.parquet")["parameters"]["radius"]
     return {"mesh": {"sigma": float(summary["mesh"]["sigma"]), "step": int(summary["mesh"]["step"])},
             "curvature": {"radius": float(radius)}}
+
+
+def resolved_psf(out: Path) -> list[str]:
+    """``--psf`` that pins what ``psf: auto`` resolved to in the run in ``out`` (its numbers, or none)."""
+    record = json.loads((out / "summary.json").read_text())["mesh"].get("deconvolution") or {}
+    return ["--psf", *(str(v) for v in record["psf"])] if record.get("psf") else ["--psf", "none"]
 
 
 def main() -> int:
@@ -65,13 +73,14 @@ def main() -> int:
         for name in ("defaults", "pinned"):
             if name == "pinned" and not pinned.exists():
                 pinned.write_text(yaml.safe_dump(resolved_values(work / "defaults")))
-            summary, log = run_frame(image, work / name, pinned if name == "pinned" else None)
+            extra = resolved_psf(work / "defaults") if name == "pinned" else []
+            summary, log = run_frame(image, work / name, pinned if name == "pinned" else None, extra)
             totals[name].append(summary["total_s"])
             stages[name].append(summary["timings_s"])
             snap += [float(s) for s in re.findall(r"snapping \d+ vertices.* done in ([\d.]+) s", log)]
         print(f"round {k + 1}: defaults {totals['defaults'][-1]:.1f} s, pinned {totals['pinned'][-1]:.1f} s",
               flush=True)
-    print(f"pinned values: {json.dumps(yaml.safe_load(pinned.read_text()))}")
+    print(f"pinned values: {json.dumps(yaml.safe_load(pinned.read_text()))} {' '.join(resolved_psf(work / 'defaults'))}")
     for name, values in totals.items():
         mid = {key: statistics.median(t[key] for t in stages[name]) for key in stages[name][0]}
         print(f"{name:9s} median {statistics.median(values):6.1f} s, best {min(values):6.1f} s  stages (median): "
