@@ -1683,7 +1683,7 @@ def _image_quality(mesh: trimesh.Trimesh) -> dict:
     params = mesh.metadata.get("nemo_params") or {}
     return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "walls",
                                              "regions", "turned_out", "mask_offset", "mask_offset_limit",
-                                             "mask_contrast", "edge_check")}
+                                             "mask_contrast", "edge_check", "deconvolution")}
 
 
 def _genus(topo: dict, notes: list[str]) -> int | None:

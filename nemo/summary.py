@@ -35,7 +35,8 @@ from nemo.track import link_objects
 #: Columns of frames.parquet, in order (documented in docs/workflow.md).
 FRAME_COLUMNS = (
     "t", "c", "layer", "object", "object_id", "surface", "n_objects", "walls", "regions", "centre_x", "centre_y",
-    "centre_z", "snr", "saturated", "level_correction", "area", "volume", "euler_characteristic", "closed", "H_mean", "K_mean",
+    "centre_z", "snr", "saturated", "level_correction", "psf_z", "area", "volume", "euler_characteristic", "closed",
+    "H_mean", "K_mean",
     "H_fit_mean", "K_fit_mean", "curvature_nan_fraction", "curvature_noise", "thickness_mean", "thickness_median",
     "thickness_valid", "intensity_mean", "peel_nan_fraction", "n_directors", "coherency_mean", "coherency_median",
     "coherency_noise", "S_mean", "S_median", "order_nan_fraction", "n_defects", "charge_sum", "charge_rounded_sum",
@@ -443,6 +444,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
                       "qc_flags": "str", "closed": "bool"})
     _flag_changed_walls(out)
     _flag_changed_level(out)
+    _flag_changed_psf(out)
     _flag_cut_objects(out)
     out["object_id"] = link_objects(out)
     _flag_switched_object(out)
@@ -495,6 +497,40 @@ def _flag_changed_level(out: pd.DataFrame) -> None:
                                   f"the series' median {100 * usual:.0f} %: its walls step "
                                   f"{'thinner' if share > usual else 'thicker'} than the series' (edge_check in the mesh "
                                   "step's parameters; mesh.edge: profile meshes every frame at its walls' own level)")
+
+
+#: Largest relative difference of a time point's ``psf_z`` from its series' median that passes (``psf: auto``
+#: estimates each frame's z blur: within ~10 % of the truth from SNR 3 up, docs/validation.md).
+QC_MAX_PSF_Z_CHANGE = 0.25
+
+
+def _psf_z(record: Mapping | None) -> float:
+    """σz the mesh's image was deconvolved by (``psf: auto``: the z blur estimated), 0 where it was not, NaN
+    where the mesh step recorded nothing (a surface from elsewhere, an older NEMO)."""
+    if not record:
+        return math.nan
+    return float(record["psf"][0]) if record.get("psf") and record.get("iterations") else 0.0
+
+
+def _flag_changed_psf(out: pd.DataFrame) -> None:
+    """Flag (in place) the time points deconvolved where most of their series is not (on a tie: the deconvolved
+    ones), not deconvolved where most of it is, or by a ``psf_z`` more than :data:`QC_MAX_PSF_Z_CHANGE` from the
+    deconvolved time points' median: ``psf: auto`` decides per frame, so a frame near one of its limits can step
+    its walls and directors against the rest of its series."""
+    known = out[out["psf_z"].notna() & ~(out["snr"] < QC_EMPTY_SNR)]
+    for _, rows in known.groupby(["c", "layer", "surface"], dropna=False):  # a loop over the few series
+        per_t = rows.groupby("t")["psf_z"].median()
+        most = bool((per_t > 0).mean() > 0.5)
+        usual = float(per_t[per_t > 0].median()) if most else 0.0
+        for t, value in per_t.items():  # a loop over the series' time points
+            if (value > 0) == most and (not most or abs(value / usual - 1) <= QC_MAX_PSF_Z_CHANGE):
+                continue
+            said = f"deconvolved by σz {value:.3g}" if value > 0 else "not deconvolved"
+            usual_said = f"deconvolved by σz {usual:.3g} (median)" if most else "not deconvolved"
+            for i in rows.index[(rows["t"] == t).to_numpy()]:
+                _add_flag(out, i, f"{said} where most of its series is {usual_said} (psf: auto estimates each frame; "
+                                  "the deconvolution record in the mesh step's parameters says why; give "
+                                  "datasets.NAME.psf, or none, to treat every frame alike)")
 
 
 def _level_correction(check: Mapping | None) -> float:
@@ -572,6 +608,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
            "regions": value_for(m.get("regions"), label), "snr": _value(m.get("snr")),
            "saturated": _value(m.get("saturated")),
            "level_correction": _level_correction(m.get("edge_check")),
+           "psf_z": _psf_z(m.get("deconvolution")),
            "centre_x": _value(centre[0]), "centre_y": _value(centre[1]), "centre_z": _value(centre[2]),
            "H_mean": _value(mo.get("mean_H")), "K_mean": _value(mo.get("mean_K"))}
     if "curvature" in tables:

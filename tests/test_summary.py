@@ -674,3 +674,33 @@ def test_curvature_noise_of_a_nearly_flat_surface_is_not_its_own_curvature():
         noise, reach = _curvature_scales(sphere, {"fit_scatter_H": 0.2 / radius, "radius": fitted},
                                          4 * np.pi * radius**2)
         assert noise == pytest.approx(0.2) and reach == pytest.approx(fitted / radius)
+
+
+def test_frame_summary_flags_a_deconvolution_unlike_its_series(frame_files, tmp_path):
+    """``psf_z`` is the σz the mesh's image was deconvolved by (``psf: auto``: estimated per frame), 0 where it was
+    not, NaN where nothing was recorded; a time point deconvolved where most of its series is not, not where most
+    is, or by a σz more than 25 % from the deconvolved time points' median is flagged; a tie flags the deconvolved."""
+    measure = json.loads(frame_files["measure"].read_text())
+
+    def series(sigmas):
+        records = []
+        for t, value in enumerate(sigmas):
+            path = tmp_path / f"psf{t}.json"
+            record = None if value is None else {"psf": [value, 0.0, 0.0] if value else None, "estimated": True,
+                                                 "iterations": 30 if value else 0}
+            path.write_text(json.dumps({**measure, "deconvolution": record}))
+            records.append({**frame_files, "t": t, "measure": path, "thickness": None})
+        return frame_summary(records)
+
+    flag = "psf: auto estimates each frame"
+    out = series([2.0, 2.1, 0.0, 1.9])
+    assert out["psf_z"].tolist() == [2.0, 2.1, 0.0, 1.9]
+    assert out["qc_flags"].str.contains(flag).tolist() == [False, False, True, False] and not out["qc_pass"][2]
+    assert "not deconvolved where most of its series is deconvolved by σz 2 (median)" in out["qc_flags"][2]
+    out = series([0.0, 0.0, 2.2, None])
+    assert out["qc_flags"].str.contains(flag).tolist() == [False, False, True, False] and pd.isna(out["psf_z"][3])
+    assert "deconvolved by σz 2.2 where most of its series is not deconvolved" in out["qc_flags"][2]
+    assert series([2.0, 2.0, 3.0])["qc_flags"].str.contains(flag).tolist() == [False, False, True]  # +50 %
+    assert series([0.0, 2.0])["qc_flags"].str.contains(flag).tolist() == [False, True]  # a tie
+    for values in ([2.0, 2.3, 1.8], [0.0, 0.0], [None, None], [1.5]):
+        assert not series(values)["qc_flags"].str.contains(flag).any(), values
