@@ -27,7 +27,7 @@ from nemo import atomic, layout, objects, stages
 from nemo import config as nconfig
 from nemo._log import logger, step
 from nemo.errors import NemoError
-from nemo.psf import channel_psf, check_psf_spec, deconvolve
+from nemo.psf import channel_psf, check_psf_spec, deconvolve, meshes_deconvolved
 
 
 def _peak_rss_mb() -> float:
@@ -217,8 +217,8 @@ def _run_in(out: Path, final: Path, cfg: dict, frame: dict, sections: dict, t: i
     layers = {name: layer for name, layer in (sections["layers"] or {}).items()
               if layer["channels"] == "all" or c in layer["channels"]}
     peels = any(not layer.get("directors_from") for layer in layers.values())
-    meshed = mask is None and not frame["surface_mesh"]
     psf_seg, psf_c = channel_psf(frame["psf"], frame["seg"]), channel_psf(frame["psf"], c)
+    meshed = mask is None and not frame["surface_mesh"] and meshes_deconvolved(psf_seg, sections["mesh"]["edge"])
     sharp = _deconvolved(volume, info, psf_seg, timed, meshed or (peels and c == frame["seg"]))
     meshes, mesh_params = morphology_frame(volume, info, mask, sections, out, written, timed, final=final,
                                            psf=psf_seg, deconvolved=sharp, frame={"t": t, "c": frame["seg"]},

@@ -43,7 +43,7 @@ from nemo import objects
 from nemo._log import OBJECTS_LOGGED, listed, logger, quiet_objects
 from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
 from nemo.mesh import object_radius  # the object's scale, used by the defaults below
-from nemo.psf import check_psf, deconvolve, is_auto
+from nemo.psf import check_psf, deconvolve, is_auto, meshes_deconvolved
 from nemo.summary import QC_MIN_SNR
 from nemo.tables import SCHEMAS
 
@@ -95,9 +95,11 @@ def mesh(
         The ``mesh`` section.
     mask : ndarray of bool, shape (Z, Y, X), optional
         Object mask used instead of the threshold.
-    psf : (σz, σy, σx) or "auto", optional
+    psf : (σz, σy, σx), "auto" or "none", optional
         The PSF's standard deviations: the image is meshed deconvolved by it
-        (:func:`nemo.psf.deconvolve`; noise, SNR and saturation are still those of the image).
+        (:func:`nemo.psf.deconvolve`; noise, SNR and saturation are still those of the image);
+        ``"auto"`` estimates its z blur from the image (the workflow's and the CLI's default,
+        which :func:`nemo.pipeline.run_frame` applies); None or ``"none"``: not deconvolved.
     deconvolved : (ndarray, dict), optional
         ``volume`` deconvolved by ``psf`` and its record, when already made (the peel reuses it).
     mask_regions : ndarray of int, shape (n, 3), optional
@@ -273,7 +275,7 @@ def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) 
         raise NemoError("mesh.edge: profile and a psf do not go together: the deconvolved walls overshoot at their "
                         "edges, so blurred boxes do not fit them (a 4 µm wall read 1.8 µm). Drop the psf, or use "
                         "edge: half (the default; with a psf, the level of the image before deconvolution)")
-    if mask is None and not (profile and is_auto(psf)):
+    if mask is None and (psf is None or meshes_deconvolved(psf, p["edge"])):
         return _deconvolved(volume, spacing, p, psf, unit, deconvolved)
     p["deconvolution"] = _undeconvolved_record(spacing, psf, "a mask: meshed as given" if mask is not None else
                                                "mesh.edge: profile fits blurred boxes to the image's own walls")

@@ -385,7 +385,8 @@ def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) ->
         flags.append(f"{faint} defect(s) where the fibres are faint (coherency "
                      f"{f'{lowest:.2f} ' if np.isfinite(lowest) else ''}below {QC_MIN_DEFECT_COHERENCY:g} of the "
                      "surface's): a low S there says little, the position is uncertain (fibres across a z-elongated "
-                     "PSF fade; where no PSF was given, datasets.NAME.psf, or auto, helps)")
+                     "PSF fade; where the frame was not deconvolved (psf: none, or auto found no z blur), the measured "
+                     "PSF as datasets.NAME.psf helps)")
     zeros = row.get("rejected_zeros")
     if zeros is not None and not pd.isna(zeros) and zeros > 0:
         flags.append(f"{zeros} zero(s) of the averaged order rejected (a disordered contour or an unresolved winding, "

@@ -823,7 +823,7 @@ def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():
         _check_same_psf(mesh, [2.0, 1.0, 1.0], "m.ply", 0)
     with pytest.warns(NemoWarning, match="was made with --psf 2.0 1.0 1.0"):
         _check_same_psf(mesh, [3.0, 1.5, 1.5], "m.ply", 0)
-    with pytest.warns(NemoWarning, match="was made with --psf 2.0 1.0 1.0, this peel has another"):
+    with pytest.warns(NemoWarning, match=r"was made with --psf 2.0 1.0 1.0, this peel has auto \(the default\)"):
         _check_same_psf(mesh, "auto", "m.ply", 0)
     mesh.metadata["nemo_params"]["deconvolution"] = {"psf": [1.7, 0.0, 0.0], "estimated": True}  # psf: auto
     with warnings.catch_warnings():
@@ -831,6 +831,15 @@ def test_peel_compares_the_psf_only_with_a_mesh_of_its_own_channel():
         _check_same_psf(mesh, "auto", "m.ply", 0)
     with pytest.warns(NemoWarning, match="was made with --psf auto, this peel has another"):
         _check_same_psf(mesh, [1.7, 0.0, 0.0], "m.ply", 0)
+    # made with --psf none, peeled at the default (auto): the slip the default makes likely is named
+    mesh.metadata["nemo_params"]["deconvolution"] = {"psf": None, "estimated": False, "iterations": 0}
+    with pytest.warns(NemoWarning, match=r"was made with --psf none, this peel has auto \(the default\)"):
+        _check_same_psf(mesh, "auto", "m.ply", 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _check_same_psf(mesh, None, "m.ply", 0)
+        mesh.metadata["nemo_params"] = {"t": 0, "c": 0}  # no record (another tool's mesh): nothing to compare
+        _check_same_psf(mesh, "auto", "m.ply", 0)
 
 
 def test_deconvolved_once_meshes_and_peels_as_deconvolving_again(corpus, tmp_path, capsys):

@@ -153,18 +153,20 @@ def test_a_written_deconvolution_reads_back_bit_for_bit_and_only_for_its_frame(t
 
 def _textured(sigma_z: float, sigma_xy: float, dz: float, dx: float, shape: str = "ball", snr: float | None = None,
               seed: int = 0) -> np.ndarray:
-    """An isotropic random texture (white noise smoothed by 0.7 µm) in a ball of radius 25 µm, a
+    """An isotropic random texture (white noise smoothed by 0.7 µm) on a bright ball of radius 25 µm, a
     flat membrane 1 µm thick (``shape="sheet"``) or a bright wall 4-5 µm thick, textured, of
-    semi-axes 16, 16, 24 µm along x, y, z (``shape="prolate"``), blurred by the PSF (σz, σxy, σxy) on a 0.5 µm grid and
-    sampled every dz / dx; Gaussian noise of 1 / ``snr`` of the texture's spread."""
+    semi-axes 16, 16, 24 µm along x, y, z (``shape="prolate"``; 17.6, 17.6, 22: ``"prolate125"``),
+    blurred by the PSF (σz, σxy, σxy) on a 0.5 µm grid and sampled every dz / dx; Gaussian noise of
+    1 / ``snr`` of the texture's spread."""
     rng = np.random.default_rng(seed)
     fine = 0.5
     n = 128
     texture = ndi.gaussian_filter(rng.standard_normal((n, n, n)), 0.7 / fine)
     r = (np.indices((n, n, n)) - n / 2) * fine
     inside = {"ball": np.sqrt((r**2).sum(0)) < 25, "sheet": np.abs(r[0]) < 0.5,
-              "prolate": np.abs((r[0] / 24) ** 2 + (r[1] / 16) ** 2 + (r[2] / 16) ** 2 - 0.85) < 0.15}[shape]
-    wall = float(shape == "prolate")
+              "prolate": np.abs((r[0] / 24) ** 2 + (r[1] / 16) ** 2 + (r[2] / 16) ** 2 - 0.85) < 0.15,
+              "prolate125": np.abs((r[0] / 22) ** 2 + (r[1] / 17.6) ** 2 + (r[2] / 17.6) ** 2 - 0.85) < 0.15}[shape]
+    wall = {"sheet": 0.0, "ball": 0.15}.get(shape, 1.0)  # brighter than its surroundings: an outline facing every way
     image = ndi.gaussian_filter(np.where(inside, texture + wall, 0.0), (sigma_z / fine, sigma_xy / fine, sigma_xy / fine))
     image = image[::int(round(dz / fine)), ::int(round(dx / fine)), ::int(round(dx / fine))]
     image = image / image[image != 0].std()
@@ -206,6 +208,7 @@ def test_the_estimate_high_passes_only_the_slices_it_reads(monkeypatch):
         np.testing.assert_allclose(npsf._highpassed_slices(volume, sigma, axis, keep), part - part.mean(),
                                    atol=1e-3)
     assert len(npsf._kept_slices((40, 30, 50), 0)) == 40 and len(npsf._kept_slices((450, 450, 450), 0)) == 20
+    assert len(npsf._kept_slices((30, 1536, 1536), 0)) == 4 and len(npsf._lags(45)) == npsf.ESTIMATE_MAX_LAGS
     image = _textured(2.2, 0.8, 2.5, 1.0)
     share = npsf.z_facing_share(image, (2.5, 1.0, 1.0), 6.0)
     monkeypatch.setattr(npsf, "ESTIMATE_SHARE_VOXELS", image.size // 20)  # as on a stack 20 times larger
@@ -214,18 +217,22 @@ def test_the_estimate_high_passes_only_the_slices_it_reads(monkeypatch):
 
 
 def test_no_z_blur_is_estimated_from_a_sheet_or_an_isotropic_psf(tmp_path):
-    """A flat textured membrane under an isotropic PSF (its autocovariance far from isotropic) and a
-    body twice as long along z as across (its walls face z less: an independent review's prolate
-    shells read 2.5 times their z blur) give no estimate, and a ball under a PSF as wide along z as
-    across it nothing to deconvolve: the stack is not deconvolved and the record says why."""
+    """A flat textured membrane under an isotropic PSF (its autocovariance far from isotropic) and
+    bodies 1.5 and 1.25 times as long along z as across (their walls face z less: a review's prolate
+    shells read 2.5 times their z blur; a 1.25 one a blur of 1.3 µm under a round PSF) give no
+    estimate, and a ball under a PSF as wide along z as across it nothing to deconvolve: the stack is
+    not deconvolved and the record says why."""
     from nemo.psf import estimate_psf
 
     sheet = _textured(0.8, 0.8, 2.5, 1.0, shape="sheet")
     psf, estimate = estimate_psf(sheet, (2.5, 1.0, 1.0))
     assert psf is None and "not that of an isotropic object" in estimate["reason"], estimate
-    prolate = _textured(2.2, 0.8, 2.5, 1.0, shape="prolate")  # longer along z: reads as a z blur, refused
-    estimate = estimate_psf(prolate, (2.5, 1.0, 1.0))[1]
-    assert estimate["beta"] is None and estimate["z_share"] < 0.25 and "does not face every way" in estimate["reason"]
+    from nemo.psf import ESTIMATE_Z_SHARE
+
+    for shape, (sz, sxy) in (("prolate", (2.2, 0.8)), ("prolate125", (1.0, 1.0))):  # longer along z: refused
+        estimate = estimate_psf(_textured(sz, sxy, 2.5, 1.0, shape=shape), (2.5, 1.0, 1.0))[1]
+        assert estimate["beta"] is None and estimate["z_share"] < ESTIMATE_Z_SHARE[0], (shape, estimate)
+        assert "does not face every way" in estimate["reason"], estimate
     ball = _textured(1.0, 1.0, 2.0, 1.0)
     out, record = deconvolve(ball, (2.0, 1.0, 1.0), "auto")
     assert out is ball and record["psf"] is None and record["estimated"] and record["iterations"] == 0

@@ -983,6 +983,25 @@ def test_each_channel_is_deconvolved_by_its_own_psf(tmp_path):
     assert proc.returncode != 0 and "datasets.two.psf" in proc.stderr and "not for channel 1" in proc.stderr
 
 
+def test_edge_profile_under_the_default_auto_meshes_the_image_itself(tmp_path):
+    """mesh.edge: profile with the default psf: auto: the mesh job reads no deconvolved frame, and
+    without layers no deconvolve job runs at all (dry run); with a layer only its peel reads it."""
+    cfg = {"datasets": {"one": {"path": "one.tif", "synthetic": {"radius": 30, "spacing": [2, 1, 1], "seed": 3}}},
+           "mesh": {"edge": "profile"}, "layers": {}, "curvature": None, "thickness": None, "alignment": [],
+           "report": {"summary": False, "frames": False}}
+    proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c.yaml", cfg))
+    counts = job_counts(proc)
+    assert counts.get("mesh") == 1 and "deconvolve" not in counts, counts
+    cfg["layers"] = {"fibres": {"surface": "inner", "range": [0, 4]}}
+    proc = smk(tmp_path, "-n", "-p", "--configfile", write_config(tmp_path / "c2.yaml", cfg))
+    lines = proc.stdout.splitlines()
+    mesh = [line for line in lines if " mesh " in line and " -o " in line]
+    peel = [line for line in lines if " peel " in line and " -o " in line]
+    assert mesh and not any("--deconvolved" in line for line in mesh), mesh
+    assert peel and all("--deconvolved" in line and "--psf auto" in line for line in peel), peel
+    assert job_counts(proc).get("deconvolve") == 1
+
+
 def test_the_masks_channel_reaches_the_mesh_job(tmp_path):
     """datasets.NAME.mask_channel: the mesh job reads that channel of the mask (dry run)."""
     import tifffile

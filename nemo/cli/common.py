@@ -38,10 +38,12 @@ def add_common(
             help="the microscope's PSF as Gaussian standard deviations in the image's unit, usually µm "
                  "(FWHM / 2.355): the image is deconvolved by it (Richardson-Lucy, 30 iterations) before "
                  "meshing and peeling (an automatic mesh level is taken on the image before); --psf auto "
-                 "(the default) estimates the PSF's blur along z beyond the lateral from the image's "
+                 "(the default; nemo run: the dataset's psf, auto unless set) estimates the PSF's blur along "
+                 "z beyond the lateral from the image's "
                  "autocovariance and deconvolves that where there is one (an object facing every way: a "
                  "vesicle, an organoid; a flat sheet, a cut or z-elongated object, an isotropic PSF: not "
-                 "deconvolved); --psf none deconvolves nothing; give the same to nemo mesh and nemo peel",
+                 "deconvolved); --psf none deconvolves nothing; give the same to nemo mesh and nemo peel (or "
+                 "deconvolve once with nemo deconvolve and give both --deconvolved)",
         )
         parser.add_argument("--psf-auto", dest="psf", action="store_const", const="auto", help=argparse.SUPPRESS)
         parser.add_argument("--psf-none", dest="psf", action="store_const", const="none", help=argparse.SUPPRESS)

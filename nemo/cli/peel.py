@@ -74,13 +74,15 @@ def _check_same_psf(mesh, psf, mesh_path, c: int) -> None:
     from nemo.psf import is_auto, recorded_psf
 
     params = mesh.metadata.get("nemo_params") or {}
-    made = recorded_psf(params.get("deconvolution") or {})
+    if "deconvolution" not in params:  # another tool's mesh: nothing to compare
+        return
+    made = recorded_psf(params["deconvolution"] or {})
     given = psf if psf is None or is_auto(psf) else [float(v) for v in psf]
-    if made is not None and made != given and params.get("c", c) == c:
-        said = made if isinstance(made, str) else " ".join(f"{v!r}" for v in made)
-        warnings.warn(f"the mesh {mesh_path} was made with --psf {said}, this peel "
-                      f"{'has none' if given is None else 'has another'}: give nemo peel the same --psf",
-                      NemoWarning, stacklevel=2)
+    if made != given and params.get("c", c) == c:
+        said = "none" if made is None else made if isinstance(made, str) else " ".join(f"{v!r}" for v in made)
+        has = "none" if given is None else "auto (the default)" if is_auto(given) else "another"
+        warnings.warn(f"the mesh {mesh_path} was made with --psf {said}, this peel has {has}: give nemo peel the "
+                      "same --psf", NemoWarning, stacklevel=2)
 
 
 def profile_path(layer_path: str | Path) -> Path:

@@ -31,7 +31,7 @@ sys.path.insert(0, workflow.basedir)
 from nemo import config as nconfig  # noqa: E402
 from nemo import layout  # noqa: E402
 from nemo.errors import NemoError  # noqa: E402
-from nemo.psf import channel_psf, is_per_channel  # noqa: E402
+from nemo.psf import channel_psf, is_per_channel, meshes_deconvolved  # noqa: E402
 
 try:
     _validated = nconfig.validate(config)
@@ -680,9 +680,17 @@ def deconvolved_opts(wc, input):
 
 
 def mesh_deconvolved(wc):
-    """The deconvolved frame to mesh (none from a mask or from a user's surface)."""
+    """The deconvolved frame to mesh (none from a mask, a user's surface, or psf: auto under
+    mesh.edge: profile: nemo.psf.meshes_deconvolved)."""
     d = DATA[wc.dataset]
-    return [] if d["mask"] or d["surface_mesh"] else deconvolved_file(wc)
+    psf = channel_psf(d["psf"], int(wc.c))
+    if (
+        d["mask"]
+        or d["surface_mesh"]
+        or not meshes_deconvolved(psf, sec(wc.dataset, "mesh")["edge"])
+    ):
+        return []
+    return deconvolved_file(wc)
 
 
 def peel_inputs(wc):

@@ -1,8 +1,9 @@
 # Surface reconstruction (method note §2): one mesh per time point from the segmented channel,
 # split into inner/outer walls when the dataset's mesh.split is not none. Outputs live in
 # t{t}/c{segment_channel}/ (names: nemo.layout; datasets SPLIT_MESH / SINGLE_MESH: common.smk).
-# With a PSF (datasets.NAME.psf) each frame is deconvolved once (rule deconvolve) for the mesh and
-# every peel of that channel, as nemo run deconvolves it once in memory. The file is kept (not
+# With a PSF (datasets.NAME.psf; auto by default: its z blur estimated per frame) each frame is
+# deconvolved once (rule deconvolve) for the mesh and every peel of that channel, as nemo run
+# deconvolves it once in memory. The file is kept (not
 # temp): a temporary one would be made again for any peel rerun and would rerun the mesh with it.
 
 
