@@ -315,9 +315,11 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
     out = {**none, "misfit": round(misfit, 4)}
     if misfit > ESTIMATE_MAX_MISFIT:
         return {**out, "reason": f"the image's autocovariance is not that of an isotropic object blurred along z "
-                                 f"(misfit {misfit:.2f} > {ESTIMATE_MAX_MISFIT}; a flat sheet?)"}
+                                 f"(misfit {misfit:.2f} > {ESTIMATE_MAX_MISFIT}: a flat sheet, or too little texture "
+                                 f"for the noise)"}
     if best == len(betas) - 1:
-        return {**out, "reason": "the best fit is at the search's limit, a z blur of 3 planes: not a blur"}
+        return {**out, "reason": "the best fit is at the search's limit, a z blur of 3 planes (an object longer "
+                                 "along z, or a stack sampled finely in z: give the PSF, datasets.NAME.psf)"}
     share = z_facing_share(volume, spacing, max(2 * highpass, 3 * np.sqrt(betas[best])), z_blur=float(betas[best]))
     out["z_share"] = round(share, 4)
     low, high = ESTIMATE_Z_SHARE

@@ -148,6 +148,7 @@ def mesh(
         one_object,
         reconstruct,
         regions_per_object,
+        thin_wall_check,
         turn_out_dark_objects,
     )
 
@@ -183,6 +184,9 @@ def mesh(
         p["profile"] = dict(surface["profile"])
     if "edge_check" in surface:  # edge: half, checked against the walls' profiles (nemo.surface._edge_check)
         p["edge_check"] = dict(surface["edge_check"])
+    if (p.get("deconvolution") or {}).get("level") is not None and len(whole.faces):  # the half level, deconvolved
+        p["edge_check"] = thin_wall_check(volume, spacing, p["deconvolution"]["level_sigma"], int(p["step"]),
+                                          p["deconvolution"]["level"], whole)
     del sharp
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
              else {"noise": None, "snr": None, "saturated": None, "background": None})

@@ -445,7 +445,7 @@ def frame_summary(records: Iterable[Mapping]) -> pd.DataFrame:
                       "qc_flags": "str", "closed": "bool"})
     _flag_changed_walls(out)
     _flag_changed_level(out)
-    _flag_changed_psf(out)
+    _flag_changed_psf(out, pd.Series([row.get("psf_z_planes", math.nan) for row in rows], dtype="float64"))
     _flag_cut_objects(out)
     out["object_id"] = link_objects(out)
     _flag_switched_object(out)
@@ -500,34 +500,41 @@ def _flag_changed_level(out: pd.DataFrame) -> None:
                                   "step's parameters; mesh.edge: profile meshes every frame at its walls' own level)")
 
 
-#: Largest relative difference of a time point's ``psf_z`` from its series' median that passes (``psf: auto``
-#: estimates each frame's z blur: within ~10 % of the truth from SNR 3 up, docs/validation.md).
+#: Largest difference of a time point's ``psf_z`` from its series' that passes: this fraction of the series'
+#: median σz (``psf: auto`` estimates each frame's z blur, within ~10 % on vesicles from SNR 3 up), and at least
+#: :data:`QC_MIN_PSF_Z_CHANGE_PLANES` planes (a σz of half a plane, the least ``auto`` deconvolves, against
+#: none changes little: a review's time-lapse flipped there with the same thickness).
 QC_MAX_PSF_Z_CHANGE = 0.25
+QC_MIN_PSF_Z_CHANGE_PLANES = 0.75
 
 
-def _psf_z(record: Mapping | None) -> float:
-    """σz the mesh's image was deconvolved by (``psf: auto``: the z blur estimated), 0 where it was not, NaN
-    where the mesh step recorded nothing (a surface from elsewhere, an older NEMO)."""
+def _psf_z(record: Mapping | None, planes: bool = False) -> float:
+    """σz the mesh's image was deconvolved by (``psf: auto``: the z blur estimated; ``planes``: in planes), 0
+    where it was not, NaN where the mesh step recorded nothing (a surface from elsewhere, an older NEMO)."""
     if not record:
         return math.nan
-    return float(record["psf"][0]) if record.get("psf") and record.get("iterations") else 0.0
+    if not (record.get("psf") and record.get("iterations")):
+        return 0.0
+    return float(record["sigma_voxels"][0] if planes else record["psf"][0])
 
 
-def _flag_changed_psf(out: pd.DataFrame) -> None:
-    """Flag (in place) the time points deconvolved where most of their series is not (on a tie: the deconvolved
-    ones), not deconvolved where most of it is, or by a ``psf_z`` more than :data:`QC_MAX_PSF_Z_CHANGE` from the
-    deconvolved time points' median: ``psf: auto`` decides per frame, so a frame near one of its limits can step
-    its walls and directors against the rest of its series."""
-    known = out[out["psf_z"].notna() & ~(out["snr"] < QC_EMPTY_SNR)]
+def _flag_changed_psf(out: pd.DataFrame, planes: pd.Series) -> None:
+    """Flag (in place) the time points whose σz (``planes``: in planes, per row of ``out``) differs from their
+    series' by more than :data:`QC_MAX_PSF_Z_CHANGE` of it and :data:`QC_MIN_PSF_Z_CHANGE_PLANES` planes: the
+    series' σz is the median of its deconvolved time points where most are deconvolved (a tie: not), else 0.
+    ``psf: auto`` decides per frame, so a frame near one of its limits can step its walls and directors against
+    the rest of its series."""
+    known = out[planes.notna().to_numpy() & ~(out["snr"] < QC_EMPTY_SNR).to_numpy()]
     for _, rows in known.groupby(["c", "layer", "surface"], dropna=False):  # a loop over the few series
-        per_t = rows.groupby("t")["psf_z"].median()
+        per_t = planes[rows.index].groupby(rows["t"]).median()
+        microns = rows.groupby("t")["psf_z"].median()
         most = bool((per_t > 0).mean() > 0.5)
-        usual = float(per_t[per_t > 0].median()) if most else 0.0
-        for t, value in per_t.items():  # a loop over the series' time points
-            if (value > 0) == most and (not most or abs(value / usual - 1) <= QC_MAX_PSF_Z_CHANGE):
-                continue
+        usual, usual_um = (float(per_t[per_t > 0].median()), float(microns[per_t > 0].median())) if most else (0.0, 0.0)
+        limit = max(QC_MAX_PSF_Z_CHANGE * usual, QC_MIN_PSF_Z_CHANGE_PLANES)
+        for t in per_t.index[(per_t - usual).abs().to_numpy() > limit]:  # the few flagged time points
+            value = float(microns[t])
             said = f"deconvolved by σz {value:.3g}" if value > 0 else "not deconvolved"
-            usual_said = f"deconvolved by σz {usual:.3g} (median)" if most else "not deconvolved"
+            usual_said = f"deconvolved by σz {usual_um:.3g} (median)" if most else "not deconvolved"
             for i in rows.index[(rows["t"] == t).to_numpy()]:
                 _add_flag(out, i, f"{said} where most of its series is {usual_said} (psf: auto estimates each frame; "
                                   "the deconvolution record in the mesh step's parameters says why; give "
@@ -609,7 +616,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
            "regions": value_for(m.get("regions"), label), "snr": _value(m.get("snr")),
            "saturated": _value(m.get("saturated")),
            "level_correction": _level_correction(m.get("edge_check")),
-           "psf_z": _psf_z(m.get("deconvolution")),
+           "psf_z": _psf_z(m.get("deconvolution")), "psf_z_planes": _psf_z(m.get("deconvolution"), planes=True),
            "centre_x": _value(centre[0]), "centre_y": _value(centre[1]), "centre_z": _value(centre[2]),
            "H_mean": _value(mo.get("mean_H")), "K_mean": _value(mo.get("mean_K"))}
     if "curvature" in tables:

@@ -1934,8 +1934,22 @@ def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndar
     return again, float(found), info
 
 
+def thin_wall_check(volume: np.ndarray, spacing, sigma: float, step: int, level: float,
+                    mesh: trimesh.Trimesh) -> dict:
+    """The edge check's ``thinner_than_blur`` (:func:`_edge_check`) on ``volume``, the image *before*
+    deconvolution, along the normals of ``mesh``, made from the deconvolved image at ``level`` (the
+    image's half level at blur ``sigma``): deconvolving does not thin a wall thinner than the blur,
+    so the check the undeconvolved frame would get still applies. Its level ``offset`` does not (the
+    mesh was not placed on this image): None, nothing corrected."""
+    source, _, scale, _ = _source(volume, None)
+    dz, dy, dx = (float(v) for v in spacing)
+    padded = _pad_with_minimum(_blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), step))
+    return {**_edge_check(mesh, source, padded, level / scale, (dz, dy, dx), step, scale, thin_only=True),
+            "image": "before deconvolution"}
+
+
 def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, level: float,
-                spacing: tuple[float, float, float], step: int, scale: float) -> dict:
+                spacing: tuple[float, float, float], step: int, scale: float, thin_only: bool = False) -> dict:
     """The half level checked against the walls' own profiles (:func:`nemo.refine.wall_profile_level`
     on :data:`EDGE_CHECK_RAYS` rays).
 
@@ -1958,7 +1972,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     level at least :data:`EDGE_CHECK_MIN_LEVEL_SHARE` of the boxes' height: the boxes are the meshed
     walls, not bright fibres on a dim wall; at least :data:`EDGE_CHECK_MIN_FITTED` of the rays fitted)
     get ``thinner_than_blur``, that share of the rays: they come out about as thick as the blur,
-    warned and flagged too.
+    warned and flagged too. ``thin_only``: that check alone (:func:`thin_wall_check`).
     """
     from nemo.refine import PROFILE_MAX_BELOW_CREST, wall_profile_level
 
@@ -1983,6 +1997,8 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
                            "blur, placed outward, thickness overestimated (a membrane or thin wall under a "
                            "z-elongated PSF; psf: deconvolves by a known PSF; or a bright film by the wall's "
                            "surface, whose blur the profiles read)", 100 * record["thinner_than_blur"])
+        return record
+    if thin_only:  # thin_wall_check: the offset of another image than the mesh's
         return record
     record["offset"] = offset = float((found - level) / info["contrast"])
     share = (_soft_limit(offset, EDGE_CHECK_MIN_CORRECTION, EDGE_CHECK_SOFT_OFFSET, above=True)

@@ -416,12 +416,12 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     ({"regions": pd.NA}, CLOSED, []),
     ({"defects_faint": 1, "defect_coherency_min": 0.72}, CLOSED,
      ["1 defect(s) where the fibres are faint (coherency 0.72 below 0.85 of the surface's): a low S there says "
-      "little, the position is uncertain (fibres across a z-elongated PSF fade; where no PSF was given, "
-      "datasets.NAME.psf, or auto, helps)"]),
+      "little, the position is uncertain (fibres across a z-elongated PSF fade; where the frame was not "
+      "deconvolved (psf: none, or auto found no z blur), the measured PSF as datasets.NAME.psf helps)"]),
     ({"defects_faint": 2}, CLOSED,  # a row of frames.parquet: the count only
      ["2 defect(s) where the fibres are faint (coherency below 0.85 of the surface's): a low S there says "
-      "little, the position is uncertain (fibres across a z-elongated PSF fade; where no PSF was given, "
-      "datasets.NAME.psf, or auto, helps)"]),
+      "little, the position is uncertain (fibres across a z-elongated PSF fade; where the frame was not "
+      "deconvolved (psf: none, or auto found no z blur), the measured PSF as datasets.NAME.psf helps)"]),
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
     ({"rejected_zeros": 2}, CLOSED,
@@ -679,14 +679,16 @@ def test_curvature_noise_of_a_nearly_flat_surface_is_not_its_own_curvature():
 def test_frame_summary_flags_a_deconvolution_unlike_its_series(frame_files, tmp_path):
     """``psf_z`` is the σz the mesh's image was deconvolved by (``psf: auto``: estimated per frame), 0 where it was
     not, NaN where nothing was recorded; a time point deconvolved where most of its series is not, not where most
-    is, or by a σz more than 25 % from the deconvolved time points' median is flagged; a tie flags the deconvolved."""
+    is, or by a σz more than 25 % from the deconvolved time points' median, and by 0.75 planes, is flagged; a tie
+    flags the deconvolved; a σz of half a plane against none is not (a review's time-lapse flipped there)."""
     measure = json.loads(frame_files["measure"].read_text())
 
-    def series(sigmas):
+    def series(sigmas, dz=1.0):
         records = []
         for t, value in enumerate(sigmas):
             path = tmp_path / f"psf{t}.json"
             record = None if value is None else {"psf": [value, 0.0, 0.0] if value else None, "estimated": True,
+                                                 "sigma_voxels": [value / dz, 0.0, 0.0] if value else None,
                                                  "iterations": 30 if value else 0}
             path.write_text(json.dumps({**measure, "deconvolution": record}))
             records.append({**frame_files, "t": t, "measure": path, "thickness": None})
@@ -704,3 +706,6 @@ def test_frame_summary_flags_a_deconvolution_unlike_its_series(frame_files, tmp_
     assert series([0.0, 2.0])["qc_flags"].str.contains(flag).tolist() == [False, True]  # a tie
     for values in ([2.0, 2.3, 1.8], [0.0, 0.0], [None, None], [1.5]):
         assert not series(values)["qc_flags"].str.contains(flag).any(), values
+    assert not series([0.0, 1.04, 1.04, 1.04, 0.0], dz=2.0)["qc_flags"].str.contains(flag).any()  # 0.52 planes
+    assert series([0.0, 2.2, 2.2, 2.2, 0.0], dz=2.5)["qc_flags"].str.contains(flag).tolist() == [
+        True, False, False, False, True]  # 0.88 planes
