@@ -291,11 +291,13 @@ def z_facing_share(volume: np.ndarray, spacing, scale: float, z_blur: float = 0.
 def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
     """The PSF's blur along z beyond its lateral blur, β = σz² − σxy², from the image itself.
 
-    The image's autocovariance at lags of one voxel and more (white noise adds nothing there) is
-    fitted as that of an object whose own autocovariance is isotropic (a closed or cut vesicle,
-    an organoid: its walls and texture face every way), Σ a_j exp(−r² / 2 w_j²) with a_j ≥ 0,
-    blurred along z by a Gaussian of variance 2 β; β is the best fit's on a grid to (3 dz)².
-    The image is high-passed first (:data:`ESTIMATE_HIGHPASS_VOXELS`). An object whose
+    The image's autocovariance is fitted as that of an object whose own autocovariance is
+    isotropic (a closed or cut vesicle, an organoid: its walls and texture face every way),
+    Σ a_j exp(−r² / 2 w_j²) with a_j ≥ 0, blurred along z by a Gaussian of variance 2 β, plus the
+    image's white noise (:func:`_highpassed_noise`: its share, ``noise_share``, set by the lag 0;
+    the misfit is read at the lags of one voxel and more); β is the best fit's on a grid to
+    (3 dz)². The image is high-passed first (:data:`ESTIMATE_HIGHPASS_VOXELS`). Noise above
+    :data:`ESTIMATE_MAX_NOISE_SHARE` of the variance leaves too little texture: no estimate. An object whose
     autocovariance is not isotropic gives no estimate: a flat sheet misfits; an object longer along
     z, or cut by the stack's top or bottom, fits as well as a z blur would, so the share of its
     large-scale gradients along z (:func:`z_facing_share`, at three times the blur found and at
@@ -310,15 +312,15 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
     Returns
     -------
     dict
-        ``beta`` (µm², None without an estimate), ``misfit`` (relative), ``z_share``
-        (:func:`z_facing_share`), ``reason`` (None, or why there is no estimate).
+        ``beta`` (µm², None without an estimate), ``misfit`` (relative), ``noise_share``,
+        ``z_share`` (:func:`z_facing_share`), ``reason`` (None, or why there is no estimate).
     """
     dz, dy, dx = (float(v) for v in spacing)
     volume = np.asarray(volume)
     if volume.dtype.kind == "f" and np.isnan(volume).any():
         volume = np.nan_to_num(volume, nan=float(np.nanmean(volume)))
     highpass = ESTIMATE_HIGHPASS_VOXELS * max(dz, dy, dx)
-    none = {"beta": None, "misfit": None, "z_share": None}
+    none = {"beta": None, "misfit": None, "noise_share": None, "z_share": None}
     if min(volume.shape) < 8:
         return {**none, "reason": f"the stack is too small ({volume.shape}) to estimate a PSF"}
     sigma_vox = (highpass / dz, highpass / dy, highpass / dx)
