@@ -237,7 +237,7 @@ def _z_noise_excess(planes: tuple[np.ndarray, np.ndarray], rows: tuple[np.ndarra
 
     r_x = correlation(hp_p[:, :, :-1][along_x], hp_p[:, :, 1:][along_x])
     r_z = correlation(hp_r[:-1][along_z], hp_r[1:][along_z])
-    return (r_z - noise[2] / noise[0]) - (r_x - noise[1] / noise[0])
+    return float((r_z - noise[2] / noise[0]) - (r_x - noise[1] / noise[0]))
 
 
 def _lags(n: int) -> np.ndarray:

@@ -232,6 +232,7 @@ def test_noise_correlated_between_planes_is_not_read_as_a_z_blur(planes):
     noise = ndi.gaussian_filter1d(np.random.default_rng(1).standard_normal(clean.shape), planes, axis=0)
     psf, estimate = estimate_psf((clean + noise / noise.std() / 8).astype(np.float32), (1.0, 1.0, 1.0))
     assert psf is None and estimate["z_noise"] > 3 * ESTIMATE_MAX_Z_NOISE, estimate
+    assert type(estimate["z_noise"]) is float  # the record goes to YAML and JSON
     assert "correlated between planes" in estimate["reason"], estimate
     for image in (_plain_shell(1.0, 1.0, 1.0, 8.0), _plain_shell(2.0, 0.8, 1.0, 8.0)):
         assert abs(estimate_psf(image, (1.0, 1.0, 1.0))[1]["z_noise"]) < ESTIMATE_MAX_Z_NOISE / 3
