@@ -246,6 +246,17 @@ def test_frame_summary_flags_walls_that_change_over_time(frame_files, tmp_path):
     assert flagged == [False] * 9 + [True]
 
 
+def _series_with(frame_files: dict, tmp_path, key: str, values: list) -> pd.DataFrame:
+    """frames.parquet of a series of time points whose measure files carry ``key``: ``values[t]``."""
+    measure = json.loads(frame_files["measure"].read_text())
+    records = []
+    for t, value in enumerate(values):
+        path = tmp_path / f"{key}{t}.json"
+        path.write_text(json.dumps({**measure, key: value}))
+        records.append({**frame_files, "t": t, "measure": path, "thickness": None})
+    return frame_summary(records)
+
+
 def test_frame_summary_flags_a_level_correction_unlike_its_series(frame_files, tmp_path):
     """The half level's correction (``edge_check.correction``, the share of the way to the walls' profiles' level)
     is ``level_correction``; the time point whose share differs by more than 0.5 from its series' median time
@@ -254,13 +265,9 @@ def test_frame_summary_flags_a_level_correction_unlike_its_series(frame_files, t
     measure = json.loads(frame_files["measure"].read_text())
 
     def series(corrections):
-        records = []
-        for t, value in enumerate(corrections):
-            path = tmp_path / f"level{t}.json"
-            check = None if value is None else {"corrected": value > 0, "correction": value, "offset": 0.06}
-            path.write_text(json.dumps({**measure, "edge_check": check}))
-            records.append({**frame_files, "t": t, "measure": path, "thickness": None})
-        return frame_summary(records)
+        checks = [None if value is None else {"corrected": value > 0, "correction": value, "offset": 0.06}
+                  for value in corrections]
+        return _series_with(frame_files, tmp_path, "edge_check", checks)
 
     flag = "of the way to the walls' profiles' level"
     out = series([0.0, 0.1, 1.0, 0.0])
@@ -681,18 +688,12 @@ def test_frame_summary_flags_a_deconvolution_unlike_its_series(frame_files, tmp_
     not, NaN where nothing was recorded; a time point deconvolved where most of its series is not, not where most
     is, or by a σz more than 25 % from the deconvolved time points' median, and by 0.75 planes, is flagged; a tie
     flags the deconvolved; a σz of half a plane against none is not (a review's time-lapse flipped there)."""
-    measure = json.loads(frame_files["measure"].read_text())
 
     def series(sigmas, dz=1.0):
-        records = []
-        for t, value in enumerate(sigmas):
-            path = tmp_path / f"psf{t}.json"
-            record = None if value is None else {"psf": [value, 0.0, 0.0] if value else None, "estimated": True,
-                                                 "sigma_voxels": [value / dz, 0.0, 0.0] if value else None,
-                                                 "iterations": 30 if value else 0}
-            path.write_text(json.dumps({**measure, "deconvolution": record}))
-            records.append({**frame_files, "t": t, "measure": path, "thickness": None})
-        return frame_summary(records)
+        records = [None if value is None else {"psf": [value, 0.0, 0.0] if value else None, "estimated": True,
+                                               "sigma_voxels": [value / dz, 0.0, 0.0] if value else None,
+                                               "iterations": 30 if value else 0} for value in sigmas]
+        return _series_with(frame_files, tmp_path, "deconvolution", records)
 
     flag = "psf: auto estimates each frame"
     out = series([2.0, 2.1, 0.0, 1.9])
