@@ -68,6 +68,10 @@ ESTIMATE_MAX_NOISE_SHARE = 0.98
 #: anyway, 0.12-0.15).
 ESTIMATE_MAX_Z_NOISE = 0.1
 
+#: ... read only where the background correlates between neighbouring columns at most this much beyond
+#: white noise (a noise-dominated background: -0.05 to 0.2 with or without noise correlated in z).
+ESTIMATE_Z_NOISE_MAX_LATERAL = 0.25
+
 #: At most this many planes (rows) are used for the lateral (axial) lags, each high-passed on its
 #: own (no full-size copy: 1 s for 450³ voxels on one core, where the whole stack high-passed took 12 s).
 ESTIMATE_MAX_SLICES = 64
@@ -223,7 +227,9 @@ def _z_noise_excess(planes: tuple[np.ndarray, np.ndarray], rows: tuple[np.ndarra
     the lateral lags 0, 1 and the axial lag 1): ~0 for white noise whatever the PSF (the PSF blurs the
     object, not the noise), 0.3-0.8 for noise correlated between planes (a denoised or z-resampled
     stack). The background: voxels whose blur is below a tenth of the way from the 20th to the 99.5th
-    percentile; None where fewer than 1000 pairs of it."""
+    percentile; None where fewer than 1000 pairs of it, or where it correlates between columns more
+    than white noise by :data:`ESTIMATE_Z_NOISE_MAX_LATERAL` (no noise there to read: the object's
+    blurred halo at high SNR read 0.44-0.91, and its difference along z could reach the limit)."""
     (hp_p, low_p), (hp_r, low_r) = planes, rows
     lo, hi = np.percentile(low_p, [20, 99.5])
     level = lo + 0.1 * (hi - lo)
@@ -235,9 +241,11 @@ def _z_noise_excess(planes: tuple[np.ndarray, np.ndarray], rows: tuple[np.ndarra
     def correlation(a: np.ndarray, b: np.ndarray) -> float:
         return float(np.sum(a * b) / max(np.sqrt(np.sum(a * a) * np.sum(b * b)), 1e-30))
 
-    r_x = correlation(hp_p[:, :, :-1][along_x], hp_p[:, :, 1:][along_x])
-    r_z = correlation(hp_r[:-1][along_z], hp_r[1:][along_z])
-    return float((r_z - noise[2] / noise[0]) - (r_x - noise[1] / noise[0]))
+    excess_x = correlation(hp_p[:, :, :-1][along_x], hp_p[:, :, 1:][along_x]) - noise[1] / noise[0]
+    excess_z = correlation(hp_r[:-1][along_z], hp_r[1:][along_z]) - noise[2] / noise[0]
+    if not np.isfinite(excess_z - excess_x) or excess_x > ESTIMATE_Z_NOISE_MAX_LATERAL:
+        return None  # the background is not noise: the object's blurred halo, or a noise-free image
+    return float(excess_z - excess_x)
 
 
 def _lags(n: int) -> np.ndarray:
@@ -351,8 +359,13 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
     """
     dz, dy, dx = (float(v) for v in spacing)
     volume = np.asarray(volume)
-    if volume.dtype.kind == "f" and np.isnan(volume).any():
-        volume = np.nan_to_num(volume, nan=float(np.nanmean(volume)))
+    if volume.dtype.kind == "f" and not np.isfinite(volume).all():
+        finite = volume[np.isfinite(volume)]
+        volume = np.where(np.isfinite(volume), volume, finite.mean() if finite.size else 0.0)
+    if volume.dtype.kind == "f" and volume.size:
+        peak = float(np.max(np.abs(volume)))
+        if peak > 1e15 or 0 < peak < 1e-15:  # beyond float32's comfortable range: the arithmetic is in float32
+            volume = volume / peak
     highpass = ESTIMATE_HIGHPASS_VOXELS * max(dz, dy, dx)
     none = {"beta": None, "misfit": None, "noise_share": None, "z_share": None, "z_noise": None}
     if min(volume.shape) < 8:
@@ -371,9 +384,9 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
                           _lag_covariances(rows[0], 0, ax_lags)])
     del planes, rows
     if none["z_noise"] is not None and none["z_noise"] > ESTIMATE_MAX_Z_NOISE:
-        return {**none, "reason": f"the background's noise is correlated between planes ({z_noise:.2f} more than "
-                                  "between columns): a denoised or z-resampled stack reads as a z blur; give the "
-                                  "PSF, datasets.NAME.psf, or none"}
+        return {**none, "reason": f"the background's noise is correlated between planes ({z_noise:.3f} more than "
+                                  f"between columns, above {ESTIMATE_MAX_Z_NOISE}): a denoised or z-resampled stack "
+                                  "reads as a z blur; give the PSF, datasets.NAME.psf, or none"}
     if not np.isfinite(cov).all() or cov[1:].max() <= 0:  # no covariance beyond the noise's own variance
         return {**none, "reason": "the image has no texture to estimate a PSF from"}
     cov = cov / cov.max()

@@ -515,7 +515,9 @@ def _psf_z(record: Mapping | None, planes: bool = False) -> float:
         return math.nan
     if not (record.get("psf") and record.get("iterations")):
         return 0.0
-    return float(record["sigma_voxels"][0] if planes else record["psf"][0])
+    if planes:  # a record from elsewhere may lack it
+        return float(record["sigma_voxels"][0]) if record.get("sigma_voxels") else math.nan
+    return float(record["psf"][0])
 
 
 def _flag_changed_psf(out: pd.DataFrame, planes: pd.Series) -> None:

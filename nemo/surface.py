@@ -1945,7 +1945,7 @@ def thin_wall_check(volume: np.ndarray, spacing, sigma: float, step: int, level:
     dz, dy, dx = (float(v) for v in spacing)
     padded = _pad_with_minimum(_blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), step))
     return {**_edge_check(mesh, source, padded, level / scale, (dz, dy, dx), step, scale, thin_only=True),
-            "image": "before deconvolution"}
+            "image": "before deconvolution", "correction": None}  # no level correction applies: NaN in frames
 
 
 def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, level: float,
@@ -1992,11 +1992,12 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
         if ((info["below_crest"] or 0.0) > PROFILE_MAX_BELOW_CREST and info["level_share"] >= EDGE_CHECK_MIN_LEVEL_SHARE
                 and info["fitted"] >= EDGE_CHECK_MIN_FITTED * info["rays"]):  # not a noisy mesh whose rays miss
             record["thinner_than_blur"] = float(info["below_crest"])
+            cure = ("deconvolving did not thin them" if thin_only else "psf: deconvolves by a known PSF")
             logger.warning("the walls are thinner than the image's blur on %.0f %% of their profiles (their blurred "
                            "crests stay below the profiles' own half level): they come out about as thick as the "
                            "blur, placed outward, thickness overestimated (a membrane or thin wall under a "
-                           "z-elongated PSF; psf: deconvolves by a known PSF; or a bright film by the wall's "
-                           "surface, whose blur the profiles read)", 100 * record["thinner_than_blur"])
+                           "z-elongated PSF; %s; or a bright film by the wall's surface, whose blur the profiles "
+                           "read)", 100 * record["thinner_than_blur"], cure)
         return record
     if thin_only:  # thin_wall_check: the offset of another image than the mesh's
         return record

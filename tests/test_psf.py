@@ -236,6 +236,25 @@ def test_noise_correlated_between_planes_is_not_read_as_a_z_blur(planes):
     assert "correlated between planes" in estimate["reason"], estimate
     for image in (_plain_shell(1.0, 1.0, 1.0, 8.0), _plain_shell(2.0, 0.8, 1.0, 8.0)):
         assert abs(estimate_psf(image, (1.0, 1.0, 1.0))[1]["z_noise"]) < ESTIMATE_MAX_Z_NOISE / 3
+    # at SNR 1000 the "background" is the object's blurred halo, not noise: no verdict (a review: refused)
+    psf, estimate = estimate_psf(_plain_shell(2.9, 0.7, 1.0, 1000.0), (1.0, 1.0, 1.0))
+    assert estimate["z_noise"] is None and psf[0] == pytest.approx(np.sqrt(2.9**2 - 0.7**2), rel=0.1), estimate
+
+
+def test_the_estimate_reads_values_beyond_float32s_range():
+    """Its arithmetic is in float32: a stack in units of 1e30 (or 1e-30) is read at its own scale, the same
+    estimate, with a record JSON can write (a review: z_noise NaN at 1e30); a voxel at inf is filled."""
+    import json
+
+    from nemo.psf import estimate_psf
+
+    image = _plain_shell(2.0, 0.8, 1.0, 5.0).astype(np.float64)
+    psf, _ = estimate_psf(image, (1.0, 1.0, 1.0))
+    for scale in (1e30, 1e-30):
+        scaled, estimate = estimate_psf(image * scale, (1.0, 1.0, 1.0))
+        assert scaled == psf and json.dumps(estimate, allow_nan=False), estimate
+    image[3, 3, 3] = np.inf
+    assert estimate_psf(image, (1.0, 1.0, 1.0))[0] == psf
 
 
 def test_the_estimate_high_passes_only_the_slices_it_reads(monkeypatch):

@@ -708,5 +708,7 @@ def test_frame_summary_flags_a_deconvolution_unlike_its_series(frame_files, tmp_
     for values in ([2.0, 2.3, 1.8], [0.0, 0.0], [None, None], [1.5]):
         assert not series(values)["qc_flags"].str.contains(flag).any(), values
     assert not series([0.0, 1.04, 1.04, 1.04, 0.0], dz=2.0)["qc_flags"].str.contains(flag).any()  # 0.52 planes
+    foreign = _series_with(frame_files, tmp_path, "deconvolution", [{"psf": [2.0, 0.0, 0.0], "iterations": 30}] * 2)
+    assert foreign["psf_z"].tolist() == [2.0, 2.0] and not foreign["qc_flags"].str.contains(flag).any()
     assert series([0.0, 2.2, 2.2, 2.2, 0.0], dz=2.5)["qc_flags"].str.contains(flag).tolist() == [
         True, False, False, False, True]  # 0.88 planes
