@@ -64,8 +64,7 @@ ESTIMATE_MAX_NOISE_SHARE = 0.98
 #: Above this excess of the background's correlation between neighbouring planes over that between
 #: neighbouring columns (:func:`_z_noise_excess`) the noise is correlated between planes and reads as a
 #: z blur: no estimate (measured, session 35: white noise under any PSF -0.02 to 0.01 on 70 images of
-#: three generators; noise smoothed over 0.7-1.5 planes 0.34-0.82; the real organoid, not deconvolved
-#: anyway, 0.12-0.15).
+#: three generators; noise smoothed over 0.7-1.5 planes 0.34-0.82).
 ESTIMATE_MAX_Z_NOISE = 0.1
 
 #: ... read only where the background correlates between neighbouring columns at most this much beyond
