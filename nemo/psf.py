@@ -358,13 +358,14 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
     """
     dz, dy, dx = (float(v) for v in spacing)
     volume = np.asarray(volume)
-    if volume.dtype.kind == "f" and not np.isfinite(volume).all():
-        finite = volume[np.isfinite(volume)]
-        volume = np.where(np.isfinite(volume), volume, finite.mean() if finite.size else 0.0)
-    if volume.dtype.kind == "f" and volume.size:
-        peak = float(np.max(np.abs(volume)))
-        if peak > 1e15 or 0 < peak < 1e-15:  # beyond float32's comfortable range: the arithmetic is in float32
-            volume = volume / peak
+    low, high = (float(volume.min()), float(volume.max())) if volume.size else (0.0, 0.0)  # no full-size copy
+    if volume.dtype.kind == "f" and not (np.isfinite(low) and np.isfinite(high)):
+        finite = np.isfinite(volume)
+        volume = np.where(finite, volume, volume[finite].mean() if finite.any() else 0.0)
+        low, high = (float(volume.min()), float(volume.max()))
+    peak = max(abs(low), abs(high))
+    if volume.dtype.kind == "f" and (peak > 1e15 or 0 < peak < 1e-15):  # beyond float32's comfortable range
+        volume = volume / peak
     highpass = ESTIMATE_HIGHPASS_VOXELS * max(dz, dy, dx)
     none = {"beta": None, "misfit": None, "noise_share": None, "z_share": None, "z_noise": None}
     if min(volume.shape) < 8:
