@@ -672,7 +672,8 @@ def test_slurm_profile_runs_under_slurm_and_matches_local(slurm_cluster, demo_ru
     rows = [line.split("|") for line in sacct.splitlines() if line.strip()]
     ours = [r for r in rows if Path(r[3]).resolve() == tmp_path.resolve()]
     local_jobs = job_counts(smk(tmp_path, "-n", "--forceall", "--cores", "1"))
-    per_frame = {"mesh", "measure", "curvature", "thickness", "peel", "directors", "order", "defects", "align"}
+    per_frame = {"deconvolve", "mesh", "measure", "curvature", "thickness", "peel", "directors", "order", "defects",
+                 "align"}  # deconvolve: psf: auto, the default, one per frame in its group
     local_rules = {"all", "report_config", "report_tables"}  # run beside Snakemake (localrules)
     n_other = sum(v for k, v in local_jobs.items() if k not in per_frame | local_rules)
     frames = default_config()["datasets"]["demo"]["synthetic"]["frames"]
