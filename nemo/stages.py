@@ -279,7 +279,7 @@ def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) 
         raise NemoError("mesh.edge: profile and a psf do not go together: the deconvolved walls overshoot at their "
                         "edges, so blurred boxes do not fit them (a 4 µm wall read 1.8 µm). Drop the psf, or use "
                         "edge: half (the default; with a psf, the level of the image before deconvolution)")
-    if mask is None and (psf is None or meshes_deconvolved(psf, p["edge"])):
+    if mask is None and (psf is None or meshes_deconvolved(psf, p["edge"])):  # None: _deconvolved's record
         return _deconvolved(volume, spacing, p, psf, unit, deconvolved)
     p["deconvolution"] = _undeconvolved_record(spacing, psf, "a mask: meshed as given" if mask is not None else
                                                "mesh.edge: profile fits blurred boxes to the image's own walls")
@@ -288,10 +288,9 @@ def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) 
 
 def _undeconvolved_record(spacing, psf, reason: str) -> dict:
     """The mesh's deconvolution record where the image is meshed as given (a mask, ``edge: profile``):
-    nothing deconvolved, the PSF named (``"auto"``: none estimated, the mesh needs none)."""
-    given = check_psf(psf)
-    return {**deconvolve(None, spacing, None)[1], "psf": None if given is None or is_auto(given) else list(given),
-            "estimated": is_auto(given), "reason": reason}
+    nothing deconvolved, the (checked) PSF named (``"auto"``: none estimated, the mesh needs none)."""
+    return {**deconvolve(None, spacing, None)[1], "psf": None if psf is None or is_auto(psf) else list(psf),
+            "estimated": is_auto(psf), "reason": reason}
 
 
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,

@@ -50,7 +50,8 @@ def run(args) -> int:
     if info.unit == "pixel" and not auto:
         warnings.warn("the image has no calibration (unit pixel): the psf is read in pixels; give --spacing "
                       "to give the psf in µm", NemoWarning, stacklevel=2)
-    said = "its z blur estimated from the image" if auto else f"the PSF σ {' '.join(f'{v:g}' for v in args.psf)}"
+    said = ("its z blur estimated from the image, where there is one" if auto
+            else f"the PSF σ {' '.join(f'{v:g}' for v in args.psf)}")
     with step(f"deconvolving {'x'.join(map(str, volume.shape))} voxels by {said} "
               "(Richardson-Lucy, about 1.5 s per million voxels)"):
         sharp, record = deconvolve(volume, info.spacing, args.psf)
