@@ -57,8 +57,27 @@ PIXEL_PER_EDGE = 0.25
 #: Default pixel is at least patch radius / this (micro-images of at most 195 × 195 pixels).
 MAX_HALF_WIDTH_PX = 97
 
-#: Default structure-tensor integration scale (micro-image pixels).
+#: Default structure-tensor integration scale (micro-image pixels); the noise-aware default
+#: (:func:`noise_aware_sigma`) starts here and widens it on noisy layers.
 SIGMA_PX = 4.0
+
+#: Director noise (median angle between neighbouring directors, degrees) the noise-aware scale
+#: aims at: below it the directors are measured at :data:`SIGMA_PX`; above it the window widens in
+#: proportion, up to :data:`NOISE_SIGMA_MAX_FACTOR` × (docs/validation.md "The director
+#: integration scale from the directors' own noise", session 36).
+NOISE_TARGET_DEG = 8.0
+#: Widest noise-aware scale, as a factor on :data:`SIGMA_PX`: wider windows pull +½ cores towards
+#: their tails on clean textures (measured: 2 × was the best fixed scale on noisy frames, 3 × lost).
+NOISE_SIGMA_MAX_FACTOR = 2.0
+#: Smallest widening measured again: a window less than 20 % wider would make the angles at most 17 %
+#: less noisy, not worth a second pass (and a defect core's place moves by chance with any change of
+#: scale: docs/validation.md).
+NOISE_MIN_WIDENING = 1.2
+#: Neighbouring directors for :func:`director_noise`: centres this many integration scales apart
+#: (their windows overlap little; the field itself turns little over so short a distance).
+NOISE_PAIR_RANGE = (2.0, 3.5)
+#: Fewer neighbouring pairs than this give no noise estimate (the scale stays at SIGMA_PX).
+NOISE_MIN_PAIRS = 50
 
 #: Default patch radius: this fraction of the object radius sqrt(area / 4π) (the paper's 20 µm
 #: on R = 200 µm), at least PATCH_MIN_EDGES mean edge lengths.
@@ -426,6 +445,54 @@ def noise_coherency(mesh: trimesh.Trimesh, rng: np.random.Generator | int | None
         coherency = directors(mesh, noise, n_patches=n_patches, rng=rng, **settings)["coherency"].to_numpy()
     coherency = coherency[np.isfinite(coherency)]
     return float(np.quantile(coherency, quantile)) if coherency.size else math.nan
+
+
+def director_noise(directors_df: pd.DataFrame, scale: float) -> tuple[float, int]:
+    """Median angle (degrees) between directors whose centres are :data:`NOISE_PAIR_RANGE` × ``scale`` apart.
+
+    Two such directors see nearly the same field through windows that barely overlap, so their
+    disagreement is the measurement's own noise (image noise, a sparse or irregular texture); the
+    median ignores the few pairs near defects, where the field itself turns.
+
+    Parameters
+    ----------
+    directors_df : DataFrame
+        Directors table (``x``, ``y``, ``z``, ``nx``, ``ny``, ``nz``), M rows.
+    scale : float
+        The integration scale the directors were measured at (µm: ``sigma`` × ``pixel``).
+
+    Returns
+    -------
+    noise : float
+        Median head-tail-symmetric angle in [0, 90] degrees; NaN with fewer than
+        :data:`NOISE_MIN_PAIRS` pairs.
+    n_pairs : int
+    """
+    pos = directors_df[["x", "y", "z"]].to_numpy(dtype=np.float64)
+    vec = directors_df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64)
+    ok = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(vec), axis=1)
+    pos, vec = pos[ok], vec[ok]
+    lo, hi = NOISE_PAIR_RANGE[0] * scale, NOISE_PAIR_RANGE[1] * scale
+    pairs = cKDTree(pos).query_pairs(hi, output_type="ndarray") if len(pos) > 1 else np.zeros((0, 2), np.int64)
+    pairs = pairs[np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) >= lo]
+    if len(pairs) < NOISE_MIN_PAIRS:
+        return math.nan, int(len(pairs))
+    cos = np.abs(np.einsum("ij,ij->i", vec[pairs[:, 0]], vec[pairs[:, 1]]))
+    return float(np.degrees(np.median(np.arccos(np.clip(cos, 0.0, 1.0))))), int(len(pairs))
+
+
+def noise_aware_sigma(noise_deg: float) -> float:
+    """Integration scale (pixels) for directors whose noise at :data:`SIGMA_PX` is ``noise_deg``.
+
+    A structure tensor's angle noise falls about as 1 / σ (the window's area grows as σ²), so the
+    scale widens in proportion to the noise above :data:`NOISE_TARGET_DEG`, up to
+    :data:`NOISE_SIGMA_MAX_FACTOR` × :data:`SIGMA_PX`; a widening below :data:`NOISE_MIN_WIDENING`,
+    or NaN (no estimate), keeps SIGMA_PX.
+    """
+    factor = noise_deg / NOISE_TARGET_DEG if math.isfinite(noise_deg) else 1.0
+    if factor < NOISE_MIN_WIDENING:
+        return SIGMA_PX
+    return SIGMA_PX * min(factor, NOISE_SIGMA_MAX_FACTOR)
 
 
 def support_half_width(sigma: float, smooth: float, grad_sigma: float = GRAD_SIGMA) -> int:

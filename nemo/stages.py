@@ -998,9 +998,35 @@ def _directors(mesh: trimesh.Trimesh, intensity: np.ndarray, params: dict | None
         _check_default_patch(mesh, float(p["patch_radius"]))
     settings = {"patch_radius": p["patch_radius"], "patch_k": p["patch_k"], "pixel": float(p["pixel"]),
                 "sigma": p["sigma"], "frames": p["frames"]}
-    df = measure_directors(mesh, intensity, n_patches=int(p["n_patches"]), rng=int(p["seed"]), **settings)
+    if p["sigma"] is None:  # noise-aware: measured at SIGMA_PX, again wider where those directors are noisy
+        df, p["sigma"], p["sigma_auto"] = _noise_aware_directors(mesh, intensity, p, settings)
+        settings["sigma"] = p["sigma"]
+    else:
+        df = measure_directors(mesh, intensity, n_patches=int(p["n_patches"]), rng=int(p["seed"]), **settings)
     p["coherency_noise"] = noise_coherency(mesh, rng=int(p["seed"]), **settings)  # the QC's texture floor
     return df, p
+
+
+def _noise_aware_directors(mesh: trimesh.Trimesh, intensity: np.ndarray, p: dict,
+                           settings: dict) -> tuple[pd.DataFrame, float, dict]:
+    """Directors at :data:`nemo.directors.SIGMA_PX`, measured again at
+    :func:`nemo.directors.noise_aware_sigma` of their own noise (:func:`nemo.directors.director_noise`)
+    where that is wider: the table, the scale (pixels) and its record."""
+    from nemo.directors import SIGMA_PX, director_noise, noise_aware_sigma
+    from nemo.directors import directors as measure_directors
+
+    def measure(sigma: float) -> pd.DataFrame:
+        return measure_directors(mesh, intensity, n_patches=int(p["n_patches"]), rng=int(p["seed"]),
+                                 **{**settings, "sigma": sigma})
+
+    df = measure(SIGMA_PX)
+    noise, n_pairs = director_noise(df, SIGMA_PX * float(p["pixel"]))
+    sigma = noise_aware_sigma(noise)
+    record = {"noise_deg": None if math.isnan(noise) else round(noise, 3), "pairs": n_pairs, "first_sigma": SIGMA_PX}
+    if sigma > SIGMA_PX:
+        logger.info("directors: noise %.1f° at σ %g px: measured again at σ %.3g px", noise, SIGMA_PX, sigma)
+        df = measure(sigma)
+    return df, float(sigma), record
 
 
 def _check_default_patch(mesh: trimesh.Trimesh, patch_radius: float) -> None:

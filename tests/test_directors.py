@@ -121,11 +121,44 @@ def test_flat_stripes_known_angle(alpha_deg, wide_scale):
 
 @pytest.mark.parametrize("alpha_deg", [0.0, 72.0, 135.0])
 def test_flat_stripes_at_the_default_scale(alpha_deg):
-    """The defaults (σ = 4 px of ¼ edge): measured median 0.4-0.7°, max 2.3-3.8°."""
+    """The library's default (σ = 4 px of ¼ edge): measured median 0.4-0.7°, max 2.3-3.8°."""
     mesh, intensity, e, centres = flat_stripes(alpha_deg)
     df = directors(mesh, intensity, patch_radius=6.0, centres=centres)
     err = angle_between_deg(df[["nx", "ny", "nz"]].to_numpy(), np.tile(e, (len(df), 1)))
     assert np.median(err) < 1.0 and err.max() < 5.0, (np.median(err), err.max())
+
+
+def test_director_noise_is_the_spread_between_neighbouring_directors(rng):
+    """Directors on a 1 µm grid, all along x but each turned by an independent Gaussian angle of
+    s degrees: two of them differ by N(0, 2 s²), whose median |·| is 0.6745 √2 s. Pairs closer or
+    farther than 2-3.5 scales do not count; too few pairs give no estimate."""
+    from nemo.directors import NOISE_MIN_PAIRS, director_noise
+
+    g = np.arange(40.0)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    s = 6.0
+    a = np.deg2rad(s) * rng.standard_normal(len(xy))
+    df = pd.DataFrame({"x": xy[:, 0], "y": xy[:, 1], "z": 0.0, "nx": np.cos(a), "ny": np.sin(a), "nz": 0.0})
+    noise, n_pairs = director_noise(df, scale=1.0)
+    assert noise == pytest.approx(0.6745 * np.sqrt(2) * s, rel=0.05) and n_pairs > 1000
+    # head-tail symmetric: flipping half of the directors changes nothing
+    flipped = df.assign(nx=np.where(xy[:, 0] % 2, -df["nx"], df["nx"]), ny=np.where(xy[:, 0] % 2, -df["ny"], df["ny"]))
+    assert director_noise(flipped, scale=1.0)[0] == pytest.approx(noise)
+    # a director turned by 90° beside every other one but 1.5 scales away: not a pair
+    lone = pd.concat([df.assign(nx=1.0, ny=0.0), df.iloc[:1].assign(x=-1.5, y=0.0, nx=0.0, ny=1.0)])
+    assert director_noise(lone, scale=1.0)[0] == pytest.approx(0.0, abs=1e-6)
+    few = df.iloc[:10]
+    assert np.isnan(director_noise(few, scale=1.0)[0]) and director_noise(few, scale=1.0)[1] < NOISE_MIN_PAIRS
+
+
+def test_noise_aware_sigma_widens_in_proportion_and_is_bounded():
+    from nemo.directors import NOISE_MIN_WIDENING, NOISE_SIGMA_MAX_FACTOR, NOISE_TARGET_DEG, SIGMA_PX, noise_aware_sigma
+
+    assert noise_aware_sigma(0.5 * NOISE_TARGET_DEG) == SIGMA_PX == noise_aware_sigma(float("nan"))
+    assert noise_aware_sigma(0.99 * NOISE_MIN_WIDENING * NOISE_TARGET_DEG) == SIGMA_PX  # not worth a second pass
+    assert noise_aware_sigma(NOISE_MIN_WIDENING * NOISE_TARGET_DEG) == pytest.approx(NOISE_MIN_WIDENING * SIGMA_PX)
+    assert noise_aware_sigma(1.5 * NOISE_TARGET_DEG) == pytest.approx(1.5 * SIGMA_PX)
+    assert noise_aware_sigma(10 * NOISE_TARGET_DEG) == pytest.approx(NOISE_SIGMA_MAX_FACTOR * SIGMA_PX)
 
 
 def test_noise_coherency_is_a_floor_stripes_clear_and_noise_does_not(rng):

@@ -1306,3 +1306,33 @@ def test_a_droplets_walls_from_the_mesh_step_have_no_thickness_either_way():
         with pytest.warns(NemoWarning, match="one wall"):
             df, tp = stages.thickness(meshes["outer"], meshes["inner"], {"direction": direction})
         assert df["thickness"].isna().all() and tp["one_wall"] == [None]
+
+
+@pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
+def test_directors_widen_their_scale_on_a_noisy_layer(noise):
+    """Stripes along 30° on a flat mesh plus white noise of ``noise`` × their amplitude. The
+    default (``sigma: null``) measures at 4 px and, where those directors disagree with their
+    neighbours by 1.2 × 8° or more in the median, again at a scale widened in proportion (up to
+    8 px); the directors it keeps are then nearer the stripes than the 4 px ones. Measured:
+    pair noise 1.1 / 12.2 / 30.8°, σ 4 / 6.1 / 8 px, median error 0.8 / 8.2 → 6.0 / 26.5 → 15.7°."""
+    from test_directors import angle_between_deg, flat_stripes
+
+    from nemo.directors import NOISE_TARGET_DEG, SIGMA_PX, directors
+
+    mesh, stripes, e, _ = flat_stripes(30.0)
+    layer = stripes + noise * np.random.default_rng(1).standard_normal(len(stripes))
+    df, p = stages.directors(mesh, layer, {"patch_radius": 6.0})
+    at_4px = directors(mesh, layer, patch_radius=6.0, sigma=SIGMA_PX, n_patches=p["n_patches"], rng=p["seed"])
+    err, err_4px = (np.median(angle_between_deg(d[["nx", "ny", "nz"]].to_numpy(), e[None])) for d in (df, at_4px))
+    record = p["sigma_auto"]
+    assert record["first_sigma"] == SIGMA_PX and record["pairs"] > 1000
+    if noise == 0:
+        assert record["noise_deg"] < NOISE_TARGET_DEG and p["sigma"] == SIGMA_PX and err == err_4px < 1.5
+    else:
+        assert record["noise_deg"] > NOISE_TARGET_DEG and SIGMA_PX < p["sigma"] <= 2 * SIGMA_PX
+        assert err < 0.8 * err_4px, (err, err_4px)
+    # the QC's texture floor is read at the scale used; a scale given is used as given
+    assert p["coherency_noise"] < 0.5 if noise else p["coherency_noise"] > 0.4
+    given, q = stages.directors(mesh, layer, {"patch_radius": 6.0, "sigma": 4.0})
+    assert q["sigma"] == 4.0 and "sigma_auto" not in q
+    pd.testing.assert_frame_equal(given, at_4px)
