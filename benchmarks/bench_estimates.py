@@ -5,9 +5,10 @@
 * **defaults**: every length from the data, so the mesh step estimates the noise and runs the
   blur's topology ladder (``nemo.surface.auto_sigma``), ``psf: auto`` estimates the PSF's z blur
   (``nemo.psf.estimate_psf``) and the curvature step runs the radius pilot
-  (``nemo.morphology.default_radius``) for each wall;
-* **pinned**: a config that gives the values the defaults resolved to (``mesh.sigma`` and
-  ``curvature.radius`` read from the first run's outputs, and ``--psf`` the PSF deconvolved, or
+  (``nemo.morphology.default_radius``) for each wall, and the directors their noise-aware
+  scale (``nemo.directors.noise_aware_sigma``: a second pass where the first is noisy);
+* **pinned**: a config that gives the values the defaults resolved to (``mesh.sigma``,
+  ``curvature.radius`` and ``directors.sigma`` read from the first run's outputs, and ``--psf`` the PSF deconvolved, or
   none), so no estimate runs.
 
 The difference of the in-process totals (``summary.json``'s ``total_s``) is the estimates'
@@ -47,8 +48,13 @@ def resolved_values(out: Path) -> dict:
 
     summary = json.loads((out / "summary.json").read_text())
     radius = read_provenance(out / "curvature_inner.parquet")["parameters"]["radius"]
-    return {"mesh": {"sigma": float(summary["mesh"]["sigma"]), "step": int(summary["mesh"]["step"])},
-            "curvature": {"radius": float(radius)}}
+    pinned = {"mesh": {"sigma": float(summary["mesh"]["sigma"]), "step": int(summary["mesh"]["step"])},
+              "curvature": {"radius": float(radius)}}
+    scales = {float(layer["directors"]["sigma"]) for layer in summary["layers"].values()
+              if layer.get("directors", {}).get("sigma") is not None}
+    if len(scales) == 1:  # the noise-aware director scale (one section for every layer: pinned when they agree)
+        pinned["directors"] = {"sigma": scales.pop()}
+    return pinned
 
 
 def resolved_psf(out: Path) -> list[str]:
