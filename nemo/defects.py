@@ -161,6 +161,7 @@ from nemo.geometry import (
     geodesic_ball,
     project_tangent,
     rim,
+    rotate_between,
     smooth_conserving,
     tangent_basis,
 )
@@ -275,12 +276,7 @@ def _transport(vec: np.ndarray, normals: np.ndarray) -> np.ndarray:
     contour's tangent differ by exactly the change of the angle between them, so the winding and
     :func:`contour_curvature` cancel the holonomy of the discrete surface exactly.
     """
-    nxt = np.roll(normals, -1, axis=0)
-    axis = np.cross(normals, nxt)
-    cos = np.einsum("ij,ij->i", normals, nxt)[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        along = np.einsum("ij,ij->i", axis, vec)[:, None] / (1 + cos)
-    return vec * cos + np.cross(axis, vec) + axis * np.where(cos > -1, along, np.nan)
+    return rotate_between(vec, normals, np.roll(normals, -1, axis=0))
 
 
 def _angles_about(vec: np.ndarray, nxt: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 
 from nemo._log import logger, step
 from nemo.errors import NemoError, NemoWarning, ObjectTooSmallError
-from nemo.geometry import tangent_frames
+from nemo.geometry import rotate_between, tangent_frames
 from nemo.mesh import mean_edge_length, object_radius
 
 #: Default patch density: patches per patch area (the paper's 12 000 patches of 20 µm on a
@@ -61,10 +61,10 @@ MAX_HALF_WIDTH_PX = 97
 #: (:func:`noise_aware_sigma`) starts here and widens it on noisy layers.
 SIGMA_PX = 4.0
 
-#: Director noise (median angle between neighbouring directors, degrees) the noise-aware scale
-#: aims at: below it the directors are measured at :data:`SIGMA_PX`; above it the window widens in
-#: proportion, up to :data:`NOISE_SIGMA_MAX_FACTOR` × (docs/validation.md "The director
-#: integration scale from the directors' own noise", session 36).
+#: Director scatter (median angle between neighbouring directors, degrees: image noise or a sparse
+#: texture) the noise-aware scale aims at: below it the directors are measured at :data:`SIGMA_PX`;
+#: above it the window widens in proportion, up to :data:`NOISE_SIGMA_MAX_FACTOR` ×
+#: (docs/validation.md "The director integration scale from the directors' own noise", session 36).
 NOISE_TARGET_DEG = 8.0
 #: Widest noise-aware scale, as a factor on :data:`SIGMA_PX`: wider windows pull +½ cores towards
 #: their tails on clean textures (measured: 2 × was the best fixed scale on noisy frames, 3 × lost).
@@ -447,12 +447,17 @@ def noise_coherency(mesh: trimesh.Trimesh, rng: np.random.Generator | int | None
     return float(np.quantile(coherency, quantile)) if coherency.size else math.nan
 
 
-def director_noise(directors_df: pd.DataFrame, scale: float) -> tuple[float, int]:
+def director_noise(directors_df: pd.DataFrame, scale: float,
+                   normals: np.ndarray | None = None) -> tuple[float, int]:
     """Median angle (degrees) between directors whose centres are :data:`NOISE_PAIR_RANGE` × ``scale`` apart.
 
     Two such directors see nearly the same field through windows that barely overlap, so their
-    disagreement is the measurement's own noise (image noise, a sparse or irregular texture); the
-    median ignores the few pairs near defects, where the field itself turns.
+    disagreement is the measurement's own scatter: image noise, and a texture too sparse or too
+    irregular for the window (short dashes read 19-35° without any noise); the median ignores
+    the few pairs near defects, where the field itself turns. With ``normals`` the second
+    director of a pair is parallel-transported to the first's tangent plane
+    (:func:`nemo.geometry.rotate_between`), so a curved surface adds nothing (a sphere of
+    R = 40 µm adds about 2° to the raw 3D angle at one edge's scale).
 
     Parameters
     ----------
@@ -460,6 +465,8 @@ def director_noise(directors_df: pd.DataFrame, scale: float) -> tuple[float, int
         Directors table (``x``, ``y``, ``z``, ``nx``, ``ny``, ``nz``), M rows.
     scale : float
         The integration scale the directors were measured at (µm: ``sigma`` × ``pixel``).
+    normals : ndarray, shape (M, 3), optional
+        Unit surface normals at the directors' centres.
 
     Returns
     -------
@@ -470,29 +477,46 @@ def director_noise(directors_df: pd.DataFrame, scale: float) -> tuple[float, int
     """
     pos = directors_df[["x", "y", "z"]].to_numpy(dtype=np.float64)
     vec = directors_df[["nx", "ny", "nz"]].to_numpy(dtype=np.float64)
+    nrm = np.asarray(normals, dtype=np.float64) if normals is not None else None
     ok = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(vec), axis=1)
+    if nrm is not None:
+        ok &= np.all(np.isfinite(nrm), axis=1)
+        nrm = nrm[ok]
     pos, vec = pos[ok], vec[ok]
     lo, hi = NOISE_PAIR_RANGE[0] * scale, NOISE_PAIR_RANGE[1] * scale
     pairs = cKDTree(pos).query_pairs(hi, output_type="ndarray") if len(pos) > 1 else np.zeros((0, 2), np.int64)
     pairs = pairs[np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) >= lo]
     if len(pairs) < NOISE_MIN_PAIRS:
         return math.nan, int(len(pairs))
-    cos = np.abs(np.einsum("ij,ij->i", vec[pairs[:, 0]], vec[pairs[:, 1]]))
+    first, second = vec[pairs[:, 0]], vec[pairs[:, 1]]
+    if nrm is not None:
+        second = rotate_between(second, nrm[pairs[:, 1]], nrm[pairs[:, 0]])
+    cos = np.abs(np.einsum("ij,ij->i", first, second)) / np.maximum(
+        np.linalg.norm(first, axis=1) * np.linalg.norm(second, axis=1), 1e-300)
+    cos = cos[np.isfinite(cos)]  # opposite normals (a sheet's two sides) have no transport
     return float(np.degrees(np.median(np.arccos(np.clip(cos, 0.0, 1.0))))), int(len(pairs))
 
 
-def noise_aware_sigma(noise_deg: float) -> float:
-    """Integration scale (pixels) for directors whose noise at :data:`SIGMA_PX` is ``noise_deg``.
+def noise_aware_sigma(noise_deg: float, max_px: float = NOISE_SIGMA_MAX_FACTOR * SIGMA_PX) -> float:
+    """Integration scale (pixels) for directors whose scatter at :data:`SIGMA_PX` is ``noise_deg``.
 
     A structure tensor's angle noise falls about as 1 / σ (the window's area grows as σ²), so the
-    scale widens in proportion to the noise above :data:`NOISE_TARGET_DEG`, up to
-    :data:`NOISE_SIGMA_MAX_FACTOR` × :data:`SIGMA_PX`; a widening below :data:`NOISE_MIN_WIDENING`,
-    or NaN (no estimate), keeps SIGMA_PX.
+    scale widens in proportion to the scatter above :data:`NOISE_TARGET_DEG`, up to ``max_px``
+    (default :data:`NOISE_SIGMA_MAX_FACTOR` × :data:`SIGMA_PX`: two edges at the default pixel;
+    :func:`noise_aware_max_px` for another pixel); a widening below :data:`NOISE_MIN_WIDENING`, or NaN
+    (no estimate), keeps SIGMA_PX.
     """
     factor = noise_deg / NOISE_TARGET_DEG if math.isfinite(noise_deg) else 1.0
-    if factor < NOISE_MIN_WIDENING:
+    if factor < NOISE_MIN_WIDENING or max_px < NOISE_MIN_WIDENING * SIGMA_PX:
         return SIGMA_PX
-    return SIGMA_PX * min(factor, NOISE_SIGMA_MAX_FACTOR)
+    return min(SIGMA_PX * factor, max_px)
+
+
+def noise_aware_max_px(edge: float, pixel: float) -> float:
+    """Widest noise-aware scale (pixels of ``pixel``): :data:`NOISE_SIGMA_MAX_FACTOR` × :data:`SIGMA_PX`
+    pixels of the default ¼ edge, i.e. two edges whatever the pixel (a coarser pixel given by the
+    user already widens the 4 px window in µm; the target is calibrated at the default pixel)."""
+    return NOISE_SIGMA_MAX_FACTOR * SIGMA_PX * PIXEL_PER_EDGE * edge / pixel
 
 
 def support_half_width(sigma: float, smooth: float, grad_sigma: float = GRAD_SIGMA) -> int:

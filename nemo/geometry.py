@@ -136,6 +136,27 @@ def axis_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t1, t2
 
 
+def rotate_between(vec: np.ndarray, from_normals: np.ndarray, to_normals: np.ndarray) -> np.ndarray:
+    """``vec[i]`` rotated by the smallest rotation taking ``from_normals[i]`` to ``to_normals[i]``.
+
+    The discrete parallel transport of a tangent vector between two points of a surface (Rodrigues'
+    formula about ``from × to``); NaN where the two unit normals are opposite.
+
+    Parameters
+    ----------
+    vec, from_normals, to_normals : ndarray, shape (L, 3)
+
+    Returns
+    -------
+    ndarray, shape (L, 3)
+    """
+    axis = np.cross(from_normals, to_normals)
+    cos = np.einsum("ij,ij->i", from_normals, to_normals)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = np.einsum("ij,ij->i", axis, vec)[:, None] / (1 + cos)
+    return vec * cos + np.cross(axis, vec) + axis * np.where(cos > -1, along, np.nan)
+
+
 def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Tangent basis of one normal: :func:`axis_frames` of a single row.
 

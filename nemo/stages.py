@@ -21,6 +21,7 @@ radius of a sphere of the same area, ``sqrt(area / 4π)``):
 ``directors.n_patches``     30 per patch area, at most the number of vertices
 ``directors.pixel``         ``edge / 4``, at least ``patch_radius / 97`` (micro-images ≤ 195 px)
                             (these three: nemo.directors, the same defaults as ``directors()``)
+``directors.sigma``         4 px, widened to at most two edges where the directors scatter (noise-aware)
 ``directors_import``        ``max_distance``: ``2 edge``; the order radius of imported directors
                             holds about 10 of them (1.78 × their spacing ``sqrt(area / n)``)
 ``order.radius``            ``2.5 patch_radius`` (the paper: 50 µm for 20 µm patches)
@@ -1012,16 +1013,18 @@ def _noise_aware_directors(mesh: trimesh.Trimesh, intensity: np.ndarray, p: dict
     """Directors at :data:`nemo.directors.SIGMA_PX`, measured again at
     :func:`nemo.directors.noise_aware_sigma` of their own noise (:func:`nemo.directors.director_noise`)
     where that is wider: the table, the scale (pixels) and its record."""
-    from nemo.directors import SIGMA_PX, director_noise, noise_aware_sigma
+    from nemo.directors import SIGMA_PX, director_noise, noise_aware_max_px, noise_aware_sigma
     from nemo.directors import directors as measure_directors
+    from nemo.mesh import mean_edge_length, vertex_normals
 
     def measure(sigma: float) -> pd.DataFrame:
         return measure_directors(mesh, intensity, n_patches=int(p["n_patches"]), rng=int(p["seed"]),
                                  **{**settings, "sigma": sigma})
 
     df = measure(SIGMA_PX)
-    noise, n_pairs = director_noise(df, SIGMA_PX * float(p["pixel"]))
-    sigma = noise_aware_sigma(noise)
+    normals = vertex_normals(mesh)[df["vertex"].to_numpy(dtype=np.int64)]
+    noise, n_pairs = director_noise(df, SIGMA_PX * float(p["pixel"]), normals)
+    sigma = noise_aware_sigma(noise, noise_aware_max_px(mean_edge_length(mesh), float(p["pixel"])))
     record = {"noise_deg": None if math.isnan(noise) else round(noise, 3), "pairs": n_pairs, "first_sigma": SIGMA_PX}
     if sigma > SIGMA_PX:
         logger.info("directors: noise %.1f° at σ %g px: measured again at σ %.3g px", noise, SIGMA_PX, sigma)

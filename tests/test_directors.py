@@ -151,6 +151,25 @@ def test_director_noise_is_the_spread_between_neighbouring_directors(rng):
     assert np.isnan(director_noise(few, scale=1.0)[0]) and director_noise(few, scale=1.0)[1] < NOISE_MIN_PAIRS
 
 
+def test_director_noise_transports_across_a_curved_surface():
+    """The azimuthal field e_φ in a sphere's equatorial band (R = 20 µm) is parallel along the
+    equator: transported between the tangent planes, neighbours agree (only the band's
+    latitude adds a little); as raw 3D vectors they differ by the planes' tilt, d / R (≈ 5°)."""
+    from nemo.directors import director_noise
+
+    k = np.arange(20000) + 0.5
+    theta, phi = np.arccos(1 - 2 * k / len(k)), np.pi * (1 + 5**0.5) * k
+    normals = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
+    band = np.abs(normals[:, 2]) < 0.1
+    normals = normals[band]
+    e_phi = np.stack([-normals[:, 1], normals[:, 0], np.zeros(len(normals))], 1)
+    e_phi /= np.linalg.norm(e_phi, axis=1, keepdims=True)
+    df = pd.DataFrame(np.c_[20.0 * normals, e_phi], columns=["x", "y", "z", "nx", "ny", "nz"])
+    transported, n_pairs = director_noise(df, scale=1.0, normals=normals)
+    raw, _ = director_noise(df, scale=1.0)
+    assert n_pairs > 1000 and transported < 1.0 and raw > 3.0, (transported, raw)
+
+
 def test_noise_aware_sigma_widens_in_proportion_and_is_bounded():
     from nemo.directors import NOISE_MIN_WIDENING, NOISE_SIGMA_MAX_FACTOR, NOISE_TARGET_DEG, SIGMA_PX, noise_aware_sigma
 
@@ -159,6 +178,12 @@ def test_noise_aware_sigma_widens_in_proportion_and_is_bounded():
     assert noise_aware_sigma(NOISE_MIN_WIDENING * NOISE_TARGET_DEG) == pytest.approx(NOISE_MIN_WIDENING * SIGMA_PX)
     assert noise_aware_sigma(1.5 * NOISE_TARGET_DEG) == pytest.approx(1.5 * SIGMA_PX)
     assert noise_aware_sigma(10 * NOISE_TARGET_DEG) == pytest.approx(NOISE_SIGMA_MAX_FACTOR * SIGMA_PX)
+    # the widest scale is two edges whatever the pixel: a pixel 4 × the default's is not widened
+    from nemo.directors import PIXEL_PER_EDGE, noise_aware_max_px
+
+    assert noise_aware_max_px(edge=2.0, pixel=PIXEL_PER_EDGE * 2.0) == pytest.approx(NOISE_SIGMA_MAX_FACTOR * SIGMA_PX)
+    assert noise_aware_sigma(10 * NOISE_TARGET_DEG, noise_aware_max_px(2.0, 2.0)) == SIGMA_PX
+    assert noise_aware_sigma(10 * NOISE_TARGET_DEG, 6.0) == 6.0
 
 
 def test_noise_coherency_is_a_floor_stripes_clear_and_noise_does_not(rng):

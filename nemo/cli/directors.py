@@ -27,8 +27,9 @@ table: vertex, x, y, z, nx, ny, nz (unit 3D director, tangent), coherency.
 
 Defaults follow the data (nemo.stages): patch radius 0.1 × the object radius sqrt(area/4π)
 (at least 8 mean edge lengths), pixel = a quarter of the mean edge length (at least radius/97),
-sigma noise-aware (4 pixels, measured again at up to 8 where the directors 2-3.5 windows
-apart disagree by 9.6° or more in the median: nemo.directors.noise_aware_sigma), 30 patches
+sigma noise-aware (4 pixels, measured again at up to two edges where the directors 2-3.5
+windows apart disagree by 9.6° or more in the median, from noise or a sparse texture:
+nemo.directors.noise_aware_sigma), 30 patches
 per patch area (the paper's 12 000 patches of 20 µm on a vesicle of R = 200 µm), capped by the
 number of vertices. Lengths are in the mesh's unit (µm). The
 micro-images are gridded only as far as the centre's structure tensor reads them (4 sigma plus
@@ -143,8 +144,8 @@ def _add_measure_arguments(parser: argparse.ArgumentParser) -> None:
                         help="micro-image pixel in the mesh's unit (default: a quarter of the mean edge "
                              "length, at least radius/97)")
     parser.add_argument("--sigma", type=positive(), metavar="PX",
-                        help="structure-tensor integration scale in pixels (default: noise-aware, 4-8 px: "
-                             "nemo.directors.noise_aware_sigma)")
+                        help="structure-tensor integration scale in pixels (default: noise-aware, 4 px to two "
+                             "edges: nemo.directors.noise_aware_sigma)")
     parser.add_argument("--seed", type=seed, metavar="S", help="random seed of the centres (default 0)")
     parser.add_argument("--frames", choices=("axis", "smooth"),
                         help="tangent frames: N × x̂ (default) or potpourri3d transport")
