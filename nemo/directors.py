@@ -78,6 +78,9 @@ NOISE_MIN_WIDENING = 1.2
 NOISE_PAIR_RANGE = (2.0, 3.5)
 #: Fewer neighbouring pairs than this give no noise estimate (the scale stays at SIGMA_PX).
 NOISE_MIN_PAIRS = 50
+#: Pairs whose normals differ by more than 60° are not neighbours on the surface (the two sides of a
+#: thin wall in one mesh, a fold): :func:`director_noise` leaves them out.
+NOISE_MIN_NORMAL_COS = 0.5
 
 #: Default patch radius: this fraction of the object radius sqrt(area / 4π) (the paper's 20 µm
 #: on R = 200 µm), at least PATCH_MIN_EDGES mean edge lengths.
@@ -486,6 +489,8 @@ def director_noise(directors_df: pd.DataFrame, scale: float,
     lo, hi = NOISE_PAIR_RANGE[0] * scale, NOISE_PAIR_RANGE[1] * scale
     pairs = cKDTree(pos).query_pairs(hi, output_type="ndarray") if len(pos) > 1 else np.zeros((0, 2), np.int64)
     pairs = pairs[np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) >= lo]
+    if nrm is not None:  # not neighbours on the surface: the two sides of a thin wall, a fold
+        pairs = pairs[np.einsum("ij,ij->i", nrm[pairs[:, 0]], nrm[pairs[:, 1]]) > NOISE_MIN_NORMAL_COS]
     if len(pairs) < NOISE_MIN_PAIRS:
         return math.nan, int(len(pairs))
     first, second = vec[pairs[:, 0]], vec[pairs[:, 1]]
@@ -493,7 +498,6 @@ def director_noise(directors_df: pd.DataFrame, scale: float,
         second = rotate_between(second, nrm[pairs[:, 1]], nrm[pairs[:, 0]])
     cos = np.abs(np.einsum("ij,ij->i", first, second)) / np.maximum(
         np.linalg.norm(first, axis=1) * np.linalg.norm(second, axis=1), 1e-300)
-    cos = cos[np.isfinite(cos)]  # opposite normals (a sheet's two sides) have no transport
     return float(np.degrees(np.median(np.arccos(np.clip(cos, 0.0, 1.0))))), int(len(pairs))
 
 

@@ -168,6 +168,12 @@ def test_director_noise_transports_across_a_curved_surface():
     transported, n_pairs = director_noise(df, scale=1.0, normals=normals)
     raw, _ = director_noise(df, scale=1.0)
     assert n_pairs > 1000 and transported < 1.0 and raw > 3.0, (transported, raw)
+    # a second sheet 2 µm inside, facing the other way, with its directors turned 90°: its
+    # pairs with the first cross the wall and are left out, so the reading does not change
+    back = df.assign(x=18.0 * normals[:, 0], y=18.0 * normals[:, 1], z=18.0 * normals[:, 2],
+                     nx=0.0, ny=0.0, nz=1.0)
+    both, n_both = director_noise(pd.concat([df, back]), scale=1.0, normals=np.r_[normals, -normals])
+    assert both < 1.0 and n_both > 2 * n_pairs - 10, (both, n_both)
 
 
 def test_noise_aware_sigma_widens_in_proportion_and_is_bounded():
