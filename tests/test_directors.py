@@ -144,9 +144,14 @@ def test_director_noise_is_the_spread_between_neighbouring_directors(rng):
     # head-tail symmetric: flipping half of the directors changes nothing
     flipped = df.assign(nx=np.where(xy[:, 0] % 2, -df["nx"], df["nx"]), ny=np.where(xy[:, 0] % 2, -df["ny"], df["ny"]))
     assert director_noise(flipped, scale=1.0)[0] == pytest.approx(noise)
-    # a director turned by 90° beside every other one but 1.5 scales away: not a pair
-    lone = pd.concat([df.assign(nx=1.0, ny=0.0), df.iloc[:1].assign(x=-1.5, y=0.0, nx=0.0, ny=1.0)])
-    assert director_noise(lone, scale=1.0)[0] == pytest.approx(0.0, abs=1e-6)
+    # only pairs 2-3.5 scales apart count: 60 directors along x at x = 0 and 60 at x = 2.5 agree;
+    # 60 along y at x = 1 (1 and 1.5 from them) and 60 along y at x = 7 (4.5 and 7) are nobody's pair
+    def cluster(x, along_x):
+        return pd.DataFrame({"x": x, "y": 0.0, "z": 0.0, "nx": float(along_x), "ny": float(not along_x), "nz": 0.0},
+                            index=range(60))
+
+    clusters = pd.concat([cluster(0.0, True), cluster(2.5, True), cluster(1.0, False), cluster(7.0, False)])
+    assert director_noise(clusters, scale=1.0) == (pytest.approx(0.0, abs=1e-6), 3600)
     few = df.iloc[:10]
     assert np.isnan(director_noise(few, scale=1.0)[0]) and director_noise(few, scale=1.0)[1] < NOISE_MIN_PAIRS
 
