@@ -29,11 +29,10 @@ Defaults follow the data (nemo.stages): patch radius 0.1 × the object radius sq
 (at least 8 mean edge lengths), pixel = a quarter of the mean edge length (at least radius/97),
 sigma noise-aware (4 pixels, measured again at up to two edges where the directors 2-3.5
 windows apart disagree by 9.6° or more in the median, from noise or a sparse texture:
-nemo.directors.noise_aware_sigma), 30 patches
-per patch area (the paper's 12 000 patches of 20 µm on a vesicle of R = 200 µm), capped by the
-number of vertices. Lengths are in the mesh's unit (µm). The
-micro-images are gridded only as far as the centre's structure tensor reads them (4 sigma plus
-the gradient and smoothing kernels). A pixel below 0.1 × the mean edge length, or gridded
+nemo.directors.noise_aware_sigma), 30 patches per patch area (the paper's 12 000 patches of
+20 µm on a vesicle of R = 200 µm), capped by the number of vertices. Lengths are in the mesh's
+unit (µm). The micro-images are gridded only as far as the centre's structure tensor reads them
+(4 sigma plus the gradient and smoothing kernels). A pixel below 0.1 × the mean edge length, or gridded
 micro-images wider than 201 pixels, are refused (they only cost time and memory).
 
 Directors made by another tool (a director field at points: CSV, Parquet or NumPy) become a
