@@ -199,15 +199,20 @@ def _kept_slices(shape: tuple[int, ...], axis: int) -> np.ndarray:
     return np.unique(np.linspace(0, shape[axis] - 1, count).astype(int))
 
 
+def _gaussian_taps(sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets and normalised weights of scipy's Gaussian kernel of σ voxels (truncated at 4 σ)."""
+    radius = int(4 * sigma + 0.5)  # scipy's default truncation
+    offsets = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 * (offsets / max(sigma, 1e-9)) ** 2)
+    return offsets, kernel / kernel.sum()
+
+
 def _highpassed_slices(volume: np.ndarray, sigma_vox: tuple[float, float, float], axis: int,
                        keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``volume`` minus its Gaussian blur (σ in voxels, edges repeated), at the slices ``keep`` along
     ``axis`` only, and that blur: the blur along ``axis`` is summed over each kept slice's
     neighbours, so no full-size copy of the stack is made (the cost bound on large stacks)."""
-    radius = int(4 * sigma_vox[axis] + 0.5)  # scipy's default truncation
-    offsets = np.arange(-radius, radius + 1)
-    kernel = np.exp(-0.5 * (offsets / max(sigma_vox[axis], 1e-9)) ** 2)
-    kernel /= kernel.sum()
+    offsets, kernel = _gaussian_taps(sigma_vox[axis])
     n = volume.shape[axis]
     sub = np.take(volume, keep, axis=axis).astype(np.float32)
     low = np.zeros_like(sub)
@@ -268,11 +273,7 @@ def _highpassed_noise(sigma_vox: tuple[float, float, float], lat_lags: np.ndarra
     """White noise's covariance (per unit variance) at the lateral (x, y averaged) and axial lags, in
     voxels, after the high-pass ``n − G * n`` by scipy's Gaussian kernels of σ ``sigma_vox``:
     δ − 2 G + G * G (1 − 2 G(0) + G * G(0) at lag 0, negative at a voxel and more)."""
-    kernels = []
-    for s in sigma_vox:
-        radius = int(4 * s + 0.5)  # scipy's default truncation
-        g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / max(s, 1e-9)) ** 2)
-        kernels.append((g / g.sum(), np.convolve(g / g.sum(), g / g.sum())))
+    kernels = [(g, np.convolve(g, g)) for g in (_gaussian_taps(s)[1] for s in sigma_vox)]
 
     def at(kernel: np.ndarray, shift: int) -> float:
         centre = len(kernel) // 2
@@ -383,7 +384,7 @@ def estimate_z_blur(volume: np.ndarray, spacing) -> dict:
     cov = np.concatenate([(_lag_covariances(planes[0], 2, lat_lags) + _lag_covariances(planes[0], 1, lat_lags)) / 2,
                           _lag_covariances(rows[0], 0, ax_lags)])
     del planes, rows
-    if none["z_noise"] is not None and none["z_noise"] > ESTIMATE_MAX_Z_NOISE:
+    if z_noise is not None and z_noise > ESTIMATE_MAX_Z_NOISE:
         return {**none, "reason": f"the background's noise is correlated between planes ({z_noise:.3f} more than "
                                   f"between columns, above {ESTIMATE_MAX_Z_NOISE}): a denoised or z-resampled stack "
                                   "reads as a z blur; give the PSF, datasets.NAME.psf, or none"}
