@@ -1227,8 +1227,8 @@ def _defects_one(mesh, order_df, directors_df, params, avg_radius, curvature, in
                 break
     p["topology_search"] = search
     found = df.attrs["parameters"]
-    p.update({k: found[k] for k in ("s_threshold", "min_distance", "contour_radius", "avg_radius", "rejected_zeros")
-              if k in found})
+    p.update({k: found[k] for k in ("s_threshold", "min_distance", "contour_radius", "avg_radius", "fit_radius",
+                                    "rejected_zeros") if k in found})
     p["n_refine_directors"] = 0 if extra is None else int(len(extra))
     logger.info("defects: %d found (Σ charge %.3f, χ = %s)", len(df), df.attrs["euler_check"]["sum_charge"],
                 df.attrs["euler_check"]["euler_characteristic"])
