@@ -66,22 +66,26 @@ def main() -> int:
 
     import json
 
+    import pandas as pd
+
+    from nemo import layout
+
     summary = json.loads((out / "summary.json").read_text())
-    mesh = load_mesh(out / "mesh.inner.ply")
-    odf = read_table(out / "order.parquet", kind="order")
-    ddf = read_table(out / "directors.parquet", kind="directors")
-    if (out / "directors.defects.parquet").exists():  # nemo run's refinement directors
-        import pandas as pd
-
-        ddf = pd.concat([ddf, read_table(out / "directors.defects.parquet", kind="directors")],
-                        ignore_index=True)
+    layer = next(iter(summary["layers"]))  # the run's (first) layer
+    info = summary["layers"][layer]
+    mesh = load_mesh(out / f"mesh.{info['surface']}.ply")
+    odf = read_table(out / layout.layer_file("order", layer), kind="order")
+    ddf = read_table(out / layout.layer_file("directors", layer), kind="directors")
+    if (out / layout.refined_file(layer)).exists():  # nemo run's refinement directors
+        ddf = pd.concat([ddf, read_table(out / layout.refined_file(layer), kind="directors")], ignore_index=True)
     times = []
-    for _ in range(args.repeat):
+    for _ in range(args.repeat):  # the search alone, on all of the run's directors
         t0 = time.perf_counter()
-        df = find_defects(mesh, odf, ddf, avg_radius=summary["config"]["order"]["radius"])
+        find_defects(mesh, odf, ddf, avg_radius=info["defects_parameters"]["avg_radius"])
         times.append(time.perf_counter() - t0)
-
-    _report(df, truth, mesh, ddf, summary, wall=wall, peak_gb=peak_gb, times=times)
+    df = read_table(out / layout.layer_file("defects", layer), kind="defects")  # what the run reports
+    _report(df, truth, mesh, ddf, {**summary, "euler_check": info["euler_check"]}, wall=wall, peak_gb=peak_gb,
+            times=times)
     print(f"outputs in {work}")
     return 0
 
