@@ -22,6 +22,9 @@ from sparse_fields import close_pair, stereo_field
 
 from nemo.defects import (
     CANDIDATE_COLUMNS,
+    FIT_MAX_PER_SIZE,
+    FIT_PER_AVERAGING,
+    SHIFT_PER_AVERAGING,
     candidate_table,
     contour_curvature,
     find_defects,
@@ -227,6 +230,24 @@ def test_sphere_four_half_defects_random_rotation(sphere60, seed):
     check = df.attrs["euler_check"]
     assert check["closed"] and check["euler_characteristic"] == 2 and check["matches"]
     assert check["sum_charge"] == pytest.approx(2.0, abs=0.05)
+
+
+def test_the_fit_radius_follows_the_averaging_radius_within_the_surfaces_size(sphere60):
+    """The core is fitted within FIT_PER_AVERAGING × the averaging radius (each defect's radius in
+    the table), at most FIT_MAX_PER_SIZE × the surface's size; the core stays within reach."""
+    dirs = rotated(TETRA, 3)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=3, noise=5.0, mesh=sphere60)
+    df = find_defects(mesh, odf, ddf, avg_radius=15.0)
+    assert df.attrs["parameters"]["fit_radius"] == pytest.approx(FIT_PER_AVERAGING * 15.0)
+    np.testing.assert_allclose(df["fit_radius"], FIT_PER_AVERAGING * 15.0)  # the defects ~114 µm apart: no cap
+    assert (df["refine"] == "model").all() and (df["shift"] <= SHIFT_PER_AVERAGING * 15.0).all()
+    assert match(df, 60.0 * dirs).max() < 0.75
+    size = math.sqrt(mesh.area / (4 * math.pi))
+    wide = find_defects(mesh, odf, ddf, avg_radius=50.0)  # 1.125 × 50 is beyond 0.75 × the size
+    assert wide.attrs["parameters"]["fit_radius"] == pytest.approx(FIT_MAX_PER_SIZE * size)
+    assert len(wide) == 4 and np.allclose(wide["fit_radius"], FIT_MAX_PER_SIZE * size)
+    given = find_defects(mesh, odf, ddf, avg_radius=15.0, fit_radius=9.0)
+    assert given.attrs["parameters"]["fit_radius"] == 9.0 and (given["fit_radius"] == 9.0).all()
 
 
 def test_a_defect_where_the_fibres_are_faint_is_told_by_its_coherency(sphere60):
