@@ -727,6 +727,8 @@ def find_defects(
         Radius of the data used for the sub-vertex refinement (µm). Default
         :data:`FIT_PER_AVERAGING` (1.125) × ``avg_radius``, at most :data:`FIT_MAX_PER_SIZE` (0.75) ×
         the surface's size; for each defect at most half the distance to the nearest other low-S centre.
+        Whatever the radius, the fitted core moves at most :data:`SHIFT_PER_AVERAGING` (0.75) ×
+        ``avg_radius`` (and the fit radius) from the vertex of least S.
     curvature_source : {"contour", "angle-defects", "table"}, optional
         The K term (module doc): Gauss–Bonnet on the contour itself, or the enclosed vertices'
         angle defects or ``curvature``. Default ``table`` with a ``curvature`` array, else
