@@ -19,11 +19,12 @@ Localisation
    ~ c a²), so the position is refined from the *raw* directors near the vertex: a defect model
    θ(ξ, η) = m·atan2(η − η0, ξ − ξ0) + θ0 + c1 ξ + c2 η (charge m from the contour, a linear
    background) is fitted to the director angles within ``fit_radius`` (:data:`FIT_PER_AVERAGING`
-   = 1.125 × the averaging radius, at most 0.75 × the surface's size and half the distance to the
-   nearest other dip) in the vertex's tangent plane (robust soft-L1 least squares on
-   sin(θ_obs − θ), coherency weights, directors at the trial core damped, five starting cores,
-   one re-centred refit; the core at most :data:`SHIFT_PER_AVERAGING` × the averaging radius from
-   the vertex), and the fitted core (ξ0, η0) is projected back onto the nearest surface triangle.
+   = 1.125 × the averaging radius, at most 0.75 × the surface's size but not below the former
+   0.75 × the averaging radius, and at most half the distance to the nearest other dip) in the
+   vertex's tangent plane (robust soft-L1 least squares on sin(θ_obs − θ), coherency weights,
+   directors at the trial core damped, five starting cores, one re-centred refit; the core at
+   most :data:`SHIFT_PER_AVERAGING` × the averaging radius from the vertex), and the fitted core
+   (ξ0, η0) is projected back onto the nearest surface triangle.
    When the model fit fails or there are too few directors, the zero of a linear fit of the
    averaged Q-tensor components is used (``refine="q"``), else the vertex itself.
 
@@ -218,6 +219,8 @@ FIT_PER_AVERAGING = 1.125
 
 #: ... and at most this many sizes of the surface (the radius of the sphere of its area): on a sphere
 #: the tangent plane then shortens the fit's farthest distances by less than 10 % (sin x / x > 0.9).
+#: Not below the former 0.75 × the averaging radius: an object about as small as its averaging
+#: radius keeps the fit it had. (The size is global: a flat, strongly curved face is not protected.)
 FIT_MAX_PER_SIZE = 0.75
 
 #: The fitted core may lie at most this many averaging radii (and the fit radius) from the vertex of
@@ -726,9 +729,10 @@ def find_defects(
     fit_radius : float, optional
         Radius of the data used for the sub-vertex refinement (µm). Default
         :data:`FIT_PER_AVERAGING` (1.125) × ``avg_radius``, at most :data:`FIT_MAX_PER_SIZE` (0.75) ×
-        the surface's size; for each defect at most half the distance to the nearest other low-S centre.
-        Whatever the radius, the fitted core moves at most :data:`SHIFT_PER_AVERAGING` (0.75) ×
-        ``avg_radius`` (and the fit radius) from the vertex of least S.
+        the surface's size (but not below 0.75 × ``avg_radius``); for each defect at most half the
+        distance to the nearest other low-S centre, at least 3 mesh edges. At the default the fitted
+        core moves at most :data:`SHIFT_PER_AVERAGING` (0.75) × ``avg_radius`` from the vertex of
+        least S; a given radius is also the core's reach.
     curvature_source : {"contour", "angle-defects", "table"}, optional
         The K term (module doc): Gauss–Bonnet on the contour itself, or the enclosed vertices'
         angle defects or ``curvature``. Default ``table`` with a ``curvature`` array, else
@@ -786,8 +790,9 @@ def find_defects(
         avg_radius = _estimate_avg_radius(geo, S, s_ref, size)
     min_distance = avg_radius if min_distance is None else min_distance
     r_contour_default = contour_radius if contour_radius is not None else CONTOUR_PER_AVERAGING * avg_radius
-    fit_default = (fit_radius if fit_radius is not None
-                   else min(FIT_PER_AVERAGING * avg_radius, FIT_MAX_PER_SIZE * size))
+    # the size cap never narrower than the former 0.75 × (an object about as small as its averaging radius)
+    size_cap = max(FIT_MAX_PER_SIZE * size, SHIFT_PER_AVERAGING * avg_radius)
+    fit_default = fit_radius if fit_radius is not None else min(FIT_PER_AVERAGING * avg_radius, size_cap)
     st = _Settings(float(avg_radius), winding_field, bool(curvature_correction), exact_angles,
                    charge_tolerance, float(s_threshold if s_ordered is None else s_ordered),
                    k_from_contour=curvature_source == "contour", s_ref=s_ref)
@@ -800,9 +805,10 @@ def find_defects(
                       "almost every candidate will be rejected as disordered; lower s_threshold (default "
                       "S_ref / 2) or give s_ordered", NemoWarning, stacklevel=2)
     centres = _suppress(geo.graph, S, cand, min_distance)
+    fit = {"refine": refine, "fit_radius": fit_default, "fit_given": fit_radius is not None,
+           "fit_exclude": fit_exclude, "fit_harmonic": fit_harmonic}
     rows, records, tally = _examine(mesh, geo, f, st, centres, cand, contour_radius, r_contour_default,
-                                    max_defects, {"refine": refine, "fit_radius": fit_default,
-                                                  "fit_exclude": fit_exclude, "fit_harmonic": fit_harmonic})
+                                    max_defects, fit)
     df = pd.DataFrame(rows, columns=list(COLUMNS))
     df = df.astype({"vertex": np.int64, "n_contour": np.int64}) if len(df) else df
     df["coherency"] = _local_coherency(f.dtree, f.dcoh, df)
@@ -1097,7 +1103,7 @@ def _among_zeros(mesh, geo: _Geometry, f: _Fields, v: int, zeros: list[int], row
     point = closest_point_local(mesh, centre, ball)
     vv = int(ball[np.argmin(np.linalg.norm(geo.verts[ball] - point, axis=1))])
     return {"x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(f.S[vv]), "refine": "zeros",
-            "shift": float(np.linalg.norm(point - geo.verts[v]))}
+            "shift": float(np.linalg.norm(point - geo.verts[v])), "fit_radius": math.nan}  # no fit placed it
 
 
 def _measure(geo: _Geometry, f: _Fields, st: _Settings, v: int, radii: list[float]) -> dict | None:
@@ -1132,7 +1138,8 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
     the row takes (``res`` or the recentred contour's) and the defect row."""
     h = geo.h
     rho = max(min(fit["fit_radius"], 0.5 * dmin), 3 * h)
-    reach = max(min(rho, SHIFT_PER_AVERAGING * st.avg_radius), 3 * h)
+    # a given fit radius is also the reach (as before the default widened)
+    reach = rho if fit["fit_given"] else max(min(rho, SHIFT_PER_AVERAGING * st.avg_radius), 3 * h)
     point, method = _refine(mesh, geo.graph, geo.verts, geo.normals, f, v, res["charge_rounded"],
                             rho, h, fit["refine"], fit["fit_exclude"], fit["fit_harmonic"], reach)
     # final vertex = nearest to the refined point; recentre the contour when it moved
@@ -1425,7 +1432,9 @@ def refine_with_directors(
     seed : int, optional
         Seed of the subset.
     fit_radius : float, optional
-        Neighbourhood radius; default the first pass's fit radius.
+        Neighbourhood radius of every defect; default each defect's own fit radius (the table's
+        ``fit_radius``), else the first pass's (its parameters), else :data:`FIT_PER_AVERAGING` ×
+        the averaging radius.
     **find_kwargs
         Passed to :func:`find_defects` (the same as for the first pass).
 
@@ -1450,8 +1459,8 @@ def refine_with_directors(
             raise NemoError("refinement needs the fit radius or the averaging radius of the order table")
         rho = FIT_PER_AVERAGING * float(avg)
     # each defect's own fit radius (capped at half the distance to its nearest other dip), else rho
-    own = defects_df["fit_radius"].to_numpy(np.float64) if "fit_radius" in defects_df else np.full(len(defects_df), np.nan)
-    radii = np.where(np.isfinite(own), np.minimum(own, float(rho)), float(rho))
+    own = defects_df.get("fit_radius", pd.Series(np.nan, index=defects_df.index)).to_numpy(np.float64)
+    radii = np.where(np.isfinite(own) & (fit_radius is None), own, float(rho))
     near = cKDTree(np.asarray(mesh.vertices)).query_ball_point(defects_df[["x", "y", "z"]].to_numpy(), radii)
     near = np.setdiff1d(np.unique(np.concatenate([np.asarray(v, dtype=np.int64) for v in near])),
                         directors_df["vertex"].to_numpy())
@@ -1460,7 +1469,8 @@ def refine_with_directors(
                                                           replace=False))
     keys = ("patch_radius", "patch_k", "pixel", "sigma", "frames")
     extra = directors(mesh, intensity, centres=near, **{k: director_params[k] for k in keys if k in director_params})
-    logger.info("refinement: %d extra directors within %.3g of %d defect(s)", len(extra), rho, len(defects_df))
+    logger.info("refinement: %d extra directors within %.3g-%.3g of %d defect(s)", len(extra), radii.min(), radii.max(),
+                len(defects_df))
     refined = find_defects(mesh, order_df, pd.concat([directors_df, extra], ignore_index=True), **find_kwargs)
     if len(refined):  # read on the first pass's directors: the extra ones crowd the defects
         _, _, coherency, _, tree = _director_fields(mesh, directors_df, 1e-3 * float(np.mean(mesh.edges_unique_length)))

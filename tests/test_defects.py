@@ -234,7 +234,8 @@ def test_sphere_four_half_defects_random_rotation(sphere60, seed):
 
 def test_the_fit_radius_follows_the_averaging_radius_within_the_surfaces_size(sphere60):
     """The core is fitted within FIT_PER_AVERAGING × the averaging radius (each defect's radius in
-    the table), at most FIT_MAX_PER_SIZE × the surface's size; the core stays within reach."""
+    the table), at most FIT_MAX_PER_SIZE × the surface's size but not below the former
+    SHIFT_PER_AVERAGING ×; the core stays within reach."""
     dirs = rotated(TETRA, 3)
     mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=3, noise=5.0, mesh=sphere60)
     df = find_defects(mesh, odf, ddf, avg_radius=15.0)
@@ -246,6 +247,9 @@ def test_the_fit_radius_follows_the_averaging_radius_within_the_surfaces_size(sp
     wide = find_defects(mesh, odf, ddf, avg_radius=50.0)  # 1.125 × 50 is beyond 0.75 × the size
     assert wide.attrs["parameters"]["fit_radius"] == pytest.approx(FIT_MAX_PER_SIZE * size)
     assert len(wide) == 4 and np.allclose(wide["fit_radius"], FIT_MAX_PER_SIZE * size)
+    # an object about as small as its averaging radius keeps the former 0.75 × (the cap never narrows it)
+    small = find_defects(mesh, odf, ddf, avg_radius=70.0)
+    assert small.attrs["parameters"]["fit_radius"] == pytest.approx(SHIFT_PER_AVERAGING * 70.0)
     given = find_defects(mesh, odf, ddf, avg_radius=15.0, fit_radius=9.0)
     assert given.attrs["parameters"]["fit_radius"] == 9.0 and (given["fit_radius"] == 9.0).all()
 
@@ -987,3 +991,4 @@ def test_zeros_of_one_dip_are_enclosed_not_cut_by_the_contour(avg, separation, e
     assert sorted(north["charge_rounded"]) == expect
     if expect == [1.0]:  # placed between the two zeros: at the pole
         assert np.hypot(north["x"], north["y"]).max() < 3.0 and (north["refine"] == "zeros").all()
+        assert north["fit_radius"].isna().all()  # no fit placed it
