@@ -15,7 +15,9 @@ enclosed patch (K from --curvature, else the mesh's angle defects). On a closed 
 charges add up to the Euler characteristic χ; the check is printed and stored in the table.
 
 Defaults follow the data: threshold 0.5 × the 90th percentile of S, suppression radius = the
-averaging radius of ORDER (read from its metadata), contour 1.5 × that radius.
+averaging radius of ORDER (read from its metadata), contour 1.5 × that radius, the refinement's
+defect-model fit over the directors within 1.125 × that radius (at most 0.75 × the surface's
+size, but not below 0.75 × the radius; the table's fit_radius).
 
 example:
   nemo defects mesh.inner.ply order.parquet directors.parquet -o defects.parquet
