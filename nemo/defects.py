@@ -214,7 +214,7 @@ CONTOUR_PER_AVERAGING = 1.5
 #: radii: the core's signature in the directors falls as 1 / r, so a wider fit gains directors
 #: whose errors average out, until the linear background no longer holds (docs/validation.md,
 #: "The defect model's fit radius": 0.75 → 1.125 brought the median defect of 33 frames of three
-#: generators from 2.10 to 1.70 µm, of an independent generator's 43 frames from 2.70 to 2.35 µm).
+#: generators from 2.10 to 1.70 µm, of an independent generator's 43 frames from 2.70 to 2.40 µm).
 FIT_PER_AVERAGING = 1.125
 
 #: ... and at most this many sizes of the surface (the radius of the sphere of its area): on a sphere
@@ -1153,7 +1153,8 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
         "x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(f.S[vv]),
         **{key: res[key] for key in ("charge", "charge_winding", "charge_curvature", "charge_rounded",
                                      "n_contour", "contour_S", "max_step_deg", "contour_radius")},
-        "refine": method, "shift": float(np.linalg.norm(point - geo.verts[v])), "fit_radius": float(rho),
+        "refine": method, "shift": float(np.linalg.norm(point - geo.verts[v])),
+        "fit_radius": float(rho) if fit["refine"] != "none" else math.nan,
     }
 
 
