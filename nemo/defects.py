@@ -1341,10 +1341,9 @@ def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir:
 
 
 def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: float, h: float,
-            method: str, r_in: float = 0.0, harmonic: bool = True, reach: float | None = None) -> tuple[np.ndarray, str]:
+            method: str, r_in: float, harmonic: bool, reach: float) -> tuple[np.ndarray, str]:
     """Sub-vertex position of the defect near vertex v from the directors within ``rho``, at most
-    ``reach`` (default ``rho``) from it; the averaged field's zero from within ``reach`` (module doc)."""
-    reach = rho if reach is None else reach
+    ``reach`` from it; the averaged field's zero from within ``reach`` (module doc)."""
     x0 = verts[v]
     if method == "none":
         return x0, "vertex"
