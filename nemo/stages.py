@@ -149,7 +149,6 @@ def mesh(
         one_object,
         reconstruct,
         regions_per_object,
-        thin_wall_check,
         turn_out_dark_objects,
     )
 
@@ -157,7 +156,7 @@ def mesh(
     shape = (volume if volume is not None else mask).shape
     if p["step"] is None:
         p["step"] = default_step(shape)
-    sharp, threshold = _image_to_mesh(volume, spacing, p, check_psf(psf), unit, deconvolved, mask)
+    sharp, threshold, raw_objects = _image_to_mesh(volume, spacing, p, check_psf(psf), unit, deconvolved, mask)
     p["sigma_auto"] = None
     if p["sigma"] is None and volume is not None and mask is None:
         p["sigma"], p["sigma_auto"] = auto_sigma(sharp, spacing, p["step"], threshold=threshold)
@@ -166,7 +165,7 @@ def mesh(
     whole = reconstruct(sharp, spacing, sigma=float(p["sigma"]), threshold=threshold, mask=mask,
                         step=int(p["step"]), smooth_iter=int(p["smooth"]), keep="all", edge=p["edge"], unit=unit,
                         border=p["border"], refine=bool(p["refine"]), refine_sigma=p["refine_sigma"],
-                        refine_to=p["refine_to"])
+                        refine_to=p["refine_to"], level_offsets=raw_objects["offsets"])
     found = find_objects(whole)  # once: the turn-out check and the choice of objects both need it
     whole, p["turned_out"] = turn_out_dark_objects(whole, found)
     if p["turned_out"]:
@@ -177,6 +176,8 @@ def mesh(
                       NemoWarning, stacklevel=2)
     surface = whole.metadata["nemo_surface"]
     surface["keep"] = p["keep"]
+    if raw_objects["levels"] or raw_objects["peaks"]:  # a deconvolved image meshed at the levels of the one before
+        surface.update(object_levels=raw_objects["levels"], region_peaks=raw_objects["peaks"])
     p["level"] = float(surface["level"])
     p["refine_sigma"] = surface.get("refine_sigma")
     p["refine_to"] = surface.get("refine_to", p["refine_to"])  # level when steepest could not be used
@@ -185,9 +186,8 @@ def mesh(
         p["profile"] = dict(surface["profile"])
     if "edge_check" in surface:  # edge: half, checked against the walls' profiles (nemo.surface._edge_check)
         p["edge_check"] = dict(surface["edge_check"])
-    if (p.get("deconvolution") or {}).get("level") is not None and len(whole.faces):  # the half level, deconvolved
-        p["edge_check"] = thin_wall_check(volume, spacing, p["deconvolution"]["level_sigma"], int(p["step"]),
-                                          p["deconvolution"]["level"], whole)
+    if (p.get("deconvolution") or {}).get("level") is not None:  # the half level, checked on the image as given
+        p["edge_check"] = p["deconvolution"].pop("edge_check") or None
     del sharp
     p.update(image_noise(volume, p["level"]) if volume is not None and mask is None
              else {"noise": None, "snr": None, "saturated": None, "background": None})
@@ -271,10 +271,12 @@ def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> int
     return np.bincount(objects.vertex_labels(mesh)[vertices], minlength=n_objects).astype(int).tolist()
 
 
-def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) -> tuple[np.ndarray, str | float]:
-    """The image :func:`mesh` meshes and its threshold: deconvolved by ``psf`` (:func:`_deconvolved`),
-    except a mask, and the walls' profiles under ``psf: auto`` (meshed as given; the layers are still
-    peeled from the deconvolved image). A PSF given as numbers with ``edge: profile`` is refused."""
+def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) -> tuple[np.ndarray, str | float, dict]:
+    """The image :func:`mesh` meshes, its threshold and the objects' own levels read on the image before
+    deconvolution (:func:`nemo.surface.checked_half_level`'s ``objects``): deconvolved by ``psf``
+    (:func:`_deconvolved`), except a mask, and the walls' profiles under ``psf: auto`` (meshed as given;
+    the layers are still peeled from the deconvolved image). A PSF given as numbers with ``edge: profile``
+    is refused."""
     profile = mask is None and p["edge"] == "profile"
     if profile and psf is not None and not is_auto(psf):
         raise NemoError("mesh.edge: profile and a psf do not go together: the deconvolved walls overshoot at their "
@@ -284,7 +286,7 @@ def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) 
         return _deconvolved(volume, spacing, p, psf, unit, deconvolved)
     p["deconvolution"] = _undeconvolved_record(spacing, psf, "a mask: meshed as given" if mask is not None else
                                                "mesh.edge: profile fits blurred boxes to the image's own walls")
-    return volume, p["threshold"]
+    return volume, p["threshold"], _NO_OBJECTS
 
 
 def _undeconvolved_record(spacing, psf, reason: str) -> dict:
@@ -294,9 +296,14 @@ def _undeconvolved_record(spacing, psf, reason: str) -> dict:
             "estimated": is_auto(psf), "reason": reason}
 
 
+#: No objects' own levels from another image (:func:`_image_to_mesh`).
+_NO_OBJECTS = {"levels": [], "peaks": [], "offsets": None}
+
+
 def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
-                 deconvolved: tuple[np.ndarray, dict] | None) -> tuple[np.ndarray, str | float]:
-    """The image to mesh (deconvolved by ``psf``, :func:`nemo.psf.deconvolve`) and its threshold.
+                 deconvolved: tuple[np.ndarray, dict] | None) -> tuple[np.ndarray, str | float, dict]:
+    """The image to mesh (deconvolved by ``psf``, :func:`nemo.psf.deconvolve`), its threshold and the
+    objects' own levels (:func:`_image_to_mesh`).
 
     An automatic half level (``edge: half``, the default) is taken on the image **before**
     deconvolution, at its own noise-aware blur, the level it would be meshed at there:
@@ -304,11 +311,15 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
     shells under a 2.5 µm z-PSF: levels 121-127 or 35 for 110), while the sharpened edges cross
     the original half level where the object's edge is (thickness 4.06-4.28 µm against 5.07-5.69
     without deconvolution; docs/validation.md, "Deconvolving a known PSF"). The deconvolved image
-    is then meshed at that level with its own blur. A numeric threshold, or ``edge: threshold``
+    is then meshed at that level with its own blur; the level is checked against the walls' profiles and
+    corrected as on a frame meshed without deconvolution, and separate objects of different brightness
+    keep their own levels, read on that image (:func:`nemo.surface.checked_half_level`: one level lost
+    dim objects beside bright ones, or grew the bright ones by 20-50 % in volume, in a review). A numeric
+    threshold, or ``edge: threshold``
     (the threshold itself, which ``refine_to: steepest`` must know as such), is applied to the
     deconvolved image. ``p["deconvolution"]`` records the deconvolution and the level.
     """
-    from nemo.surface import _check_finite, auto_sigma, iso_level, parse_threshold
+    from nemo.surface import _check_finite, auto_sigma, checked_half_level, parse_threshold
 
     if psf is not None:
         _check_finite(volume)  # before the deconvolution's seconds: the mesh step refuses it anyway
@@ -319,11 +330,11 @@ def _deconvolved(volume: np.ndarray, spacing, p: dict, psf, unit: str,
     p["deconvolution"] = dict(record)  # its own copy: the level below is the mesh's, not the peel's
     threshold = p["threshold"]
     if not p["deconvolution"]["iterations"] or p["edge"] != "half" or not isinstance(parse_threshold(threshold), str):
-        return sharp, threshold
+        return sharp, threshold, _NO_OBJECTS
     sigma = p["sigma"] if p["sigma"] is not None else auto_sigma(volume, spacing, p["step"], threshold=threshold)[0]
-    level = iso_level(volume, spacing, sigma, p["step"], threshold, p["edge"])
-    p["deconvolution"].update(level=level, level_sigma=sigma)
-    return sharp, level
+    level, check, objects = checked_half_level(volume, spacing, sigma, p["step"], threshold, shift=not p["refine"])
+    p["deconvolution"].update(level=level, level_sigma=sigma, edge_check=check)
+    return sharp, level, objects
 
 
 def default_step(shape: tuple[int, ...]) -> int:

@@ -1076,8 +1076,10 @@ def auto_sigma(
 
 def iso_level(volume: np.ndarray, spacing, sigma: float, step: int = 1, threshold: str | float = "yen",
               edge: Literal["half", "threshold", "profile"] = "half") -> float:
-    """The iso-level :func:`reconstruct` would mesh ``volume`` at, in its intensity units (with
-    ``edge="profile"``: its first pass's, the half level; the walls' fitted level needs the mesh).
+    """The iso-level :func:`reconstruct` would mesh ``volume`` at, in its intensity units, before any
+    check against the walls' profiles (with ``edge="profile"``: its first pass's, the half level; the
+    walls' fitted level needs the mesh; with ``edge="half"`` the check may correct it:
+    :func:`checked_half_level`).
 
     Parameters
     ----------
@@ -1297,7 +1299,7 @@ def _edge_width(sub: np.ndarray, background: float, median: float, spacing: np.n
 
 
 def _object_levels(field: np.ndarray, thr: float, background: float | None, level: float, method: str,
-                   spacing: np.ndarray, shift: bool = True) -> tuple[list[float], list[list[float]]]:
+                   spacing: np.ndarray, shift: bool = True) -> tuple[list[float], list[list[float]], np.ndarray | None]:
     """Shift ``field`` (in place) so that each separate bright object crosses ``level`` at its own half level.
 
     One level for the whole stack puts a dim object's surface inside it, or loses it, next to a
@@ -1321,12 +1323,14 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
         :func:`regions_per_object` counts them per object, so that blobs the mesh joined into
         one surface are told (the parts of a textured wall that the component tree parts are
         not compact).
+    offsets : ndarray of float32, the shape of ``field``, or None
+        What was subtracted from ``field`` (each object's level minus ``level``) when it was shifted.
     """
     if background is None or level < thr or level <= background:
-        return [], []
+        return [], [], None
     regions = _object_regions(field, thr, level, spacing)
     if len(regions) < 2:
-        return [], []
+        return [], [], None
     levels, peaks = [], []
     for sl, own, others, wide in regions:  # a loop over the few objects
         region = np.where(others, np.float32(background), field[sl])
@@ -1336,15 +1340,20 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
             peak = np.unravel_index(int(np.argmax(np.where(own, region, -np.inf))), own.shape)
             peaks.append([float((b.start + i) * d) for b, i, d in zip(sl, peak, spacing)][::-1])  # x, y, z
     if not shift or max(abs(lev - level) for lev in levels) <= OBJECT_LEVEL_TOLERANCE * (level - background):
-        return [], peaks
-    own_level = np.full(field.shape, np.float32(level), dtype=np.float32)  # the one full-size temporary
+        return [], peaks, None
+    offsets = np.zeros(field.shape, dtype=np.float32)  # the one full-size temporary
     for j in np.argsort(levels, kind="stable"):  # ascending: a higher level wins where zones meet
         sl, own = regions[j][:2]
-        own_level[sl][ndi.binary_dilation(own, iterations=2)] = levels[j]
+        offsets[sl][ndi.binary_dilation(own, iterations=2)] = levels[j] - level
+    _subtract_by_slabs(field, offsets)
+    return [float(lev) for lev in levels], peaks, offsets
+
+
+def _subtract_by_slabs(field: np.ndarray, offsets: np.ndarray, factor: float = 1.0) -> None:
+    """``field -= factor × offsets`` in place, over slabs of planes (no full-size temporary)."""
     slab = max(1, _SLAB_VOXELS // max(1, field[0].size))
-    for z in range(0, len(field), slab):  # a loop over slabs of planes: no more full-size temporaries
-        field[z:z + slab] -= own_level[z:z + slab] - np.float32(level)
-    return [float(lev) for lev in levels], peaks
+    for z in range(0, len(field), slab):  # a loop over slabs of planes
+        field[z:z + slab] -= np.float32(factor) * offsets[z:z + slab]
 
 
 def _cores(own: np.ndarray, crop: np.ndarray, thr: float, least: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1740,6 +1749,7 @@ def reconstruct(
     refine: bool = False,
     refine_sigma: float | None = None,
     refine_to: Literal["level", "steepest"] | None = "level",
+    level_offsets: np.ndarray | None = None,
 ) -> trimesh.Trimesh:
     """Reconstruct the surface of the bright object(s) in a 3-D image as a triangle mesh.
 
@@ -1801,6 +1811,11 @@ def reconstruct(
         the background and the plateau (``"steepest"``: stays on the edge of a thin wall under
         an elongated PSF and of a noisy or clipped one, where the half level does not, but is
         pulled towards a bright layer a few PSF widths inside the wall; :mod:`nemo.refine`).
+    level_offsets : ndarray, optional
+        Per sample of the blurred field (its shape: the image's sampled at ``step``), in the image's
+        intensity units, subtracted from the field before meshing at a given ``threshold``: separate
+        objects' own half levels minus the stack's, read on another image (the image before
+        deconvolution, :func:`checked_half_level`; :func:`nemo.stages.mesh`).
 
     Returns
     -------
@@ -1836,13 +1851,19 @@ def reconstruct(
     padded = _pad_with_minimum(field)
     del field
     inner = padded[_PAD:-_PAD, _PAD:-_PAD, _PAD:-_PAD]
+    if level_offsets is not None:
+        if np.shape(level_offsets) != sampled_shape or isinstance(parse_threshold(threshold), str):
+            raise NemoError(f"level_offsets must have the blurred field's shape {sampled_shape} and go with a given "
+                            f"threshold; got shape {np.shape(level_offsets)} and threshold {threshold!r}")
+        _subtract_by_slabs(inner, level_offsets, 1.0 / scale)
+        logger.info("separate objects meshed at their own half levels, read on the image before deconvolution")
     vmin, vmax = float(inner.min()), float(inner.max())
     level, thr, how, background = _iso_level(inner, vmin, vmax, mask is not None, threshold, edge, scale,
                                              (dz * step, dy * step, dx * step))
     logger.info("iso-level %.4g (%s threshold %.4g)", level * scale, how, thr * scale)
     object_levels, region_peaks = [], []
     if isinstance(how, str):  # own levels only at the half edge and without refine (it crosses the one level)
-        object_levels, region_peaks = _object_levels(inner, thr, background, level, how, np.array([dz, dy, dx]) * step,
+        object_levels, region_peaks, _ = _object_levels(inner, thr, background, level, how, np.array([dz, dy, dx]) * step,
                                                      shift=edge in ("half", "profile") and not refine)
         if object_levels:
             logger.info("%d separate objects at their own half levels: %s (the stack's %.4g)", len(object_levels),
@@ -1934,22 +1955,56 @@ def _at_profile_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndar
     return again, float(found), info
 
 
-def thin_wall_check(volume: np.ndarray, spacing, sigma: float, step: int, level: float,
-                    mesh: trimesh.Trimesh) -> dict:
-    """The edge check's ``thinner_than_blur`` (:func:`_edge_check`) on ``volume``, the image *before*
-    deconvolution, along the normals of ``mesh``, made from the deconvolved image at ``level`` (the
-    image's half level at blur ``sigma``): deconvolving does not thin a wall thinner than the blur,
-    so the check the undeconvolved frame would get still applies. Its level ``offset`` does not (the
-    mesh was not placed on this image): None, nothing corrected."""
-    source, _, scale, _ = _source(volume, None)
+def checked_half_level(volume: np.ndarray, spacing, sigma: float, step: int, threshold: str = "yen",
+                       shift: bool = True) -> tuple[float, dict, dict]:
+    """The half level :func:`reconstruct` would mesh ``volume`` at with ``edge="half"`` and an automatic
+    ``threshold``, after its check against the walls' own profiles (:func:`_edge_check`) and the
+    correction that check makes, with the check's record.
+
+    For a deconvolved frame: ``volume`` is the image *before* deconvolution, whose half level the
+    deconvolved image is meshed at (:func:`nemo.stages.mesh`). Its walls' profiles are read on this
+    image along the normals of its own iso-surface, as for a frame meshed without deconvolution: noise
+    lowers the histogram's plateau and so the half level on both (a 6 µm shell under a 2.5 µm z-PSF
+    read 0.25-0.31 µm too thick at SNR 10 and 0.43-0.50 µm at SNR 5 without the correction, 0.07-0.15 and
+    0.12 with it; docs/validation.md), and deconvolving does not thin a wall thinner than the blur
+    (``thinner_than_blur``). Separate objects of different brightness get their own half levels
+    (:func:`_object_levels`; ``shift`` False: not, as :func:`reconstruct` with ``refine``) and no check
+    (as in :func:`reconstruct`): the level is the stack's and the record empty.
+
+    Returns
+    -------
+    level : float
+        In ``volume``'s intensity units.
+    check : dict
+        :func:`_edge_check`'s record with ``image``: ``"before deconvolution"``; empty without a check.
+    objects : dict
+        ``levels`` (the objects' own levels, intensity units; empty when one level serves), ``peaks``
+        (each compact region's brightest point, x, y, z: :func:`regions_per_object`) and ``offsets``
+        (:func:`reconstruct`'s ``level_offsets``, or None).
+    """
     dz, dy, dx = (float(v) for v in spacing)
+    source, _, scale, _ = _source(volume, None)
     padded = _pad_with_minimum(_blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), step))
-    return {**_edge_check(mesh, source, padded, level / scale, (dz, dy, dx), step, scale, thin_only=True),
-            "image": "before deconvolution", "correction": None}  # no level correction applies: NaN in frames
+    inner = padded[_PAD:-_PAD, _PAD:-_PAD, _PAD:-_PAD]
+    sample = (dz * step, dy * step, dx * step)
+    level, thr, how, background = _iso_level(inner, float(inner.min()), float(inner.max()), False, threshold, "half",
+                                             scale, sample)
+    levels, peaks, offsets = (_object_levels(inner, thr, background, level, how, np.array(sample), shift=shift)
+                              if isinstance(how, str) else ([], [], None))
+    objects = {"levels": [lev * scale for lev in levels], "peaks": peaks,
+               "offsets": None if offsets is None else np.multiply(offsets, np.float32(scale), out=offsets)}
+    box = (np.array(inner.shape[::-1]) - 1) * step * np.array([dx, dy, dz])
+    mesh = _level_surface(padded, level, (dz, dy, dx), step, box, "um", "all") if not levels else None
+    if mesh is None or not len(mesh.faces):
+        return float(level) * scale, {}, objects
+    check = _edge_check(mesh, source, padded, level, (dz, dy, dx), step, scale)
+    if check["corrected"]:
+        level += check["correction"] * (check["level_profile"] / scale - level)
+    return float(level) * scale, {**check, "image": "before deconvolution"}, objects
 
 
 def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, level: float,
-                spacing: tuple[float, float, float], step: int, scale: float, thin_only: bool = False) -> dict:
+                spacing: tuple[float, float, float], step: int, scale: float) -> dict:
     """The half level checked against the walls' own profiles (:func:`nemo.refine.wall_profile_level`
     on :data:`EDGE_CHECK_RAYS` rays).
 
@@ -1972,7 +2027,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
     level at least :data:`EDGE_CHECK_MIN_LEVEL_SHARE` of the boxes' height: the boxes are the meshed
     walls, not bright fibres on a dim wall; at least :data:`EDGE_CHECK_MIN_FITTED` of the rays fitted)
     get ``thinner_than_blur``, that share of the rays: they come out about as thick as the blur,
-    warned and flagged too. ``thin_only``: that check alone (:func:`thin_wall_check`).
+    warned and flagged too.
     """
     from nemo.refine import PROFILE_MAX_BELOW_CREST, wall_profile_level
 
@@ -1992,14 +2047,11 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
         if ((info["below_crest"] or 0.0) > PROFILE_MAX_BELOW_CREST and info["level_share"] >= EDGE_CHECK_MIN_LEVEL_SHARE
                 and info["fitted"] >= EDGE_CHECK_MIN_FITTED * info["rays"]):  # not a noisy mesh whose rays miss
             record["thinner_than_blur"] = float(info["below_crest"])
-            cure = ("deconvolving did not thin them" if thin_only else "psf: deconvolves by a known PSF")
             logger.warning("the walls are thinner than the image's blur on %.0f %% of their profiles (their blurred "
                            "crests stay below the profiles' own half level): they come out about as thick as the "
                            "blur, placed outward, thickness overestimated (a membrane or thin wall under a "
-                           "z-elongated PSF; %s; or a bright film by the wall's surface, whose blur the profiles "
-                           "read)", 100 * record["thinner_than_blur"], cure)
-        return record
-    if thin_only:  # thin_wall_check: the offset of another image than the mesh's
+                           "z-elongated PSF, which deconvolving does not thin; or a bright film by the wall's "
+                           "surface, whose blur the profiles read)", 100 * record["thinner_than_blur"])
         return record
     record["offset"] = offset = float((found - level) / info["contrast"])
     share = (_soft_limit(offset, EDGE_CHECK_MIN_CORRECTION, EDGE_CHECK_SOFT_OFFSET, above=True)
