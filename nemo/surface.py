@@ -1308,9 +1308,10 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
     (:func:`_own_level`, in its bounding box with the other regions replaced by the background);
     where one differs from ``level`` by more than :data:`OBJECT_LEVEL_TOLERANCE` of the
     contrast, the field over the regions and two samples around them is shifted by ``level``
-    minus their level (a higher level wins where two meet). Only when ``level`` is at or above
-    the threshold, so each region holds its whole edge (a textured wall whose threshold picks
-    its bright fibres is left alone). ``shift=False`` (the refinement, which crosses the stack's one
+    minus their level (a higher level wins where two meet). The regions lie above the lower of the
+    threshold and ``level``, so each holds its whole edge: an automatic threshold above the stack's
+    level (noise: Yen's picked the brighter objects among dim ones) would cut them inside their
+    edges and miss the dim ones. ``shift=False`` (the refinement, which crosses the stack's one
     level, or ``edge="threshold"``): the peaks only, the field left as it is.
 
     Returns
@@ -1326,8 +1327,9 @@ def _object_levels(field: np.ndarray, thr: float, background: float | None, leve
     offsets : ndarray of float32, the shape of ``field``, or None
         What was subtracted from ``field`` (each object's level minus ``level``) when it was shifted.
     """
-    if background is None or level < thr or level <= background:
+    if background is None or level <= background:
         return [], [], None
+    thr = min(thr, level)
     regions = _object_regions(field, thr, level, spacing)
     if len(regions) < 2:
         return [], [], None
