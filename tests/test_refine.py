@@ -610,6 +610,21 @@ def test_the_half_level_correction_has_soft_limits(monkeypatch, caplog):
         assert check["correction"] == pytest.approx(share, abs=1e-6), height
 
 
+@pytest.mark.parametrize("factor", [100.0, 5000.0, 1e5])
+def test_the_half_level_check_does_not_depend_on_the_intensity_scale(factor):
+    """The walls' profiles are fitted in units of each ray's contrast: the fit's damping adds a share of the
+    whole Hessian diagonal, whose edge and width terms grow as the intensity squared, and froze the
+    background and contrast of bright images (a review: the same shell × 5000 read misfit 0.051 for 0.008
+    and lost its correction, × 1e5 0.038 and none)."""
+    vol = _plain_shell(5.0)
+    sigma = auto_sigma(vol, (1.0, 1.0, 1.0))[0]
+    checks = [reconstruct(v, (1.0, 1.0, 1.0), sigma=sigma, keep="all").metadata["nemo_surface"]["edge_check"]
+              for v in (vol, (vol.astype(np.float64) * factor).astype(np.float32))]
+    assert checks[0]["misfit"] < 0.02 and checks[0]["offset"] is not None
+    for key in ("misfit", "offset", "correction", "level_share"):
+        assert checks[1][key] == pytest.approx(checks[0][key], rel=1e-3, abs=1e-5), key
+
+
 def test_the_half_level_check_flags_a_wall_thinner_than_the_blur(caplog):
     """The same 1 µm membrane at the default half level: its profiles' level is refused (their crests
     stay below it), and rather than no check the record says the walls are thinner than the blur, with
