@@ -292,7 +292,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
         flags.append(f"the walls' own profiles put their edges {100 * abs(offset):.0f} % of the contrast "
                      f"{'above' if offset > 0 else 'below'} the half level: walls placed "
                      f"{'outward, thickness overestimated' if offset > 0 else 'inward, thickness underestimated'} "
-                     "(thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level)")
+                     "(thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level, with psf: auto or none)")
     if check.get("thinner_than_blur"):
         flags.append(f"the walls are thinner than the image's blur on {100 * check['thinner_than_blur']:.0f} % of "
                      "their profiles: they come out about as thick as the blur, thickness overestimated (a z-elongated "

@@ -2072,7 +2072,7 @@ def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, l
         logger.warning("the walls' own profiles put their edges at level %.4g, the half level is %.4g (%+.0f %% of "
                        "the walls' contrast): the walls come out %s (thin or z-blurred walls, whose crests never "
                        "reach the plateau the half level is taken from); mesh.edge: profile meshes at the profiles' "
-                       "level", found * scale, level * scale, 100 * offset,
+                       "level, with psf: auto or none", found * scale, level * scale, 100 * offset,
                        "outward (thicker)" if offset > 0 else "inward (thinner)")
     return record
 

@@ -390,16 +390,19 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
     # the half level checked against the walls' own profiles (nemo.surface._edge_check)
     ({}, {**CLOSED, "edge_check": {"offset": 0.13, "limit": 0.1, "misfit": 0.02}},
      ["the walls' own profiles put their edges 13 % of the contrast above the half level: walls placed outward, "
-      "thickness overestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level)"]),
+      "thickness overestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level, "
+      "with psf: auto or none)"]),
     ({}, {**CLOSED, "edge_check": {"offset": -0.2, "limit": 0.1, "misfit": 0.01}},
      ["the walls' own profiles put their edges 20 % of the contrast below the half level: walls placed inward, "
-      "thickness underestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level)"]),
+      "thickness underestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level, "
+      "with psf: auto or none)"]),
     ({}, {**CLOSED, "edge_check": {"offset": 0.05, "limit": 0.1}}, []),
     # partly corrected: the offset the correction leaves is judged (0.75 of 0.105 left passes, 0.9 of 0.12 does not)
     ({}, {**CLOSED, "edge_check": {"offset": 0.105, "limit": 0.1, "correction": 0.25, "corrected": True}}, []),
     ({}, {**CLOSED, "edge_check": {"offset": 0.12, "limit": 0.1, "correction": 0.1, "corrected": True}},
      ["the walls' own profiles put their edges 12 % of the contrast above the half level: walls placed outward, "
-      "thickness overestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level)"]),
+      "thickness overestimated (thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level, "
+      "with psf: auto or none)"]),
     ({}, {**CLOSED, "edge_check": {"offset": None, "limit": 0.1, "misfit": 0.3}}, []),  # textured walls: no check
     ({}, {**CLOSED, "edge_check": None}, []),
     ({}, {**CLOSED, "edge_check": {"offset": None, "limit": 0.1, "misfit": 0.01, "thinner_than_blur": 0.14}},
