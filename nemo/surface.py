@@ -1984,7 +1984,7 @@ def checked_half_level(volume: np.ndarray, spacing, sigma: float, step: int, thr
         (each compact region's brightest point, x, y, z: :func:`regions_per_object`) and ``offsets``
         (:func:`reconstruct`'s ``level_offsets``, or None).
     """
-    dz, dy, dx = (float(v) for v in spacing)
+    (dz, dy, dx), step, sigma = _check_reconstruct_args(spacing, sigma, "all", "half", step, 0, 0.1)
     source, _, scale, _ = _source(volume, None)
     padded = _pad_with_minimum(_blur_sampled(source, (sigma / dz, sigma / dy, sigma / dx), step))
     inner = padded[_PAD:-_PAD, _PAD:-_PAD, _PAD:-_PAD]

@@ -894,6 +894,28 @@ def test_a_small_noisy_ball_is_meshed_at_its_half_level(seed):
     assert abs(np.median(_radii(mesh, centre)) - radius) < 0.15
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_checked_half_level_is_the_level_reconstruct_meshes_at(seed):
+    """checked_half_level (the level a deconvolved frame is meshed at, read on the image before
+    deconvolution) is the level reconstruct meshes that image at: the half level, checked against the
+    walls' profiles and corrected part of the way where noise lowered it (here a 6 µm shell at SNR 5),
+    with the same record; iso_level stays the half level before the check."""
+    from nemo.surface import auto_sigma, checked_half_level
+
+    spacing, centre = (1.0, 1.0, 1.0), (24.3, 24.1, 23.8)
+    shell = ball_volume((48, 48, 48), spacing, centre, 18.0, amp=180.0) - ball_volume((48, 48, 48), spacing, centre,
+                                                                                        12.0, amp=180.0)
+    vol = (20 + shell + np.random.default_rng(seed).normal(0, 36, shell.shape)).astype(np.float32)
+    sigma = auto_sigma(vol, spacing)[0]
+    meshed = reconstruct(vol, spacing, sigma=sigma, keep="all").metadata["nemo_surface"]
+    level, check, objects = checked_half_level(vol, spacing, sigma, 1)
+    assert check["correction"] > 0.05 and level > iso_level(vol, spacing, sigma) + 0.2  # corrected (0.10-0.18)
+    assert level == pytest.approx(meshed["level"], rel=1e-6) and check["image"] == "before deconvolution"
+    for key in ("offset", "correction", "misfit", "level_profile"):
+        assert check[key] == pytest.approx(meshed["edge_check"][key], rel=1e-6), key
+    assert objects == {"levels": [], "peaks": [], "offsets": None}
+
+
 def test_objects_of_different_brightness_are_meshed_at_their_own_half_levels():
     """Nuclei of brightness 1, 0.45 (1.5 µm from the first) and 0.6 (apart) on a background of 100:
     the stack's one level (here the dim ball's half level, 190, its plateau being the histogram's
