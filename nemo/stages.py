@@ -179,6 +179,7 @@ def mesh(
     if raw_objects["levels"] or raw_objects["peaks"]:  # a deconvolved image meshed at the levels of the one before
         surface.update(object_levels=raw_objects["levels"], region_peaks=raw_objects["peaks"])
     p["level"] = float(surface["level"])
+    p["object_levels"] = [float(v) for v in surface.get("object_levels") or []] or None  # own half levels
     p["refine_sigma"] = surface.get("refine_sigma")
     p["refine_to"] = surface.get("refine_to", p["refine_to"])  # level when steepest could not be used
     p["refined"] = {k: surface.get(k) for k in ("refined", "rejected", "shift_median", "shift_abs_p95")}

@@ -294,9 +294,11 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
                      f"{'outward, thickness overestimated' if offset > 0 else 'inward, thickness underestimated'} "
                      "(thin or z-blurred walls; mesh.edge: profile meshes at the profiles' level, with psf: auto or none)")
     if check.get("thinner_than_blur"):
+        cure = ("deconvolving did not thin them" if check.get("image") == "before deconvolution"
+                else "psf: deconvolves by a known PSF")
         flags.append(f"the walls are thinner than the image's blur on {100 * check['thinner_than_blur']:.0f} % of "
-                     "their profiles: they come out about as thick as the blur, thickness overestimated (a z-elongated "
-                     "PSF? psf: deconvolves by a known PSF; or a bright film by the wall's surface)")
+                     f"their profiles: they come out about as thick as the blur, thickness overestimated (a z-elongated "
+                     f"PSF? {cure}; or a bright film by the wall's surface)")
     if (measure.get("n_components") or 1) > 1:
         flags.append(f"surface has {measure['n_components']} pieces")
     if closed and np.isfinite(chi) and chi < QC_MIN_EULER:

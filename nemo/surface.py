@@ -1995,6 +1995,9 @@ def checked_half_level(volume: np.ndarray, spacing, sigma: float, step: int, thr
                               if isinstance(how, str) else ([], [], None))
     objects = {"levels": [lev * scale for lev in levels], "peaks": peaks,
                "offsets": None if offsets is None else np.multiply(offsets, np.float32(scale), out=offsets)}
+    if levels:
+        logger.info("%d separate objects at their own half levels, read on the image before deconvolution: %s (the "
+                    "stack's %.4g)", len(levels), listed((f"{lev * scale:.4g}" for lev in levels), sep=", "), level * scale)
     box = (np.array(inner.shape[::-1]) - 1) * step * np.array([dx, dy, dz])
     mesh = _level_surface(padded, level, (dz, dy, dx), step, box, "um", "all") if not levels else None
     if mesh is None or not len(mesh.faces):

@@ -1033,6 +1033,7 @@ def test_a_deconvolved_frame_keeps_each_objects_own_half_level():
     vol = 20 + ndi.gaussian_filter(vol, (1.0, 0.8, 0.8))
     meshes, p = stages.mesh(vol, spacing, {"keep": "all", "split": "none"}, psf=psf)
     assert p["deconvolution"]["iterations"] > 0 and p["n_objects"] == 2
+    assert len(p["object_levels"]) == 2 and min(p["object_levels"]) < 60 < max(p["object_levels"])  # recorded
     vertices = np.asarray(meshes["whole"].vertices)
     for brightness, c in centres.items():
         r = np.linalg.norm(vertices - c, axis=1)

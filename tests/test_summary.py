@@ -409,6 +409,11 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
      ["the walls are thinner than the image's blur on 14 % of their profiles: they come out about as thick as the "
       "blur, thickness overestimated (a z-elongated PSF? psf: deconvolves by a known PSF; or a bright film by the "
       "wall's surface)"]),
+    ({}, {**CLOSED, "edge_check": {"offset": None, "limit": 0.1, "misfit": 0.01, "thinner_than_blur": 0.3,
+                                   "image": "before deconvolution"}},  # a deconvolved frame: no advice to deconvolve
+     ["the walls are thinner than the image's blur on 30 % of their profiles: they come out about as thick as the "
+      "blur, thickness overestimated (a z-elongated PSF? deconvolving did not thin them; or a bright film by the "
+      "wall's surface)"]),
     ({}, {**CLOSED, "edge_check": {"offset": 0.02, "limit": 0.1, "misfit": 0.01, "thinner_than_blur": None}}, []),
     ({"regions": 2}, CLOSED, ["the surface holds 2 separate bright regions of the image: touching objects meshed as "
                               "one, their area and volume together (a mask that labels them apart separates them)"]),
