@@ -175,7 +175,7 @@ from nemo.order import lift_q, tangential_eig
 COLUMNS = (
     "x", "y", "z", "vertex", "S", "charge", "charge_winding", "charge_curvature",
     "charge_rounded", "contour_radius", "n_contour", "contour_S", "max_step_deg",
-    "refine", "shift", "fit_radius", "coherency",
+    "refine", "shift", "fit_radius", "fit_residual", "coherency",
 )
 
 #: Columns of the candidate table (:func:`candidate_table`, ``nemo defects --candidates``).
@@ -350,8 +350,10 @@ def closest_point_local(mesh: trimesh.Trimesh, point: np.ndarray, vertices: np.n
 
 
 def _fit_defect_model(xi: np.ndarray, eta: np.ndarray, theta: np.ndarray, weight: np.ndarray,
-                      m: float, scale: float, harmonic: bool = False) -> np.ndarray | None:
-    """Fit a defect model to nematic angles in a tangent plane; return the core (ξ0, η0).
+                      m: float, scale: float, harmonic: bool = False,
+                      residual: bool = False) -> np.ndarray | tuple[np.ndarray, float] | None:
+    """Fit a defect model to nematic angles in a tangent plane; return the core (ξ0, η0), with
+    ``residual`` also the fit's residual (:func:`_model_residual`, degrees).
 
     θ = m·φ + θ0 + (c1 ξ + c2 η)/scale [+ a cos φ + b sin φ], φ = atan2(η − η0, ξ − ξ0). The
     linear term absorbs the smooth background of the other defects and of the surface; the
@@ -389,7 +391,28 @@ def _fit_defect_model(xi: np.ndarray, eta: np.ndarray, theta: np.ndarray, weight
             continue
         if res.success and np.all(np.isfinite(res.x)) and (best is None or res.cost < best.cost):
             best = res
-    return None if best is None else best.x[:2]
+    if best is None:
+        return None
+    if not residual:
+        return best.x[:2]
+    outer = np.hypot(xi - best.x[0], eta - best.x[1]) > RESIDUAL_INNER * scale
+    return best.x[:2], _model_residual(theta[outer] - model(best.x)[outer], weight[outer])
+
+
+#: The fit's residual (:func:`_model_residual`) counts the directors beyond this fraction of the fit radius
+#: from the fitted core: nearer ones turn fast and carry the window's smoothing of the core.
+RESIDUAL_INNER = 1.0 / 3.0
+#: Fewest directors the residual is read from (else NaN).
+RESIDUAL_MIN_DIRECTORS = 6
+
+
+def _model_residual(delta: np.ndarray, weight: np.ndarray) -> float:
+    """Weighted RMS (degrees) of nematic angle differences ``delta`` (radians, taken modulo π into
+    (−90°, 90°]): how far the directors are from the fitted defect model; NaN for too few."""
+    if len(delta) < RESIDUAL_MIN_DIRECTORS or not np.sum(weight) > 0:
+        return math.nan
+    wrapped = 0.5 * np.angle(np.exp(2j * delta))
+    return float(np.degrees(np.sqrt(np.average(wrapped**2, weights=weight))))
 
 
 def _linear_q_zero(xi: np.ndarray, eta: np.ndarray, q: np.ndarray) -> np.ndarray | None:
@@ -746,8 +769,11 @@ def find_defects(
         ``charge_rounded`` and diagnostics ``contour_radius``, ``n_contour``, ``contour_S``
         (median S on the contour), ``max_step_deg``, ``refine`` (method used; ``"zeros"``: an |m| ≥ 1
         defect placed among the Q-zeros of its dip that its contour encloses, :func:`_among_zeros`), ``shift`` (µm from
-        the minimum-S vertex), ``coherency`` (the directors' median coherency within the contour
-        radius over the surface's, :func:`_local_coherency`: well below 1 where the fibres are
+        the minimum-S vertex), ``fit_radius`` (the model fit's radius), ``fit_residual`` (degrees: the weighted RMS
+        of the directors' angles about the fitted model beyond :data:`RESIDUAL_INNER` of the fit radius from the
+        core, :func:`_model_residual`; NaN where no model fit placed it: large where the directors do not
+        follow a defect there, a misplaced core or an unreadable texture), ``coherency`` (the directors'
+        median coherency within the contour radius over the surface's, :func:`_local_coherency`: well below 1 where the fibres are
         faint and the position unreliable). ``df.attrs`` holds the parameters used (with the rejection counts
         ``rejected`` and the contour kinds ``contours``), ``euler_check`` and ``candidates``
         (every examined candidate with its reason, as records: :func:`candidate_table`).
@@ -1103,7 +1129,8 @@ def _among_zeros(mesh, geo: _Geometry, f: _Fields, v: int, zeros: list[int], row
     point = closest_point_local(mesh, centre, ball)
     vv = int(ball[np.argmin(np.linalg.norm(geo.verts[ball] - point, axis=1))])
     return {"x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(f.S[vv]), "refine": "zeros",
-            "shift": float(np.linalg.norm(point - geo.verts[v])), "fit_radius": math.nan}  # no fit placed it
+            "shift": float(np.linalg.norm(point - geo.verts[v])), "fit_radius": math.nan,  # no fit placed it
+            "fit_residual": math.nan}
 
 
 def _measure(geo: _Geometry, f: _Fields, st: _Settings, v: int, radii: list[float]) -> dict | None:
@@ -1140,8 +1167,8 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
     rho = max(min(fit["fit_radius"], 0.5 * dmin), 3 * h)
     # a given fit radius is also the reach (as before the default widened)
     reach = rho if fit["fit_given"] else max(min(rho, SHIFT_PER_AVERAGING * st.avg_radius), 3 * h)
-    point, method = _refine(mesh, geo.graph, geo.verts, geo.normals, f, v, res["charge_rounded"],
-                            rho, h, fit["refine"], fit["fit_exclude"], fit["fit_harmonic"], reach)
+    point, method, residual = _refine(mesh, geo.graph, geo.verts, geo.normals, f, v, res["charge_rounded"],
+                                      rho, h, fit["refine"], fit["fit_exclude"], fit["fit_harmonic"], reach)
     # final vertex = nearest to the refined point; recentre the contour when it moved
     ball_idx, _ = geodesic_ball(geo.graph, v, max(4 * h, np.linalg.norm(point - geo.verts[v]) + 2 * h))
     vv = int(ball_idx[np.argmin(np.linalg.norm(geo.verts[ball_idx] - point, axis=1))])
@@ -1154,7 +1181,7 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
         **{key: res[key] for key in ("charge", "charge_winding", "charge_curvature", "charge_rounded",
                                      "n_contour", "contour_S", "max_step_deg", "contour_radius")},
         "refine": method, "shift": float(np.linalg.norm(point - geo.verts[v])),
-        "fit_radius": float(rho) if fit["refine"] != "none" else math.nan,
+        "fit_radius": float(rho) if fit["refine"] != "none" else math.nan, "fit_residual": residual,
     }
 
 
@@ -1341,31 +1368,32 @@ def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir:
 
 
 def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: float, h: float,
-            method: str, r_in: float, harmonic: bool, reach: float) -> tuple[np.ndarray, str]:
+            method: str, r_in: float, harmonic: bool, reach: float) -> tuple[np.ndarray, str, float]:
     """Sub-vertex position of the defect near vertex v from the directors within ``rho``, at most
-    ``reach`` from it; the averaged field's zero from within ``reach`` (module doc)."""
+    ``reach`` from it; the averaged field's zero from within ``reach`` (module doc); and the model
+    fit's residual (degrees; NaN where no model placed it)."""
     x0 = verts[v]
     if method == "none":
-        return x0, "vertex"
+        return x0, "vertex", math.nan
     t1, t2 = tangent_basis(normals[v])
     idx, dist = geodesic_ball(graph, v, rho + 2 * h)
-    core, name = None, "vertex"
+    core, name, residual = None, "vertex", math.nan
     if method == "model" and f.dtree is not None:
-        core, name = _model_core(f, x0, t1, t2, m, rho, r_in, harmonic, reach), "model"
+        (core, residual), name = _model_core(f, x0, t1, t2, m, rho, r_in, harmonic, reach), "model"
     if core is None and len(idx[dist < reach]) >= 6 and abs(m) == 0.5:
         core, name = _q_core(f, verts, idx[dist < reach], x0, t1, t2, reach), "q"
     if core is None:
-        return x0, "vertex"
+        return x0, "vertex", math.nan
     p = x0 + core[0] * t1 + core[1] * t2
-    return closest_point_local(mesh, p, idx), name
+    return closest_point_local(mesh, p, idx), name, residual if name == "model" else math.nan
 
 
 def _model_core(f: _Fields, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray, m: float, rho: float, r_in: float,
-                harmonic: bool, reach: float) -> np.ndarray | None:
+                harmonic: bool, reach: float) -> tuple[np.ndarray | None, float]:
     """Core (ξ, η) in the tangent frame at ``x0`` of the defect model fitted to the raw directors within
     ``rho`` (fit, re-centre the window on the fitted core, fit again), or None where it lies farther than
-    ``reach`` from ``x0``."""
-    centre, found = x0, None
+    ``reach`` from ``x0``; and the residual of the fit that placed it (:func:`_model_residual`)."""
+    centre, found, residual = x0, None, math.nan
     for _ in range(2):
         j = np.asarray(f.dtree.query_ball_point(centre, rho), dtype=np.int64)
         if r_in > 0:
@@ -1376,13 +1404,13 @@ def _model_core(f: _Fields, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray, m: f
         c0 = (centre - x0) @ np.column_stack([t1, t2])
         d = f.ddir[j]
         theta = np.arctan2(d @ t2, d @ t1)
-        core = _fit_defect_model(rel @ t1 - c0[0], rel @ t2 - c0[1], theta, np.clip(f.dcoh[j], 0.05, None), m,
-                                 rho, harmonic)
-        if core is None or np.hypot(*(core + c0)) > reach:
+        fitted = _fit_defect_model(rel @ t1 - c0[0], rel @ t2 - c0[1], theta, np.clip(f.dcoh[j], 0.05, None), m,
+                                   rho, harmonic, residual=True)
+        if fitted is None or np.hypot(*(fitted[0] + c0)) > reach:
             break
-        found = core + c0
+        found, residual = fitted[0] + c0, fitted[1]
         centre = x0 + found[0] * t1 + found[1] * t2
-    return found
+    return found, residual
 
 
 def _q_core(f: _Fields, verts: np.ndarray, sel: np.ndarray, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray,

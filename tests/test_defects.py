@@ -271,6 +271,30 @@ def test_a_defect_where_the_fibres_are_faint_is_told_by_its_coherency(sphere60):
     np.testing.assert_allclose(df["coherency"][~at_faint], 1.0)
 
 
+def test_a_defect_whose_directors_do_not_follow_the_model_has_a_large_fit_residual(sphere60):
+    """``fit_residual``: the RMS of the directors' angles about the fitted model beyond a third of the fit radius
+    from the core. The four +½ of a tetrahedron with 5° of director noise read about that noise (4.3-5.2°);
+    with the raw directors round one of them scrambled (random tangent directions 6-25 µm from it; the
+    averaged order left as it was, so the low S still places a defect there) that defect reads ~50° and
+    the others are unchanged. The QC flags a frame above 20° (nemo.summary)."""
+    dirs = rotated(TETRA, 3)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=3, noise=5.0, mesh=sphere60)
+    clean = find_defects(mesh, odf, ddf, avg_radius=15.0)
+    assert (clean["refine"] == "model").all() and clean["fit_residual"].between(3.0, 7.0).all(), clean["fit_residual"]
+    pos = ddf[["x", "y", "z"]].to_numpy()
+    distance = np.linalg.norm(pos - 60.0 * dirs[0], axis=1)
+    near = (distance > 6.0) & (distance < 25.0)
+    normal = pos[near] / np.linalg.norm(pos[near], axis=1)[:, None]
+    random = np.random.default_rng(0).normal(size=(near.sum(), 3))
+    random -= normal * np.sum(random * normal, axis=1)[:, None]
+    ddf.loc[near, ["nx", "ny", "nz"]] = random / np.linalg.norm(random, axis=1)[:, None]
+    df = find_defects(mesh, odf, ddf, avg_radius=15.0)
+    assert len(df) == 4
+    scrambled = np.linalg.norm(df[["x", "y", "z"]].to_numpy() - 60.0 * dirs[0], axis=1) < 15.0
+    assert scrambled.sum() == 1 and df["fit_residual"][scrambled].iloc[0] > 35.0
+    assert df["fit_residual"][~scrambled].between(3.0, 7.0).all()
+
+
 def test_sphere_five_plus_one_minus_half(sphere60):
     dirs = rotated(OCTA, 5)
     charges = [-0.5, 0.5, 0.5, 0.5, 0.5, 0.5]

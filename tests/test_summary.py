@@ -320,6 +320,17 @@ GOOD = {"euler_characteristic": 2.0, "thickness_valid": 1.0, "n_directors": 100,
 CLOSED = {"n_components": 1, "n_boundary_loops": 0}
 
 
+def test_defects_the_model_did_not_place_count_as_misfit():
+    """Where the model fit was asked for (refine: model) and found no core within reach, the defect was placed by
+    the averaged field's zero or left at its vertex: in 76 frames of five generators each of the 8 such was
+    10-49 µm from any defect, so the frame's defects_misfit counts them; zeros (+1 among Q-zeros) do not."""
+    from nemo.summary import _unfitted
+
+    defects = pd.DataFrame({"refine": ["model", "q", "vertex", "zeros", "model"]})
+    assert _unfitted(defects) == 2 and _unfitted(defects.iloc[[0, 3]]) == 0
+    assert _unfitted(pd.DataFrame({"x": [1.0]})) == 0  # a table from before the column
+
+
 @pytest.mark.parametrize("change, measure, expected", [
     ({}, CLOSED, []),
     ({"charge_sum": 1.5, "n_defects": 3}, CLOSED, ["Σ charge 1.50 ≠ χ 2 (3 defects)"]),
@@ -439,6 +450,16 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
       "deconvolved (psf: none, or auto found no z blur), the measured PSF as datasets.NAME.psf helps)"]),
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
+    ({"defects_misfit": 1, "defect_residual_max": 31.2}, CLOSED,
+     ["1 defect(s) whose directors do not turn as a defect's about it (the model's fit residual up to 31° above "
+      "20°, or no core within reach): the position is uncertain (placed off the core, or a texture the directors "
+      "do not read; the defects table's fit_residual and refine)"]),
+    ({"defects_misfit": 2}, CLOSED,  # a row of frames.parquet: the count only (or unfitted defects alone)
+     ["2 defect(s) whose directors do not turn as a defect's about it (the model's fit residual above 20°, or no "
+      "core within reach): the position is uncertain (placed off the core, or a texture the directors do not read; "
+      "the defects table's fit_residual and refine)"]),
+    ({"defects_misfit": 0, "defect_residual_max": 12.0}, CLOSED, []),
+    ({"defects_misfit": pd.NA}, CLOSED, []),
     ({"rejected_zeros": 2}, CLOSED,
      ["2 zero(s) of the averaged order rejected (a disordered contour or an unresolved winding, or a zero charge "
       "round them): defects closer together than the contour radius may be missed there (a missed ± pair keeps "
