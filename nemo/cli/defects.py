@@ -17,7 +17,9 @@ charges add up to the Euler characteristic χ; the check is printed and stored i
 Defaults follow the data: threshold 0.5 × the 90th percentile of S, suppression radius = the
 averaging radius of ORDER (read from its metadata), contour 1.5 × that radius, the refinement's
 defect-model fit over the directors within 1.125 × that radius (at most 0.75 × the surface's
-size, but not below 0.75 × the radius; the table's fit_radius).
+size, but not below 0.75 × the radius; the table's fit_radius). The table's fit_residual (degrees)
+is how far the directors are from that model: their own scatter (~5-15°) where they turn as a
+defect's about the core; the summary flags a defect above 20° (misplaced, or an unreadable texture).
 
 example:
   nemo defects mesh.inner.ply order.parquet directors.parquet -o defects.parquet
