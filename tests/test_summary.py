@@ -323,7 +323,8 @@ CLOSED = {"n_components": 1, "n_boundary_loops": 0}
 def test_defects_the_model_did_not_place_count_as_misfit():
     """Where the model fit was asked for (refine: model) and found no core within reach, the defect was placed by
     the averaged field's zero or left at its vertex: in 75 frames of five generators each of the 14 such was
-    11-76 µm from any defect, so the frame's defects_misfit counts them; zeros (+1 among Q-zeros) do not."""
+    11-76 µm from any defect (with sparse directors often right, but those frames miss defects too), so the
+    frame's defects_misfit counts them; zeros (+1 among Q-zeros) do not."""
     from nemo.summary import _unfitted
 
     defects = pd.DataFrame({"refine": ["model", "q", "vertex", "zeros", "model"]})
