@@ -175,7 +175,7 @@ from nemo.order import lift_q, tangential_eig
 COLUMNS = (
     "x", "y", "z", "vertex", "S", "charge", "charge_winding", "charge_curvature",
     "charge_rounded", "contour_radius", "n_contour", "contour_S", "max_step_deg",
-    "refine", "shift", "fit_radius", "fit_residual", "coherency",
+    "refine", "shift", "fit_radius", "fit_residual", "fit_scatter", "fit_uncertainty", "coherency",
 )
 
 #: Columns of the candidate table (:func:`candidate_table`, ``nemo defects --candidates``).
@@ -351,9 +351,10 @@ def closest_point_local(mesh: trimesh.Trimesh, point: np.ndarray, vertices: np.n
 
 def _fit_defect_model(xi: np.ndarray, eta: np.ndarray, theta: np.ndarray, weight: np.ndarray,
                       m: float, scale: float, harmonic: bool = False,
-                      residual: bool = False) -> np.ndarray | tuple[np.ndarray, float] | None:
+                      residual: bool = False) -> np.ndarray | tuple[np.ndarray, float, float, float] | None:
     """Fit a defect model to nematic angles in a tangent plane; return the core (ξ0, η0), with
-    ``residual`` also the fit's residual (:func:`_model_residual`, degrees).
+    ``residual`` also the fit's residual and its scatter between neighbours (:func:`_model_residual`, degrees)
+    and the core's standard error (:func:`_core_uncertainty`, the unit of ξ, η).
 
     θ = m·φ + θ0 + (c1 ξ + c2 η)/scale [+ a cos φ + b sin φ], φ = atan2(η − η0, ξ − ξ0). The
     linear term absorbs the smooth background of the other defects and of the surface; the
@@ -396,7 +397,8 @@ def _fit_defect_model(xi: np.ndarray, eta: np.ndarray, theta: np.ndarray, weight
     if not residual:
         return best.x[:2]
     outer = np.hypot(xi - best.x[0], eta - best.x[1]) > RESIDUAL_INNER * scale
-    return best.x[:2], _model_residual(theta[outer] - model(best.x)[outer], weight[outer])
+    residual_deg, scatter_deg = _model_residual(theta[outer] - model(best.x)[outer], weight[outer], xi[outer], eta[outer])
+    return best.x[:2], residual_deg, scatter_deg, _core_uncertainty(best.jac, scatter_deg)
 
 
 #: The fit's residual (:func:`_model_residual`) counts the directors beyond this fraction of the fit radius
@@ -406,13 +408,41 @@ RESIDUAL_INNER = 1.0 / 3.0
 RESIDUAL_MIN_DIRECTORS = 6
 
 
-def _model_residual(delta: np.ndarray, weight: np.ndarray) -> float:
-    """Weighted RMS (degrees) of nematic angle differences ``delta`` (radians, taken modulo π into
-    (−90°, 90°]): how far the directors are from the fitted defect model; NaN for too few."""
+def _model_residual(delta: np.ndarray, weight: np.ndarray, xi: np.ndarray, eta: np.ndarray) -> tuple[float, float]:
+    """How far the directors at (ξ, η) are from the fitted defect model, and how much of it is their own noise.
+
+    The weighted RMS (degrees) of the nematic angle differences ``delta`` (radians, taken modulo π
+    into (−90°, 90°]), and their scatter: the RMS of the difference between each director's ``delta``
+    and its nearest neighbour's, over √2 — the directors' own noise where it is independent from
+    director to director, near 0 where ``delta`` is smooth (a misplaced core, a texture the model does
+    not describe). NaN for too few directors.
+    """
     if len(delta) < RESIDUAL_MIN_DIRECTORS or not np.sum(weight) > 0:
-        return math.nan
+        return math.nan, math.nan
     wrapped = 0.5 * np.angle(np.exp(2j * delta))
-    return float(np.degrees(np.sqrt(np.average(wrapped**2, weights=weight))))
+    residual = float(np.degrees(np.sqrt(np.average(wrapped**2, weights=weight))))
+    _, nearest = cKDTree(np.column_stack([xi, eta])).query(np.column_stack([xi, eta]), k=2)
+    other = nearest[:, 1]
+    step = 0.5 * np.angle(np.exp(2j * (delta - delta[other])))
+    scatter = float(np.degrees(np.sqrt(0.5 * np.average(step**2, weights=weight * weight[other]))))
+    return residual, scatter
+
+
+def _core_uncertainty(jac: np.ndarray, scatter_deg: float) -> float:
+    """Standard error (the unit of ξ, η; the RMS over both tangent axes) of the fitted core: the
+    Gauss–Newton covariance (JᵀJ)⁻¹ of the model's parameters, ``jac`` (n, p) the robust fit's Jacobian
+    (scipy's, scaled by its loss) with the core first, times the directors' scatter as their noise; inf
+    where the fit does not fix the core, NaN without a scatter.
+    Where the directors' noise is correlated over several of them (nemo's own, smoothed at the director
+    scale) their scatter and so this underestimate it: it measures the noise of independent directors."""
+    if not np.isfinite(scatter_deg):
+        return math.nan
+    try:
+        cov = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return math.inf
+    variance = cov[0, 0] + cov[1, 1]
+    return math.radians(scatter_deg) * math.sqrt(variance) if variance >= 0 else math.inf
 
 
 def _linear_q_zero(xi: np.ndarray, eta: np.ndarray, q: np.ndarray) -> np.ndarray | None:
@@ -772,7 +802,9 @@ def find_defects(
         the minimum-S vertex), ``fit_radius`` (the model fit's radius), ``fit_residual`` (degrees: the weighted RMS
         of the directors' angles about the fitted model beyond :data:`RESIDUAL_INNER` of the fit radius from the
         core, :func:`_model_residual`; NaN where no model fit placed it: large where the directors do not
-        follow a defect there, a misplaced core or an unreadable texture), ``coherency`` (the directors'
+        follow a defect there, a misplaced core or an unreadable texture), ``fit_scatter`` (degrees: how much of
+        it is the directors' own noise, their differences' scatter between neighbours) and ``fit_uncertainty``
+        (the core's standard error with that noise, :func:`_core_uncertainty`), ``coherency`` (the directors'
         median coherency within the contour radius over the surface's, :func:`_local_coherency`: well below 1 where the fibres are
         faint and the position unreliable). ``df.attrs`` holds the parameters used (with the rejection counts
         ``rejected`` and the contour kinds ``contours``), ``euler_check`` and ``candidates``
@@ -1130,7 +1162,7 @@ def _among_zeros(mesh, geo: _Geometry, f: _Fields, v: int, zeros: list[int], row
     vv = int(ball[np.argmin(np.linalg.norm(geo.verts[ball] - point, axis=1))])
     return {"x": point[0], "y": point[1], "z": point[2], "vertex": vv, "S": float(f.S[vv]), "refine": "zeros",
             "shift": float(np.linalg.norm(point - geo.verts[v])), "fit_radius": math.nan,  # no fit placed it
-            "fit_residual": math.nan}
+            "fit_residual": math.nan, "fit_scatter": math.nan, "fit_uncertainty": math.nan}
 
 
 def _measure(geo: _Geometry, f: _Fields, st: _Settings, v: int, radii: list[float]) -> dict | None:
@@ -1167,8 +1199,9 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
     rho = max(min(fit["fit_radius"], 0.5 * dmin), 3 * h)
     # a given fit radius is also the reach (as before the default widened)
     reach = rho if fit["fit_given"] else max(min(rho, SHIFT_PER_AVERAGING * st.avg_radius), 3 * h)
-    point, method, residual = _refine(mesh, geo.graph, geo.verts, geo.normals, f, v, res["charge_rounded"],
-                                      rho, h, fit["refine"], fit["fit_exclude"], fit["fit_harmonic"], reach)
+    point, method, (residual, scatter, uncertainty) = _refine(
+        mesh, geo.graph, geo.verts, geo.normals, f, v, res["charge_rounded"], rho, h, fit["refine"], fit["fit_exclude"],
+        fit["fit_harmonic"], reach)
     # final vertex = nearest to the refined point; recentre the contour when it moved
     ball_idx, _ = geodesic_ball(geo.graph, v, max(4 * h, np.linalg.norm(point - geo.verts[v]) + 2 * h))
     vv = int(ball_idx[np.argmin(np.linalg.norm(geo.verts[ball_idx] - point, axis=1))])
@@ -1182,6 +1215,7 @@ def _accept(mesh, geo: _Geometry, f: _Fields, st: _Settings, v: int, res: dict, 
                                      "n_contour", "contour_S", "max_step_deg", "contour_radius")},
         "refine": method, "shift": float(np.linalg.norm(point - geo.verts[v])),
         "fit_radius": float(rho) if fit["refine"] != "none" else math.nan, "fit_residual": residual,
+        "fit_scatter": scatter, "fit_uncertainty": uncertainty,
     }
 
 
@@ -1368,32 +1402,35 @@ def _winding_result(dirs: np.ndarray, nrm: np.ndarray, s_pts: np.ndarray, n_dir:
 
 
 def _refine(mesh, graph, verts, normals, f: _Fields, v: int, m: float, rho: float, h: float,
-            method: str, r_in: float, harmonic: bool, reach: float) -> tuple[np.ndarray, str, float]:
+            method: str, r_in: float, harmonic: bool, reach: float) -> tuple[np.ndarray, str, tuple[float, float, float]]:
     """Sub-vertex position of the defect near vertex v from the directors within ``rho``, at most
     ``reach`` from it; the averaged field's zero from within ``reach`` (module doc); and the model
-    fit's residual (degrees; NaN where no model placed it)."""
+    fit's residual and its scatter (degrees, :func:`_model_residual`) and the core's standard error
+    (:func:`_core_uncertainty`), NaN where no model placed it."""
     x0 = verts[v]
+    unfitted = (math.nan, math.nan, math.nan)
     if method == "none":
-        return x0, "vertex", math.nan
+        return x0, "vertex", unfitted
     t1, t2 = tangent_basis(normals[v])
     idx, dist = geodesic_ball(graph, v, rho + 2 * h)
-    core, name, residual = None, "vertex", math.nan
+    core, name, residual = None, "vertex", unfitted
     if method == "model" and f.dtree is not None:
-        (core, residual), name = _model_core(f, x0, t1, t2, m, rho, r_in, harmonic, reach), "model"
+        (core, *residual), name = _model_core(f, x0, t1, t2, m, rho, r_in, harmonic, reach), "model"
     if core is None and len(idx[dist < reach]) >= 6 and abs(m) == 0.5:
         core, name = _q_core(f, verts, idx[dist < reach], x0, t1, t2, reach), "q"
     if core is None:
-        return x0, "vertex", math.nan
+        return x0, "vertex", unfitted
     p = x0 + core[0] * t1 + core[1] * t2
-    return closest_point_local(mesh, p, idx), name, residual if name == "model" else math.nan
+    return closest_point_local(mesh, p, idx), name, tuple(residual) if name == "model" else unfitted
 
 
 def _model_core(f: _Fields, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray, m: float, rho: float, r_in: float,
-                harmonic: bool, reach: float) -> tuple[np.ndarray | None, float]:
+                harmonic: bool, reach: float) -> tuple[np.ndarray | None, float, float, float]:
     """Core (ξ, η) in the tangent frame at ``x0`` of the defect model fitted to the raw directors within
     ``rho`` (fit, re-centre the window on the fitted core, fit again), or None where it lies farther than
-    ``reach`` from ``x0``; and the residual of the fit that placed it (:func:`_model_residual`)."""
-    centre, found, residual = x0, None, math.nan
+    ``reach`` from ``x0``; and the residual of the fit that placed it, its scatter (:func:`_model_residual`)
+    and the core's standard error (:func:`_core_uncertainty`)."""
+    centre, found, residual = x0, None, (math.nan, math.nan, math.nan)
     for _ in range(2):
         j = np.asarray(f.dtree.query_ball_point(centre, rho), dtype=np.int64)
         if r_in > 0:
@@ -1408,9 +1445,9 @@ def _model_core(f: _Fields, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray, m: f
                                    rho, harmonic, residual=True)
         if fitted is None or np.hypot(*(fitted[0] + c0)) > reach:
             break
-        found, residual = fitted[0] + c0, fitted[1]
+        found, residual = fitted[0] + c0, fitted[1:]
         centre = x0 + found[0] * t1 + found[1] * t2
-    return found, residual
+    return found, *residual
 
 
 def _q_core(f: _Fields, verts: np.ndarray, sel: np.ndarray, x0: np.ndarray, t1: np.ndarray, t2: np.ndarray,

@@ -92,16 +92,25 @@ QC_MAX_SATURATED = 0.10
 #: axis) a low S says nothing of the field: 8 of 14 defects found 6-34 µm from any truth read
 #: 0.69-0.84, and their frames passed, the count and Σ charge being right.
 QC_MIN_DEFECT_COHERENCY = 0.85
-#: Largest ``fit_residual`` of a defect (degrees: the RMS of its directors' angles about the fitted defect
-#: model, :func:`nemo.defects.find_defects`) that passes. Where the directors follow a defect their residual is
-#: their own scatter, which the noise-aware director scale bounds; a core placed where the directors do not
-#: turn as a defect's, or a texture they do not read, leaves more. In 75 frames of five generators (SNR 3 to
-#: none): defects within 3 µm of the truth median 11.7°, more than 6 µm off 32.6°; no frame whose defects all
-#: lay within 3 µm read above 17.5°, 18 of the 22 with one more than 6 µm off did or had one no fit placed
-#: (docs/validation.md, "Defects whose directors do not follow the model"). The limit assumes directors whose
-#: scatter the noise-aware scale bounds: a correct defect reads about 0.9 × its directors' RMS error, so
-#: imported or fixed-scale directors noisier than ~15-20° fail their frame however right its defects.
+#: Largest misfit of a defect's model that passes (degrees): its ``fit_residual`` (the RMS of its directors'
+#: angles about the fitted defect model, :func:`nemo.defects.find_defects`) beyond their own ``fit_scatter``
+#: (between neighbours), √(residual² − scatter²). Where the directors follow a defect what is left is their own
+#: noise; a core placed where they do not turn as a defect's, or a texture they do not read, leaves a smooth
+#: misfit their scatter does not hold. In 75 frames of five generators (SNR 3 to none, nemo's own directors,
+#: whose scatter between neighbours is small, so the misfit is nearly the residual): defects within 3 µm of the
+#: truth median 11.7°, more than 6 µm off 32.6°; no frame whose defects all lay within 3 µm read above 17.5°,
+#: 18 of the 22 with one more than 6 µm off did or had one no fit placed (docs/validation.md, "Defects whose
+#: directors do not follow the model"). Directors with independent noise (imported ones) read their noise as
+#: residual and scatter alike: i.i.d. noise of 12-20° with 5 % outliers failed correct frames on the residual alone.
 QC_MAX_DEFECT_RESIDUAL_DEG = 20.0
+#: Largest ``fit_uncertainty`` of a defect (the fitted core's standard error, with its directors' scatter as
+#: their noise) over its ``fit_radius`` that passes: noisy or sparse directors that follow a defect place it
+#: only that well. Independent noise on a sphere R 60 µm, fit radius 16.9 µm (4 +½): 4 000 directors with 12 /
+#: 20 / 30° read 0.07-0.12 / 0.11-0.19 / 0.16-0.25, frames' worst errors 2.5-2.8 / 3.5-5.3 / 5.5-7.7 µm; 16 000
+#: with 20-30° and 5 % outliers 0.06-0.13, errors within 2.1 µm; 1 000 with 15° and outliers 0.33-1.15, errors
+#: 2.3-12 µm. nemo's own directors read ~0.01 (their noise is correlated: docs/validation.md, "Defects whose
+#: directors do not follow the model").
+QC_MAX_DEFECT_UNCERTAINTY = 0.15
 #: Columns of defects.parquet before tracking (``nemo track`` appends ``track_id``).
 DEFECT_COLUMNS = ("t", "c", "layer", "object", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
                   "charge_winding", "charge_curvature")
@@ -214,6 +223,20 @@ def _beyond_view(table: pd.DataFrame) -> np.ndarray:
     return table["beyond_view"].fillna(False).to_numpy(dtype=bool)
 
 
+def defect_misfit(defects: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Per defect, shape (n,): the model's residual beyond the directors' own scatter (degrees,
+    √(fit_residual² − fit_scatter²); the residual alone in a table from before ``fit_scatter``) and the
+    core's standard error over the fit radius (NaN before ``fit_uncertainty``); NaN where no model placed it."""
+    nan = np.full(len(defects), np.nan)
+    residual = defects["fit_residual"].to_numpy(np.float64) if "fit_residual" in defects else nan
+    scatter = defects["fit_scatter"].to_numpy(np.float64) if "fit_scatter" in defects else np.zeros(len(defects))
+    excess = np.sqrt(np.clip(residual**2 - np.nan_to_num(scatter) ** 2, 0.0, None))
+    if "fit_uncertainty" not in defects:
+        return excess, nan
+    radius = defects["fit_radius"].to_numpy(np.float64)
+    return excess, defects["fit_uncertainty"].to_numpy(np.float64) / np.where(radius > 0, radius, np.nan)
+
+
 def _unfitted(defects: pd.DataFrame) -> int:
     """Defects the model fit did not place (``refine`` ``q`` or ``vertex`` where ``model`` was asked: no core
     within reach of the lowest S: in 75 frames of five generators each of the 14 such was 11-76 µm from any
@@ -246,10 +269,12 @@ def _layer_columns(tables: Mapping[str, pd.DataFrame]) -> dict:
     row["defects_faint"] = (int(np.count_nonzero(faint < QC_MIN_DEFECT_COHERENCY))
                             if "coherency" in df or not len(df) else pd.NA)
     row["defect_coherency_min"] = float(np.nanmin(faint)) if np.isfinite(faint).any() else math.nan
-    residual = df["fit_residual"].to_numpy(np.float64) if "fit_residual" in df else np.full(len(df), np.nan)
-    row["defects_misfit"] = (int(np.count_nonzero(residual > QC_MAX_DEFECT_RESIDUAL_DEG))
+    excess, uncertainty = defect_misfit(df)
+    row["defects_misfit"] = (int(np.count_nonzero((excess > QC_MAX_DEFECT_RESIDUAL_DEG)
+                                                  | (uncertainty > QC_MAX_DEFECT_UNCERTAINTY)))
                              if "fit_residual" in df or not len(df) else pd.NA)  # NA: a table from before the column
-    row["defect_residual_max"] = float(np.nanmax(residual)) if np.isfinite(residual).any() else math.nan
+    row["defect_residual_max"] = float(np.nanmax(excess)) if np.isfinite(excess).any() else math.nan
+    row["defect_uncertainty_max"] = float(np.nanmax(uncertainty)) if np.isfinite(uncertainty).any() else math.nan
     return row
 
 
@@ -414,10 +439,13 @@ def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) ->
     misfit = row.get("defects_misfit")
     if misfit is not None and not pd.isna(misfit) and misfit > 0:
         largest = row.get("defect_residual_max", math.nan)
-        flags.append(f"{misfit} defect(s) whose directors do not turn as a defect's about it (the model's fit residual"
-                     f"{f' up to {largest:.0f}°' if np.isfinite(largest) else ''} above "
-                     f"{QC_MAX_DEFECT_RESIDUAL_DEG:g}°, or no core within reach): the position is uncertain (placed off "
-                     "the core, or a texture the directors do not read; the defects table's fit_residual and refine)")
+        widest = row.get("defect_uncertainty_max", math.nan)
+        flags.append(f"{misfit} defect(s) the directors do not place (their fit residual beyond their own scatter"
+                     f"{f' up to {largest:.0f}°' if np.isfinite(largest) else ''} above {QC_MAX_DEFECT_RESIDUAL_DEG:g}°, "
+                     f"the core's standard error{f' up to {widest:.2f}' if np.isfinite(widest) else ''} above "
+                     f"{QC_MAX_DEFECT_UNCERTAINTY:g} of the fit radius, or no core within reach): the position is "
+                     "uncertain (placed off the core, a texture the directors do not read, or directors too noisy or "
+                     "sparse; the defects table's fit_residual, fit_scatter, fit_uncertainty and refine)")
     zeros = row.get("rejected_zeros")
     if zeros is not None and not pd.isna(zeros) and zeros > 0:
         flags.append(f"{zeros} zero(s) of the averaged order rejected (a disordered contour or an unresolved winding, "

@@ -293,6 +293,49 @@ def test_a_defect_whose_directors_do_not_follow_the_model_has_a_large_fit_residu
     scrambled = np.linalg.norm(df[["x", "y", "z"]].to_numpy() - 60.0 * dirs[0], axis=1) < 15.0
     assert scrambled.sum() == 1 and df["fit_residual"][scrambled].iloc[0] > 35.0
     assert df["fit_residual"][~scrambled].between(3.0, 7.0).all()
+    # random directors scatter too, but a defect's model is a far worse fit than their neighbours' agreement
+    from nemo.summary import QC_MAX_DEFECT_RESIDUAL_DEG, defect_misfit
+
+    excess, _ = defect_misfit(df)
+    assert excess[scrambled][0] > QC_MAX_DEFECT_RESIDUAL_DEG and excess[~scrambled].max() < 7.0
+
+
+def _with_outliers(mesh, ddf: pd.DataFrame, fraction: float, seed: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The directors with a random ``fraction`` replaced by random tangent directions, and their Q-average."""
+    rng = np.random.default_rng(seed)
+    ddf = ddf.copy()
+    pick = rng.random(len(ddf)) < fraction
+    normal = ddf.loc[pick, ["x", "y", "z"]].to_numpy()
+    normal = normal / np.linalg.norm(normal, axis=1)[:, None]
+    random = rng.normal(size=normal.shape)
+    random -= normal * np.sum(random * normal, axis=1)[:, None]
+    ddf.loc[pick, ["nx", "ny", "nz"]] = random / np.linalg.norm(random, axis=1)[:, None]
+    return ddf, q_average(mesh, ddf, 15.0)
+
+
+def test_noisy_directors_read_their_noise_as_scatter_and_sparse_ones_an_uncertain_core(sphere60):
+    """``fit_scatter`` (the residual's scatter between neighbouring directors) is independent directors' own
+    noise, so noisy directors that follow a defect leave no misfit beyond it: 16 000 directors with 20° of noise
+    and 5 % random outliers place every defect within 1.5 µm and read residuals of 21-26° (which failed the frame
+    on the residual alone) and a scatter that holds them. ``fit_uncertainty`` (the core's standard error with that
+    noise) grows as the directors thin out: on 1 000 of them, with 15° and the outliers, defects 6-12 µm off read
+    0.4-1.2 of the fit radius (0.07-0.09 on 16 000). The QC's measure is nemo.summary.defect_misfit."""
+    from nemo.summary import QC_MAX_DEFECT_RESIDUAL_DEG, QC_MAX_DEFECT_UNCERTAINTY, defect_misfit
+
+    dirs = rotated(TETRA, 2)
+    mesh, ddf, _ = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 16000, 15.0, seed=2, noise=20.0, mesh=sphere60)
+    df = find_defects(mesh, *_with_outliers(mesh, ddf, 0.05, 102)[::-1], avg_radius=15.0)
+    assert len(df) == 4 and match(df, 60.0 * dirs).max() < 1.5 and (df["refine"] == "model").all()
+    assert df["fit_residual"].min() > QC_MAX_DEFECT_RESIDUAL_DEG  # noise, not a misplaced core
+    assert df["fit_scatter"].between(18.0, 28.0).all(), df["fit_scatter"]
+    excess, uncertainty = defect_misfit(df)
+    assert excess.max() < QC_MAX_DEFECT_RESIDUAL_DEG and uncertainty.max() < QC_MAX_DEFECT_UNCERTAINTY
+    mesh, ddf, _ = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 1000, 15.0, seed=1, noise=15.0, mesh=sphere60)
+    df = find_defects(mesh, *_with_outliers(mesh, ddf, 0.05, 101)[::-1], avg_radius=15.0)
+    error = np.linalg.norm(df[["x", "y", "z"]].to_numpy()[:, None] - 60.0 * dirs[None], axis=2).min(axis=1)
+    _, uncertainty = defect_misfit(df)
+    far = error > 5.0
+    assert far.any() and np.all((uncertainty[far] > QC_MAX_DEFECT_UNCERTAINTY) | (df["refine"][far] != "model"))
 
 
 def test_sphere_five_plus_one_minus_half(sphere60):

@@ -332,6 +332,30 @@ def test_defects_the_model_did_not_place_count_as_misfit():
     assert _unfitted(pd.DataFrame({"x": [1.0]})) == 0  # a table from before the column
 
 
+def test_a_defects_misfit_is_its_residual_beyond_its_directors_scatter_and_its_cores_uncertainty():
+    """defects_misfit counts a defect whose model residual exceeds its directors' own scatter by more than 20°
+    (√(residual² − scatter²): noisy directors that follow a defect read their noise as both) or whose core's
+    standard error exceeds 0.15 of the fit radius; a table from before fit_scatter is judged on its residual."""
+    from nemo.summary import _layer_columns, defect_misfit
+
+    defects = pd.DataFrame({
+        "charge": [0.5] * 5, "charge_rounded": [0.5] * 5, "coherency": [1.0] * 5,
+        "fit_residual": [25.0, 25.0, 10.0, 10.0, np.nan],
+        "fit_scatter": [5.0, 24.0, 9.0, 9.0, np.nan],  # a misplaced core; noisy directors that follow it
+        "fit_uncertainty": [1.0, 2.0, 1.0, 4.0, np.nan], "fit_radius": [15.0, 15.0, 15.0, 15.0, np.nan]})
+    excess, uncertainty = defect_misfit(defects)
+    np.testing.assert_allclose(excess[:4], [math.sqrt(25**2 - 5**2), 7.0, math.sqrt(19.0), math.sqrt(19.0)])
+    np.testing.assert_allclose(uncertainty[:4], np.array([1.0, 2.0, 1.0, 4.0]) / 15.0)
+    assert np.isnan(excess[4]) and np.isnan(uncertainty[4])
+    tables = {"directors": pd.DataFrame({"coherency": [1.0]}), "order": pd.DataFrame({"S": [0.5]}), "defects": defects}
+    row = _layer_columns(tables)
+    assert row["defects_misfit"] == 2  # the misplaced core, and the uncertain one (4 / 15 > 0.15)
+    assert row["defect_residual_max"] == pytest.approx(math.sqrt(600.0))
+    assert row["defect_uncertainty_max"] == pytest.approx(4.0 / 15.0)
+    old = defects.drop(columns=["fit_scatter", "fit_uncertainty"])  # a table from before the columns
+    assert _layer_columns({**tables, "defects": old})["defects_misfit"] == 2  # both residuals of 25°
+
+
 @pytest.mark.parametrize("change, measure, expected", [
     ({}, CLOSED, []),
     ({"charge_sum": 1.5, "n_defects": 3}, CLOSED, ["Σ charge 1.50 ≠ χ 2 (3 defects)"]),
@@ -451,14 +475,16 @@ def test_defects_the_model_did_not_place_count_as_misfit():
       "deconvolved (psf: none, or auto found no z blur), the measured PSF as datasets.NAME.psf helps)"]),
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
-    ({"defects_misfit": 1, "defect_residual_max": 31.2}, CLOSED,
-     ["1 defect(s) whose directors do not turn as a defect's about it (the model's fit residual up to 31° above "
-      "20°, or no core within reach): the position is uncertain (placed off the core, or a texture the directors "
-      "do not read; the defects table's fit_residual and refine)"]),
+    ({"defects_misfit": 1, "defect_residual_max": 31.2, "defect_uncertainty_max": 0.12}, CLOSED,
+     ["1 defect(s) the directors do not place (their fit residual beyond their own scatter up to 31° above 20°, the "
+      "core's standard error up to 0.12 above 0.15 of the fit radius, or no core within reach): the position is "
+      "uncertain (placed off the core, a texture the directors do not read, or directors too noisy or sparse; the "
+      "defects table's fit_residual, fit_scatter, fit_uncertainty and refine)"]),
     ({"defects_misfit": 2}, CLOSED,  # a row of frames.parquet: the count only (or unfitted defects alone)
-     ["2 defect(s) whose directors do not turn as a defect's about it (the model's fit residual above 20°, or no "
-      "core within reach): the position is uncertain (placed off the core, or a texture the directors do not read; "
-      "the defects table's fit_residual and refine)"]),
+     ["2 defect(s) the directors do not place (their fit residual beyond their own scatter above 20°, the core's "
+      "standard error above 0.15 of the fit radius, or no core within reach): the position is uncertain (placed off "
+      "the core, a texture the directors do not read, or directors too noisy or sparse; the defects table's "
+      "fit_residual, fit_scatter, fit_uncertainty and refine)"]),
     ({"defects_misfit": 0, "defect_residual_max": 12.0}, CLOSED, []),
     ({"defects_misfit": pd.NA}, CLOSED, []),
     ({"rejected_zeros": 2}, CLOSED,

@@ -18,8 +18,11 @@ Defaults follow the data: threshold 0.5 × the 90th percentile of S, suppression
 averaging radius of ORDER (read from its metadata), contour 1.5 × that radius, the refinement's
 defect-model fit over the directors within 1.125 × that radius (at most 0.75 × the surface's
 size, but not below 0.75 × the radius; the table's fit_radius). The table's fit_residual (degrees)
-is how far the directors are from that model: their own scatter (~5-15°) where they turn as a
-defect's about the core; the summary flags a defect above 20° (misplaced, or an unreadable texture).
+is how far the directors are from that model, fit_scatter how much of it is their own noise (the
+residual's scatter between neighbouring directors) and fit_uncertainty (µm) the core's standard
+error with that noise; the summary flags a defect whose residual exceeds its scatter by more than
+20° (√(residual² − scatter²): misplaced, or an unreadable texture) or whose uncertainty exceeds 0.15
+of the fit radius (directors too noisy or sparse to place it).
 
 example:
   nemo defects mesh.inner.ply order.parquet directors.parquet -o defects.parquet
