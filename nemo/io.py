@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import operator
 import os
 import re
@@ -142,6 +143,15 @@ def _calibration(vals: list[float | None], units: list[str | None]) -> tuple[tup
     return (dz, vals[1], vals[2]), next(u for u in units if u), True
 
 
+def _positive(value) -> float | None:
+    """``value`` as a float where it is a finite positive number, else None."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return number if math.isfinite(number) and number > 0 else None
+
+
 def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, float], str, bool]:
     """Return (spacing in µm or raw units, unit, calibrated)."""
     if tif.is_ome and tif.ome_metadata:
@@ -174,7 +184,9 @@ def _spacing_from_tiff(tif: tifffile.TiffFile) -> tuple[tuple[float, float, floa
             dx = dy = None
     has_xy = dx is not None and dy is not None and not (dx == 1.0 and dy == 1.0 and unit is None)
     if not has_xy and (dz is None or unit is None):
-        return (1.0, 1.0, 1.0), "pixel", False
+        # ImageJ's "pixel" unit with a voxel depth: the z step in pixels (its ratio still matters, as for OME)
+        z_pixels = _positive(dz) if dx in (None, 1.0) and dy in (None, 1.0) else None
+        return (z_pixels or 1.0, 1.0, 1.0), "pixel", False
     dx = dx if dx is not None else 1.0
     dy = dy if dy is not None else dx
     if dz is None:

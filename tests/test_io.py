@@ -132,6 +132,20 @@ def test_imagej_pixel_unit_is_uncalibrated_and_spacing_override_sets_um(tmp_path
     assert info.unit == "um" and info.spacing == (2.0, 0.5, 0.5)
 
 
+def test_an_imagej_voxel_depth_in_pixels_keeps_the_z_step(tmp_path):
+    """ImageJ's "pixel" unit with a voxel depth (spacing=2: every second plane of a stack kept) is uncalibrated
+    but its z step is not 1: it read (1, 1, 1), so the object came out half as deep (an independent review:
+    area −26 %, wall thickness 7.6 µm for 11.8). The ratio is kept, as for an OME file without units."""
+    data = np.zeros((4, 5, 6), np.uint8)
+    tifffile.imwrite(tmp_path / "px2.tif", data, imagej=True, metadata={"axes": "ZYX", "unit": "pixel", "spacing": 2.0})
+    with pytest.warns(NemoWarning, match=r"no spatial calibration: using spacing \[2.0, 1.0, 1.0\]"):
+        _, info = read_stack(tmp_path / "px2.tif")
+    assert info.unit == "pixel" and not info.calibrated and info.spacing == (2.0, 1.0, 1.0)
+    for odd in (0.0, -1.0, float("nan")):  # no usable depth: one pixel, as before
+        tifffile.imwrite(tmp_path / "odd.tif", data, imagej=True, metadata={"axes": "ZYX", "unit": "pixel", "spacing": odd})
+        assert read_info(tmp_path / "odd.tif").spacing == (1.0, 1.0, 1.0)
+
+
 def test_a_print_resolution_in_dots_per_inch_is_no_calibration(tmp_path, rng):
     """A generic writer's 72 dpi (ResolutionUnit inch) is a print size: spacing 1, unit pixel,
     uncalibrated (it read as 1/72 per voxel, labelled pixel)."""
