@@ -611,9 +611,20 @@ def _level_correction(check: Mapping | None) -> float:
     return _value(check.get("correction", 1.0 if check.get("corrected") else 0.0))
 
 
+#: What ``qc_flags`` joins its reasons with; a reason's own "; " becomes ", " (:func:`join_flags`).
+FLAG_SEPARATOR = "; "
+
+
+def join_flags(flags: Iterable[str]) -> str:
+    """The reasons as one ``qc_flags`` string that splits back on :data:`FLAG_SEPARATOR` into as many (a
+    reason's own separators read as commas: a frame's 6 reasons split into 9 parts)."""
+    return FLAG_SEPARATOR.join(flag.replace(FLAG_SEPARATOR, ", ") for flag in flags)
+
+
 def _add_flag(out: pd.DataFrame, i, flag: str) -> None:
     """Fail row ``i`` of ``out`` (in place) with one more reason, after its own."""
-    out.at[i, "qc_flags"] = f"{out.at[i, 'qc_flags']}; {flag}" if out.at[i, "qc_flags"] else flag
+    own = out.at[i, "qc_flags"]  # already joined
+    out.at[i, "qc_flags"] = f"{own}{FLAG_SEPARATOR}{join_flags([flag])}" if own else join_flags([flag])
     out.at[i, "qc_pass"] = False
 
 
@@ -719,7 +730,7 @@ def _frame_row(r: Mapping, m: Mapping, mo: Mapping, tables: Mapping[str, pd.Data
     extra = skipped and not no_directors and not _looks_empty(row)
     flags = quality_flags(row, mo) + ([f"no defect search: {skipped}"] if extra else [])
     row["qc_pass"] = not flags
-    row["qc_flags"] = "; ".join(flags)
+    row["qc_flags"] = join_flags(flags)
     return row
 
 
@@ -838,7 +849,7 @@ def alignment_summary(records: Iterable[Mapping], frames: pd.DataFrame | None = 
                "fraction_orthogonal": float((c < -0.5).mean()) if c.size else math.nan}
         flags = alignment_flags({**row, "compared": c.size / max(len(table), 1)},
                                 {name: by_layer.get((t, ch, name), []) for name in (a, b)})
-        rows.append({**row, "qc_pass": not flags, "qc_flags": "; ".join(flags)})
+        rows.append({**row, "qc_pass": not flags, "qc_flags": join_flags(flags)})
     out = pd.DataFrame(rows, columns=list(ALIGN_COLUMNS))
     out = out.astype({"t": "int64", "c": "int64", "n": "int64", "qc_pass": "bool", "qc_flags": "str"})
     return out.sort_values(["t", "c", "layer_a", "layer_b"], kind="stable").reset_index(drop=True)

@@ -71,11 +71,12 @@ def test_frame_summary_means_ignore_nan(frame_files):
         "coherency_median": 0.3, "S_mean": 0.4, "S_median": 0.2, "order_nan_fraction": 0.25,
         "n_defects": 3, "charge_sum": 0.55, "charge_rounded_sum": 0.5, "qc_pass": False,
         "qc_flags": "curvature dominated by noise: the fits scatter by 20 % of the surface's typical curvature, "
-                    "so H and K per vertex are noisy (median errors of 8 % or more in tests; a noisy wall, or a "
+                    "so H and K per vertex are noisy (median errors of 8 % or more in tests, a noisy wall, or a "
                     "surface curved on the scale of a few mesh edges); thickness found at 75 % of vertices; 33 % of "
                     "vertices have no layer intensity (samples outside the image?); 25 % of vertices have no order "
                     "value (no tangent plane or director in reach); Σ charge 0.55 ≠ χ 2 (3 defects)",
     }
+    assert len(row["qc_flags"].split("; ")) == 5  # one part per reason (the first's own "; " read as ", ")
     for key, value in expected.items():
         if isinstance(value, str):
             assert row[key] == value, key

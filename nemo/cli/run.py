@@ -108,6 +108,8 @@ def _print_qc(rows: list[dict]) -> None:
     import re
     from collections import Counter
 
+    from nemo.summary import FLAG_SEPARATOR
+
     def what(q: dict, many: bool) -> str:
         return " ".join(x for x in (q["layer"] and f"layer {q['layer']}", q["surface"],
                                     many and f"object {q['object']}") if x)
@@ -120,7 +122,7 @@ def _print_qc(rows: list[dict]) -> None:
     for key in dict.fromkeys((q["layer"], q["surface"]) for q in rows):
         mine = [q for q in rows if (q["layer"], q["surface"]) == key]
         kinds = Counter(re.sub(r"-?\d[\d.]*", "…", f.split(": ")[0]) for q in mine
-                        for f in q["qc_flags"].split("; ") if f)
+                        for f in q["qc_flags"].split(FLAG_SEPARATOR) if f)
         common = ", ".join(f"{kind} ({n})" for kind, n in kinds.most_common(3))
         print(f"quality control ({what(mine[0], False)}): {sum(q['qc_pass'] for q in mine)} of {len(mine)} objects "
               f"pass" + (f"; commonest flags: {common}" if common else "") + " (each object: summary.json's qc)")
