@@ -1059,8 +1059,8 @@ def _rim_band_fits(vertices: np.ndarray, normals: np.ndarray, tree: cKDTree, lim
         band["samples"], band["k1"], band["k2"] = f["where"], f["k1"], f["k2"]
     if near_rim.any():
         logger.info("curvature: %d of %d vertices lie within the radius %g of the open rim: %d fitted at radii "
-                    "%.3g-%g %s (%d fits), %d NaN", int(near_rim.sum()), n, radius, int((todo & near_rim).sum()),
-                    min_radius, radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
+                    "%.3g-%.3g %s (%d fits), %d NaN", int(near_rim.sum()), n, radius, int((todo & near_rim).sum()),
+                    min(min_radius, radius), radius, unit, len(band["samples"]), int((near_rim & ~np.isfinite(band["H"])).sum()))
     failed = int(np.count_nonzero(~np.isfinite(band["k1"])))
     if failed:
         warnings.warn(f"curvature: {failed} of {len(band['samples'])} fits near the open rim were degenerate "
