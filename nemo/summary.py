@@ -106,10 +106,10 @@ QC_MAX_DEFECT_RESIDUAL_DEG = 20.0
 #: Largest ``fit_uncertainty`` of a defect (the fitted core's standard error, with its directors' scatter as
 #: their noise) over its ``fit_radius`` that passes: noisy or sparse directors that follow a defect place it
 #: only that well. Independent noise on a sphere R 60 µm, fit radius 16.9 µm (4 +½): 4 000 directors with 12 /
-#: 20 / 30° read 0.07-0.12 / 0.11-0.19 / 0.16-0.25, frames' worst errors 2.5-2.8 / 3.5-5.3 / 5.5-7.7 µm; 16 000
-#: with 20-30° and 5 % outliers 0.06-0.13, errors within 2.1 µm; 1 000 with 15° and outliers 0.33-1.15, errors
-#: 2.3-12 µm. nemo's own directors read ~0.01 (their noise is correlated: docs/validation.md, "Defects whose
-#: directors do not follow the model").
+#: 20 / 30° read 0.08-0.11 / 0.11-0.18 / 0.15-0.24, frames' worst errors 2.4-2.8 / 3.5-4.8 / 5.5-6.2 µm; 16 000
+#: with 20-30° and 5 % outliers 0.07-0.14, errors within 2.1 µm; 1 000 with 15° and outliers 0.33-0.95, errors
+#: 3.7-12 µm. nemo's own directors read ~0.01 (their noise is correlated: docs/validation.md, "Noise or a
+#: misplaced core").
 QC_MAX_DEFECT_UNCERTAINTY = 0.15
 #: Columns of defects.parquet before tracking (``nemo track`` appends ``track_id``).
 DEFECT_COLUMNS = ("t", "c", "layer", "object", "x", "y", "z", "charge", "charge_rounded", "S", "vertex",
@@ -233,7 +233,7 @@ def defect_misfit(defects: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     excess = np.sqrt(np.clip(residual**2 - np.nan_to_num(scatter) ** 2, 0.0, None))
     if "fit_uncertainty" not in defects:
         return excess, nan
-    radius = defects["fit_radius"].to_numpy(np.float64)
+    radius = defects["fit_radius"].to_numpy(np.float64) if "fit_radius" in defects else nan
     return excess, defects["fit_uncertainty"].to_numpy(np.float64) / np.where(radius > 0, radius, np.nan)
 
 
@@ -274,7 +274,7 @@ def _layer_columns(tables: Mapping[str, pd.DataFrame]) -> dict:
                                                   | (uncertainty > QC_MAX_DEFECT_UNCERTAINTY)))
                              if "fit_residual" in df or not len(df) else pd.NA)  # NA: a table from before the column
     row["defect_residual_max"] = float(np.nanmax(excess)) if np.isfinite(excess).any() else math.nan
-    row["defect_uncertainty_max"] = float(np.nanmax(uncertainty)) if np.isfinite(uncertainty).any() else math.nan
+    row["defect_uncertainty_max"] = float(np.nanmax(uncertainty)) if (~np.isnan(uncertainty)).any() else math.nan
     return row
 
 
@@ -440,12 +440,14 @@ def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) ->
     if misfit is not None and not pd.isna(misfit) and misfit > 0:
         largest = row.get("defect_residual_max", math.nan)
         widest = row.get("defect_uncertainty_max", math.nan)
-        flags.append(f"{misfit} defect(s) the directors do not place (their fit residual beyond their own scatter"
-                     f"{f' up to {largest:.0f}°' if np.isfinite(largest) else ''} above {QC_MAX_DEFECT_RESIDUAL_DEG:g}°, "
-                     f"the core's standard error{f' up to {widest:.2f}' if np.isfinite(widest) else ''} above "
-                     f"{QC_MAX_DEFECT_UNCERTAINTY:g} of the fit radius, or no core within reach): the position is "
-                     "uncertain (placed off the core, a texture the directors do not read, or directors too noisy or "
-                     "sparse; the defects table's fit_residual, fit_scatter, fit_uncertainty and refine)")
+        residual = (f"up to {largest:.0f}° (limit {QC_MAX_DEFECT_RESIDUAL_DEG:g}°)" if np.isfinite(largest)
+                    else f"above {QC_MAX_DEFECT_RESIDUAL_DEG:g}°")
+        spread = ("unbounded" if widest == math.inf else f"up to {widest:.2f}" if np.isfinite(widest) else "above")
+        spread += f" (limit {QC_MAX_DEFECT_UNCERTAINTY:g})" if spread != "above" else f" {QC_MAX_DEFECT_UNCERTAINTY:g}"
+        flags.append(f"{misfit} defect(s) the directors do not place (their fit residual beyond their own scatter "
+                     f"{residual}, the core's standard error {spread} of the fit radius, or no core within reach): the "
+                     "position is uncertain (placed off the core, a texture the directors do not read, or directors too "
+                     "noisy or sparse; the defects table's fit_residual, fit_scatter, fit_uncertainty and refine)")
     zeros = row.get("rejected_zeros")
     if zeros is not None and not pd.isna(zeros) and zeros > 0:
         flags.append(f"{zeros} zero(s) of the averaged order rejected (a disordered contour or an unresolved winding, "

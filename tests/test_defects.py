@@ -338,6 +338,39 @@ def test_noisy_directors_read_their_noise_as_scatter_and_sparse_ones_an_uncertai
     assert far.any() and np.all((uncertainty[far] > QC_MAX_DEFECT_UNCERTAINTY) | (df["refine"][far] != "model"))
 
 
+@pytest.mark.parametrize("sigma_deg", [5.0, 20.0, 35.0, 45.0])
+def test_the_scatter_is_the_residual_independent_noise_leaves_even_where_it_wraps(sigma_deg):
+    """``_noise_scatter`` on pure independent noise (no misfit): the RMS residual it predicts matches the
+    wrapped angles' own RMS within 2.5°, also where the noise wraps (the neighbour differences' RMS read it
+    9.5-23° low at 30-45°, a review), and copies of each director (a table written twice) change nothing
+    (they read 0 before: each director's nearest neighbour was its copy)."""
+    from nemo.defects import _noise_scatter
+
+    rng = np.random.default_rng(int(sigma_deg))
+    n = 3000
+    xi, eta = rng.uniform(-15.0, 15.0, (2, n))
+    delta = np.radians(sigma_deg) * rng.standard_normal(n)
+    wrapped = np.degrees(np.sqrt(np.mean((0.5 * np.angle(np.exp(2j * delta))) ** 2)))
+    scatter, noise = _noise_scatter(delta, np.ones(n), xi, eta, 15.0)
+    assert scatter == pytest.approx(wrapped, abs=2.5) and np.degrees(noise) == pytest.approx(sigma_deg, rel=0.12)
+    twice = _noise_scatter(np.r_[delta, delta], np.ones(2 * n), np.r_[xi, xi], np.r_[eta, eta + 1e-3], 15.0)
+    assert twice[0] == pytest.approx(scatter, abs=1.5)
+
+
+def test_the_cores_uncertainty_does_not_depend_on_the_coherency_scale(sphere60):
+    """``fit_uncertainty`` with every director's coherency × 0.35 is about the one at 1 (the weights scale the
+    residuals, their noise with them): it read 0.07-0.14 against 0.30-0.61 of the fit radius at 0.2, a review.
+    The robust fit's loss is not scale-free (smaller residuals fall in its quadratic zone), so the cores move by
+    up to ~1 µm and the ratio reads 0.72-0.85, not 1 (about 1 / 0.35 without the weights' scale)."""
+    dirs = rotated(TETRA, 4)
+    mesh, ddf, odf = sphere_case(60.0, 1.5, dirs, [0.5] * 4, 4000, 15.0, seed=4, noise=15.0, mesh=sphere60)
+    one = find_defects(mesh, odf, ddf, avg_radius=15.0)
+    low = find_defects(mesh, odf, ddf.assign(coherency=0.35), avg_radius=15.0)
+    assert len(one) == len(low) == 4 and one["fit_uncertainty"].between(0.5, 4.0).all(), one["fit_uncertainty"]
+    ratio = low["fit_uncertainty"].to_numpy() / one["fit_uncertainty"].to_numpy()
+    assert np.all((ratio > 0.6) & (ratio < 1.4)), ratio
+
+
 def test_sphere_five_plus_one_minus_half(sphere60):
     dirs = rotated(OCTA, 5)
     charges = [-0.5, 0.5, 0.5, 0.5, 0.5, 0.5]

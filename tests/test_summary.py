@@ -355,6 +355,9 @@ def test_a_defects_misfit_is_its_residual_beyond_its_directors_scatter_and_its_c
     assert row["defect_uncertainty_max"] == pytest.approx(4.0 / 15.0)
     old = defects.drop(columns=["fit_scatter", "fit_uncertainty"])  # a table from before the columns
     assert _layer_columns({**tables, "defects": old})["defects_misfit"] == 2  # both residuals of 25°
+    assert np.isnan(defect_misfit(defects.drop(columns=["fit_radius"]))[1]).all()  # a hand-made table: no ratio
+    infinite = defects.assign(fit_uncertainty=[math.inf] * 4 + [np.nan])  # a fit that does not fix the core
+    assert _layer_columns({**tables, "defects": infinite})["defect_uncertainty_max"] == math.inf
 
 
 @pytest.mark.parametrize("change, measure, expected", [
@@ -477,8 +480,13 @@ def test_a_defects_misfit_is_its_residual_beyond_its_directors_scatter_and_its_c
     ({"defects_faint": 0, "defect_coherency_min": 0.9}, CLOSED, []),
     ({"defects_faint": pd.NA}, CLOSED, []),
     ({"defects_misfit": 1, "defect_residual_max": 31.2, "defect_uncertainty_max": 0.12}, CLOSED,
-     ["1 defect(s) the directors do not place (their fit residual beyond their own scatter up to 31° above 20°, the "
-      "core's standard error up to 0.12 above 0.15 of the fit radius, or no core within reach): the position is "
+     ["1 defect(s) the directors do not place (their fit residual beyond their own scatter up to 31° (limit 20°), the "
+      "core's standard error up to 0.12 (limit 0.15) of the fit radius, or no core within reach): the position is "
+      "uncertain (placed off the core, a texture the directors do not read, or directors too noisy or sparse; the "
+      "defects table's fit_residual, fit_scatter, fit_uncertainty and refine)"]),
+    ({"defects_misfit": 1, "defect_residual_max": 4.0, "defect_uncertainty_max": math.inf}, CLOSED,
+     ["1 defect(s) the directors do not place (their fit residual beyond their own scatter up to 4° (limit 20°), the "
+      "core's standard error unbounded (limit 0.15) of the fit radius, or no core within reach): the position is "
       "uncertain (placed off the core, a texture the directors do not read, or directors too noisy or sparse; the "
       "defects table's fit_residual, fit_scatter, fit_uncertainty and refine)"]),
     ({"defects_misfit": 2}, CLOSED,  # a row of frames.parquet: the count only (or unfitted defects alone)
