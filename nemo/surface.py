@@ -937,20 +937,36 @@ def _topology_sigma(blurred, level_of, floor: float, cap: float) -> tuple[float,
     "No noise holes": the Euler characteristic of the solid (:func:`_solid_euler`) between
     :data:`AUTO_SIGMA_MIN_EULER` and 2 per component (a hollow shell). A noisy wall thresholded at
     too small a σ is full of tunnels (χ ≪ 0) and bubbles (χ ≫ 0), or the threshold catches bright
-    texture instead of the wall; all vanish once the blur has averaged the noise. When no σ of
-    the ladder reaches it (a truly porous object), the σ closest to it (the smallest among equals).
+    texture instead of the wall; all vanish once the blur has averaged the noise. Where the noise made
+    the ladder climb and the σ it stops at leaves a tunnel or an opening (χ below 2 per component: a
+    torus, a cup, a ball, or the noise's last pore through a shell), the next rung is taken if it makes
+    every component a hollow shell, with as many components (a z-blurred shell at SNR 3 kept a pore
+    and was meshed as one wall); a torus's hole, a real pore or a ball's solid stays, and holes already
+    there at the default blur (a clean image) are the object's own. When no σ of the ladder reaches the
+    range (a truly porous object), the σ closest to it (the smallest among equals).
 
     ``blurred(σ)`` is the sample blurred by σ, ``level_of(b)`` its iso-level (as reconstruct's).
     Returns σ and the ladder as [(σ, χ, components), ...].
     """
-    ladder = []
+    ladder, accepted = [], None
     sigma = floor
     while sigma <= cap * (1 + 1e-9):  # a handful of blurs of the strided sample
         b = blurred(sigma)
         ladder.append((float(sigma), *_solid_euler(b >= level_of(b))))
-        if _hole_excess(*ladder[-1][1:]) == 0:
-            return float(sigma), ladder
+        chi, components = ladder[-1][1:]
+        if accepted is None and _hole_excess(chi, components) == 0:
+            accepted = ladder[-1]
+            if chi == 2 * components or sigma == floor:  # shells; or the object's own holes at the default blur
+                break
+        elif accepted is not None:
+            break  # one rung beyond the accepted σ, past the noise's last pore
         sigma *= AUTO_SIGMA_LADDER
+    if accepted is not None:
+        # a tunnel or an opening left as the noise's blur rose (a z-blurred wall at SNR 3 kept a pore and was
+        # meshed as one wall) closes a rung later where a torus's hole, a real pore or a ball's solid stays
+        last = ladder[-1]
+        shell = last[0] > accepted[0] and last[2] == accepted[2] and last[1] == 2 * last[2]
+        return (last if shell else accepted)[0], ladder
     best = min(ladder, key=lambda item: (_hole_excess(*item[1:]), item[0]))
     return best[0], ladder
 

@@ -1207,3 +1207,31 @@ def test_a_thin_wall_under_a_z_psf_is_meshed_at_its_resolved_plateau(seed):
     centre = np.array([31.5, 31.5, 31.0])
     radius = {w: float(np.median(np.linalg.norm(meshes[w].vertices - centre, axis=1))) for w in ("inner", "outer")}
     assert radius["outer"] - radius["inner"] == pytest.approx(5.0, abs=0.5), radius
+
+
+def test_the_blur_ladder_closes_a_pore_through_a_shell_and_keeps_a_torus():
+    """The noise-aware blur's topology ladder (``_topology_sigma``) accepts a solid with a tunnel (χ 0: a torus),
+    but where the noise made it climb it takes the next rung if that closes the solid into a hollow shell (χ 2):
+    a noisy z-blurred shell at SNR 3 kept a pore through its wall at the first accepted σ and was meshed as one
+    wall (no thickness, its defects lost). A torus's hole, a pore that stays, and holes already there at the
+    default blur (a clean porous shell: tests/test_stages.py) keep the first σ."""
+    from nemo.surface import _topology_sigma
+
+    z, y, x = np.mgrid[-20:21, -20:21, -20:21].astype(float)
+    r = np.sqrt(x**2 + y**2 + z**2)
+    shell = (r >= 10) & (r < 15)
+    drilled = shell & (np.hypot(x, y) > 2.5)  # a tunnel through both sides: χ 0
+    rng = np.random.default_rng(0)
+    noisy = shell & (rng.random(shell.shape) > 0.3)  # the noise's tunnels and bubbles at the default blur
+
+    def noise_then(pore_until):  # noise up to 0.6, then a pore until ``pore_until``, then a closed shell
+        return lambda sigma: (noisy if sigma < 0.6 else drilled if sigma < pore_until else shell).astype(float)
+
+    sigma, ladder = _topology_sigma(noise_then(0.8), lambda b: 0.5, 0.5, 3.0)
+    assert ladder[0][1] != 0 and [item[1] for item in ladder[1:]] == [0, 2] and sigma == pytest.approx(0.845)
+    sigma, ladder = _topology_sigma(noise_then(10.0), lambda b: 0.5, 0.5, 3.0)  # the pore stays: one rung looked at
+    assert sigma == pytest.approx(0.65) and [item[1] for item in ladder[1:]] == [0, 0]
+    torus = (np.hypot(np.hypot(x, y) - 12, z) < 4).astype(float)
+    assert _topology_sigma(lambda s: torus if s > 0.6 else noisy.astype(float), lambda b: 0.5, 0.5, 3.0)[0] == pytest.approx(0.65)
+    assert _topology_sigma(lambda s: drilled.astype(float) if s < 1.0 else shell.astype(float), lambda b: 0.5, 0.5,
+                           3.0)[0] == 0.5  # a clean image's own pore: the default blur stays
