@@ -939,10 +939,11 @@ def _topology_sigma(blurred, level_of, floor: float, cap: float) -> tuple[float,
     too small a σ is full of tunnels (χ ≪ 0) and bubbles (χ ≫ 0), or the threshold catches bright
     texture instead of the wall; all vanish once the blur has averaged the noise. Where the noise made
     the ladder climb and the σ it stops at leaves a tunnel or an opening (χ below 2 per component: a
-    torus, a cup, a ball, or the noise's last pore through a shell), the next rung is taken if it makes
-    every component a hollow shell, with as many components (a z-blurred shell at SNR 3 kept a pore
-    and was meshed as one wall); a torus's hole, a real pore or a ball's solid stays, and holes already
-    there at the default blur (a clean image) are the object's own. When no σ of the ladder reaches the
+    torus, a cup, a ball, or the noise's last pore through a shell), the next rung is taken if its χ is
+    2 per component in all, with as many components (every one a hollow shell; the sum does not tell a
+    cup beside a ball with two voids, nor a solid with a noise void, from that); a z-blurred shell at SNR 3
+    kept a pore and was meshed as one wall. A torus's hole, a real pore or a ball's solid stays, and holes
+    already there at the default blur (a clean image) are the object's own. When no σ of the ladder reaches the
     range (a truly porous object), the σ closest to it (the smallest among equals).
 
     ``blurred(σ)`` is the sample blurred by σ, ``level_of(b)`` its iso-level (as reconstruct's).
@@ -959,11 +960,12 @@ def _topology_sigma(blurred, level_of, floor: float, cap: float) -> tuple[float,
             if chi == 2 * components or sigma == floor:  # shells; or the object's own holes at the default blur
                 break
         elif accepted is not None:
-            break  # one rung beyond the accepted σ, past the noise's last pore
+            break  # one rung beyond the accepted σ, past the noise's last pore (the ladder records it, taken or not)
         sigma *= AUTO_SIGMA_LADDER
     if accepted is not None:
         # a tunnel or an opening left as the noise's blur rose (a z-blurred wall at SNR 3 kept a pore and was
-        # meshed as one wall) closes a rung later where a torus's hole, a real pore or a ball's solid stays
+        # meshed as one wall) closes a rung later where a torus's hole, a real pore or a ball's solid stays;
+        # χ is summed over the components, so 2 each is read from the total
         last = ladder[-1]
         shell = last[0] > accepted[0] and last[2] == accepted[2] and last[1] == 2 * last[2]
         return (last if shell else accepted)[0], ladder
