@@ -442,8 +442,8 @@ def _layer_flags(row: Mapping, closed: bool, chi: float, cut_by_border: bool) ->
         widest = row.get("defect_uncertainty_max", math.nan)
         residual = (f"up to {largest:.0f}° (limit {QC_MAX_DEFECT_RESIDUAL_DEG:g}°)" if np.isfinite(largest)
                     else f"above {QC_MAX_DEFECT_RESIDUAL_DEG:g}°")
-        spread = ("unbounded" if widest == math.inf else f"up to {widest:.2f}" if np.isfinite(widest) else "above")
-        spread += f" (limit {QC_MAX_DEFECT_UNCERTAINTY:g})" if spread != "above" else f" {QC_MAX_DEFECT_UNCERTAINTY:g}"
+        spread = (f"above {QC_MAX_DEFECT_UNCERTAINTY:g}" if np.isnan(widest) else
+                  f"{'unbounded' if np.isinf(widest) else f'up to {widest:.2f}'} (limit {QC_MAX_DEFECT_UNCERTAINTY:g})")
         flags.append(f"{misfit} defect(s) the directors do not place (their fit residual beyond their own scatter "
                      f"{residual}, the core's standard error {spread} of the fit radius, or no core within reach): the "
                      "position is uncertain (placed off the core, a texture the directors do not read, or directors too "
@@ -625,8 +625,8 @@ def join_flags(flags: Iterable[str]) -> str:
 
 def _add_flag(out: pd.DataFrame, i, flag: str) -> None:
     """Fail row ``i`` of ``out`` (in place) with one more reason, after its own."""
-    own = out.at[i, "qc_flags"]  # already joined
-    out.at[i, "qc_flags"] = f"{own}{FLAG_SEPARATOR}{join_flags([flag])}" if own else join_flags([flag])
+    own, reason = out.at[i, "qc_flags"], join_flags([flag])  # its own reasons already joined
+    out.at[i, "qc_flags"] = f"{own}{FLAG_SEPARATOR}{reason}" if own else reason
     out.at[i, "qc_pass"] = False
 
 

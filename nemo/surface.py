@@ -1901,9 +1901,8 @@ def reconstruct(
                         profile_info["level"], profile_info["fitted"], profile_info["rays"], profile_info["level_half"])
     edge_check = {}
     if edge == "half" and isinstance(how, str) and mask is None and not object_levels and len(mesh.faces):
-        edge_check = _edge_check(mesh, source, padded, level, (dz, dy, dx), step, scale)
+        level, edge_check = _checked_level(mesh, source, padded, level, (dz, dy, dx), step, scale)
         if edge_check["corrected"]:  # plain walls, a small offset: meshed again at (or towards) their profiles' level
-            level += edge_check["correction"] * (edge_check["level_profile"] / scale - level)
             mesh = _level_surface(padded, level, (dz, dy, dx), step, box, unit, keep)
     snap_info = _snap(mesh, padded, level, (dz, dy, dx), step, box)
     del padded
@@ -2020,10 +2019,18 @@ def checked_half_level(volume: np.ndarray, spacing, sigma: float, step: int, thr
     mesh = _level_surface(padded, level, (dz, dy, dx), step, box, "um", "all") if not levels else None
     if mesh is None or not len(mesh.faces):
         return float(level) * scale, {}, objects
-    check = _edge_check(mesh, source, padded, level, (dz, dy, dx), step, scale)
+    level, check = _checked_level(mesh, source, padded, level, (dz, dy, dx), step, scale)
+    return float(level) * scale, {**check, "image": "before deconvolution"}, objects
+
+
+def _checked_level(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, level: float,
+                   spacing: tuple[float, float, float], step: int, scale: float) -> tuple[float, dict]:
+    """``level`` (the blurred field's units) after :func:`_edge_check` along ``mesh``'s normals and the share of
+    the way to the walls' profiles' level it corrects, with the check's record."""
+    check = _edge_check(mesh, source, padded, level, spacing, step, scale)
     if check["corrected"]:
         level += check["correction"] * (check["level_profile"] / scale - level)
-    return float(level) * scale, {**check, "image": "before deconvolution"}, objects
+    return level, check
 
 
 def _edge_check(mesh: trimesh.Trimesh, source: np.ndarray, padded: np.ndarray, level: float,
