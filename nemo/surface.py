@@ -1189,7 +1189,7 @@ def _yen_flat_top(sample: np.ndarray) -> tuple[float, float, float] | None:
 
     Yen's criterion (scikit-image's, computed here because ``threshold_yen`` returns only its
     argmax) on a textured tissue with no plateau in its histogram is flat over a wide range: on the
-    organoid stack it lies within 0.003 of its best from 508 to 641 counts, so the argmax jumped
+    organoid stack it lies within 0.005 of its best from 508 to 641 counts, so the argmax jumped
     between 445 and 611 as noise was added. The flat top is the bins whose criterion (its log) lies
     within :data:`YEN_FLAT_TOP` of the best (between noise realisations it moves by 0.001–0.003
     there); its middle is their median. None when the criterion is nowhere finite.
