@@ -1681,7 +1681,7 @@ def _topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
 def _image_quality(mesh: trimesh.Trimesh) -> dict:
     """What NEMO's mesh step found in the image (None for meshes from elsewhere)."""
     params = mesh.metadata.get("nemo_params") or {}
-    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "walls",
+    return {key: params.get(key) for key in ("n_objects", "snr", "noise", "saturated", "rim_loops", "largest_hole", "walls",
                                              "regions", "turned_out", "mask_offset", "mask_offset_limit",
                                              "mask_contrast", "edge_check", "deconvolution")}
 

@@ -130,8 +130,10 @@ def mesh(
         meets the image border: removed with ``border: open``) and the open rim of the analysed
         surface, ``rim_vertices`` and ``rim_loops`` (0 for a closed surface; with ``keep: all`` and
         several objects a list of each object's, so that a closed object beside a cut one is not
-        counted as cut); ``wall_rim_loops`` the same for each mesh returned, by name (a wall
-        keeps its own: :func:`wall_params`).
+        counted as cut), ``largest_hole`` (the length of its longest boundary loop off the image
+        border, 0 without one: a wall faded or torn away, judged by the quality control); ``wall_rim_loops``
+        and ``wall_largest_hole`` the same for each mesh returned, by name (a wall keeps its own:
+        :func:`wall_params`).
 
     Raises
     ------
@@ -216,18 +218,22 @@ def mesh(
     if info["n_loops"]:
         logger.info("open surface (cut by the image border): %d rim loop(s), %d rim vertices",
                     info["n_loops"], info["n_vertices"])
-    p["wall_rim_loops"] = _wall_rim_loops(meshes, info, len(found) if p["keep"] == "all" and len(found) > 1 else 0)
-    p["rim_loops"] = p["wall_rim_loops"]["whole"]
+    p.update(_wall_openings(meshes, info, len(found) if p["keep"] == "all" and len(found) > 1 else 0))
     stamp_walls(meshes, p)
     return meshes, p
 
 
-def _wall_rim_loops(meshes: dict[str, trimesh.Trimesh], whole_rim: dict, n_objects: int) -> dict:
-    """Each wall's own rim loops (:func:`_rim_loops`; its holes are its loops beyond them: the split
-    opens one round every pore of a porous wall), each object's own with ``n_objects`` (one beside a
-    cut object is not cut); ``whole_rim`` is :func:`nemo.geometry.rim` of ``meshes["whole"]``."""
+def _wall_openings(meshes: dict[str, trimesh.Trimesh], whole_rim: dict, n_objects: int) -> dict:
+    """The mesh step's record of the walls' openings: ``wall_rim_loops`` and ``wall_largest_hole``, each wall's
+    own (:func:`_rim_loops`; its holes are its loops beyond the rims: the split opens one round every pore of a
+    porous wall, and one round the lip where a wall has faded or torn away), each object's own with
+    ``n_objects`` (one beside a cut object is not cut), and the analysed surface's ``rim_loops`` and
+    ``largest_hole``; ``whole_rim`` is :func:`nemo.geometry.rim` of ``meshes["whole"]``."""
     border = np.asarray(meshes["whole"].vertices)[whole_rim["vertices"]]  # where the image border cuts it
-    return {name: _rim_loops(m, n_objects, border) for name, m in meshes.items()}
+    openings = {name: _rim_loops(m, n_objects, border) for name, m in meshes.items()}
+    return {"wall_rim_loops": {name: rims for name, (rims, _) in openings.items()},
+            "wall_largest_hole": {name: hole for name, (_, hole) in openings.items()},
+            "rim_loops": openings["whole"][0], "largest_hole": openings["whole"][1]}
 
 
 def stamp_walls(meshes: dict[str, trimesh.Trimesh], params: dict) -> None:
@@ -241,35 +247,50 @@ def stamp_walls(meshes: dict[str, trimesh.Trimesh], params: dict) -> None:
 def wall_params(params: dict, name: str) -> dict:
     """The mesh step's record ``params`` as the wall ``name`` (``whole``, ``inner``, ``outer``) keeps it.
 
-    ``rim_loops`` becomes that wall's own (``params["wall_rim_loops"]``), so that its boundary loops
-    beyond them count as holes (:func:`nemo.summary.quality_flags`); records without it are returned as is.
+    ``rim_loops`` and ``largest_hole`` become that wall's own (``params["wall_rim_loops"]``,
+    ``params["wall_largest_hole"]``), so that its boundary loops beyond its rims count as holes, and its
+    largest hole is judged against its own area (:func:`nemo.summary.quality_flags`); records without them
+    are returned as is.
     """
     own = (params.get("wall_rim_loops") or {}).get(name)
-    return params if own is None else {**params, "rim_loops": own}
+    if own is None:
+        return params
+    return {**params, "rim_loops": own, "largest_hole": (params.get("wall_largest_hole") or {}).get(name)}
 
 
-def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> int | list[int]:
-    """Rim loops of ``mesh`` (one of the analysed surface's walls): its boundary loops through a point
-    of ``border`` (M, 3), the analysed surface's rim where the image border cuts it (a wall is a piece of
-    that surface, so its points are the same numbers); with ``n_objects`` > 0 a list of each object's
-    of the labelled mesh, by label."""
+def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> tuple:
+    """Rim loops and the largest hole of ``mesh`` (one of the analysed surface's walls).
+
+    Its rim loops are its boundary loops through a point of ``border`` (M, 3), the analysed surface's
+    rim where the image border cuts it (a wall is a piece of that surface, so its points are the same
+    numbers); its holes are its other boundary loops, and the largest hole is the longest one's length
+    (mesh unit; 0 without a hole). With ``n_objects`` > 0 each is a list of each object's of the
+    labelled mesh, by label.
+    """
     from scipy.spatial import cKDTree
 
     from nemo.geometry import rim
 
-    info = rim(mesh.faces, len(mesh.vertices))
+    vertices = np.asarray(mesh.vertices)
+    info = rim(mesh.faces, len(vertices))
     on_rim = np.flatnonzero(info["loop"] >= 0)
+    at_border = np.zeros(info["n_loops"], dtype=bool)
     if len(on_rim) and len(border):
         tol = 1e-9 * max(float(np.ptp(border, axis=0).max()), 1e-300)  # the same numbers, in any unit
-        points = np.asarray(mesh.vertices)[on_rim]
-        at_border = cKDTree(border).query(points, distance_upper_bound=tol)[0] <= tol
-        loops = np.unique(info["loop"][on_rim[at_border]], return_index=True)[1]  # a border vertex of each such loop
-        vertices = on_rim[at_border][loops]
-    else:
-        vertices = np.zeros(0, dtype=np.int64)
+        near = cKDTree(border).query(vertices[on_rim], distance_upper_bound=tol)[0] <= tol
+        at_border[info["loop"][on_rim[near]]] = True
+    edges = info["edges"]
+    lengths = np.bincount(info["loop"][edges[:, 0]], np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1),
+                          minlength=info["n_loops"]) if len(edges) else np.zeros(0)
+    holes = np.where(at_border, 0.0, lengths)
     if not n_objects:
-        return int(len(vertices))
-    return np.bincount(objects.vertex_labels(mesh)[vertices], minlength=n_objects).astype(int).tolist()
+        return int(at_border.sum()), float(holes.max(initial=0.0))
+    first = np.unique(info["loop"][on_rim], return_index=True)[1]  # a vertex of each loop, loops in order
+    label = objects.vertex_labels(mesh)[on_rim[first]] if len(first) else np.zeros(0, dtype=np.int64)
+    rims = np.bincount(label[at_border], minlength=n_objects).astype(int).tolist()
+    largest = np.zeros(n_objects)
+    np.maximum.at(largest, label, holes)
+    return rims, largest.tolist()
 
 
 def _image_to_mesh(volume, spacing, p: dict, psf, unit: str, deconvolved, mask) -> tuple[np.ndarray, str | float, dict]:
@@ -707,7 +728,7 @@ def measure(mesh: trimesh.Trimesh, curvature_df: pd.DataFrame | None = None) -> 
             for part in split:  # a loop over objects
                 record = measure(part.mesh, None if curvature_df is None else objects.local_table(curvature_df, part))
                 record.pop("walls", None)  # the frame's list, one per object: in the frame's record only
-                for key in ("rim_loops", "mask_offset", "mask_contrast"):  # each object's own
+                for key in ("rim_loops", "largest_hole", "mask_offset", "mask_contrast"):  # each object's own
                     record[key] = objects.value_for(record.get(key), part.label)
                 result["objects"].append({**record, "object": part.label})
     return result

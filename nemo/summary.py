@@ -54,6 +54,11 @@ QC_MIN_EULER = -2
 #: Most holes (boundary loops besides the rims where the image border cuts the object) that pass:
 #: a few from a small tear; more mean a porous, torn wall.
 QC_MAX_HOLES = 2
+#: Largest disc a hole may span (its length L: L² / 4π) as a fraction of its surface's area: a wall that
+#: faded below the level (with depth in a thick sample) or tore away leaves one wide opening, its area short
+#: by more than that disc (an independent review's shells fading with depth: 0.5-0.8, their area −22 to −35 %;
+#: a small tear 0.006-0.011, area −2 %).
+QC_MAX_HOLE_SPAN = 0.05
 #: Largest fraction of vertices without a curvature fit that passes (an open surface has a band
 #: along its rim where the fit neighbourhood is cut; most of the surface must still be fitted).
 QC_MAX_CURVATURE_NAN = 0.5
@@ -353,6 +358,7 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     holes = (measure.get("n_boundary_loops") or 0) - (measure.get("rim_loops") or 0)
     if holes > QC_MAX_HOLES:
         flags.append(f"surface has {holes} holes besides its rim on the image border (a porous or torn wall?)")
+    flags += _opening_flags(measure)
     flags += _curvature_flags(row)
     valid, every = _value(row.get("thickness_valid_in_view")), _value(row.get("thickness_valid"))
     cut = np.isfinite(valid) and bool(row.get("thickness_beyond_view"))  # some rays left the view, some stayed
@@ -362,6 +368,20 @@ def quality_flags(row: Mapping, measure: Mapping) -> list[str]:
     rim_loops = measure.get("rim_loops")  # None: not recorded (an imported surface, an older record)
     cut_by_border = bool(rim_loops) if rim_loops is not None else not closed
     return flags + (_layer_flags(row, closed, chi, cut_by_border) if "n_directors" in row else [])
+
+
+def _opening_flags(measure: Mapping) -> list[str]:
+    """A hole (a boundary loop off the image border) wider than :data:`QC_MAX_HOLE_SPAN` of the surface's area."""
+    hole, area = _value(measure.get("largest_hole")), _value(measure.get("area"))
+    if not (np.isfinite(hole) and np.isfinite(area) and area > 0):
+        return []
+    span = hole * hole / (4.0 * math.pi) / area
+    if span <= QC_MAX_HOLE_SPAN:
+        return []
+    unit = {"um": "µm", "micron": "µm", None: ""}.get(measure.get("unit"), measure.get("unit"))
+    return [f"surface has an opening {hole / math.pi:.3g} {unit} across besides its rim on the image border (the disc "
+            f"it spans is {100 * span:.0f} % of the surface's area): a wall that faded below the level (with depth, or "
+            "uneven light) or tore away, its area short and no volume, or an object open there (a cup)"]
 
 
 def _curvature_flags(row: Mapping) -> list[str]:

@@ -670,6 +670,32 @@ def _cut_shell(r_in=9.0, r_out=14.0, centre=(22.0, 22.0, 16.0)):
     return (200.0 * edge(r - r_out) * edge(r_in - r)).astype(np.float32), np.array(centre)
 
 
+def test_the_mesh_step_records_the_walls_largest_opening():
+    """A shell (wall 14-19 µm) whose top beyond z = 8 µm above its centre is gone (a cup: a wall that faded below
+    the level with depth) has one boundary loop per wall off the image border, round its lip: its length lies
+    between the lip circles of the two walls' spheres, 2π √(14² − 8²) and 2π √(19² − 8²). A closed shell records
+    0, and the quality control flags the cup's walls (the disc the opening spans against each wall's area)."""
+    from scipy.ndimage import gaussian_filter
+
+    from nemo.summary import quality_flags
+
+    z, y, x = np.indices((50, 50, 50)).astype(np.float64)
+    r = np.sqrt((x - 25) ** 2 + (y - 25) ** 2 + (z - 25) ** 2)
+    shell = (r >= 14) & (r <= 19)
+    with pytest.warns(NemoWarning, match="thin sheet"):
+        meshes, p = stages.mesh(gaussian_filter(200.0 * (shell & (z < 33)), 1.0), (1.0, 1.0, 1.0), {})
+    low, high = 2 * np.pi * np.sqrt(14**2 - 8**2), 2 * np.pi * np.sqrt(19**2 - 8**2)
+    assert p["walls"] == 2 and p["largest_hole"] == 0.0 and p["wall_rim_loops"] == {"whole": 0, "inner": 0, "outer": 0}
+    for wall in ("inner", "outer"):
+        assert low - 3 < p["wall_largest_hole"][wall] < high + 3, p["wall_largest_hole"]
+        record = stages.measure(meshes[wall])
+        assert record["largest_hole"] == p["wall_largest_hole"][wall]
+        assert any("opening" in flag for flag in quality_flags({"euler_characteristic": 1.0}, record))
+    meshes, p = stages.mesh(gaussian_filter(200.0 * shell, 1.0), (1.0, 1.0, 1.0), {})
+    assert p["wall_largest_hole"] == {"whole": 0.0, "inner": 0.0, "outer": 0.0}
+    assert not any("opening" in flag for flag in quality_flags({"euler_characteristic": 2.0}, stages.measure(meshes["inner"])))
+
+
 def test_split_auto_splits_a_torn_shell_and_keeps_a_filled_torus_whole():
     """A shell (wall 14-19 µm) with a hole through its wall at one pole is one surface whose sides
     face the centre and away from it: a thin sheet (5 µm across, 0.14 of its size), so ``split:

@@ -374,6 +374,16 @@ def test_a_defects_misfit_is_its_residual_beyond_its_directors_scatter_and_its_c
     ({"charge_sum": 0.0}, {"n_components": 1, "n_boundary_loops": 7, "rim_loops": 7}, []),  # cut by the border
     ({"charge_sum": 0.0}, {"n_components": 1, "n_boundary_loops": 9, "rim_loops": 2},
      ["surface has 7 holes besides its rim on the image border (a porous or torn wall?)"]),
+    # one wide opening (a shell whose top faded with depth: a cup): the disc its loop spans, L² / 4π, against the area
+    ({"charge_sum": 0.5}, {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 0, "largest_hole": 185.0,
+                           "area": 3370.0, "unit": "um"},
+     ["surface has an opening 58.9 µm across besides its rim on the image border (the disc it spans is 81 % of the "
+      "surface's area): a wall that faded below the level (with depth, or uneven light) or tore away, its area short "
+      "and no volume, or an object open there (a cup)"]),
+    ({"charge_sum": 0.5}, {"n_components": 1, "n_boundary_loops": 2, "rim_loops": 0, "largest_hole": 26.1,
+                           "area": 4928.0}, []),  # a small tear: 1.1 % of the area
+    ({"charge_sum": 0.5}, {"n_components": 1, "n_boundary_loops": 1, "rim_loops": 0, "largest_hole": None,
+                           "area": 4928.0}, []),  # not recorded (an imported surface)
     ({"thickness_valid": 0.5}, CLOSED, ["thickness found at 50 % of vertices"]),
     ({"thickness_valid": 0.0, "walls": 1}, CLOSED, []),  # one wall (split: auto): no thickness to find
     ({"thickness_valid": 0.0, "walls": 2}, CLOSED, ["thickness found at 0 % of vertices"]),
