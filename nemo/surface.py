@@ -1192,7 +1192,8 @@ def _yen_flat_top(sample: np.ndarray) -> tuple[float, float, float] | None:
     organoid stack it lies within 0.005 of its best from 508 to 641 counts, so the argmax jumped
     between 445 and 611 as noise was added. The flat top is the bins whose criterion (its log) lies
     within :data:`YEN_FLAT_TOP` of the best (between noise realisations it moves by 0.001–0.003
-    there); its middle is their median. None when the criterion is nowhere finite.
+    there), and its middle is their median (the bins may form several runs: the median can fall between
+    two of them, half-way between near-equal candidates). None when the criterion is nowhere finite.
     """
     from skimage.exposure import histogram
 
@@ -1250,6 +1251,7 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
     if not ok.any():  # no plateau peak (a blob, or a wall smeared by texture and noise)
         # half-way to the object's median, never below the threshold: a textured noisy wall gets
         # its half-maximum level, a blob (median near the threshold) the threshold
+        threshold_argmax = thr
         if flat_top is not None:
             thr = flat_top[0]
             above = sample[sample > thr]
@@ -1257,8 +1259,10 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
             return thr
         level = max(thr, 0.5 * (background + float(np.median(above))))
         if not quiet:
-            where = "half-way to the object's median" if level != thr else f"at the {method} threshold" + (
-                "" if flat_top is None else f" (the middle of its flat criterion, {flat_top[1]:.4g} to {flat_top[2]:.4g})")
+            where = "half-way to the object's median" if level != thr else (
+                f"at the {method} threshold" if flat_top is None else f"at the middle of Yen's flat criterion, "
+                f"{flat_top[0]:.4g} ({flat_top[1]:.4g} to {flat_top[2]:.4g}; its argmax, the classification threshold, "
+                f"{threshold_argmax:.4g})")
             logger.info("no object plateau in the intensity histogram: surface %s", where)
         return level
     return 0.5 * (background + _peak_plateau(sub, background, edges, counts, peaks, ok))
@@ -1323,6 +1327,8 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
         return None
     q25, q75 = np.percentile(inside, [25, 75])
     first = (depth > INTERIOR_EDGE_WIDTHS) & (depth <= INTERIOR_EDGE_WIDTHS + 1.0)  # the interior's first σ
+    if not first.any():  # no sample in the interior's first σ (a coarse grid): no step to judge flatness by
+        return None
     plateau, rim = float(np.median(core)), float(np.median(sub[first]))
     flat = max((q75 - q25) / 1.349, abs(plateau - rim)) <= INTERIOR_MAX_SPREAD * (plateau - background)
     return plateau if plateau > median and flat else None
