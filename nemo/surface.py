@@ -1327,10 +1327,9 @@ def _interior_plateau(sub: np.ndarray, thr: float, background: float, median: fl
         return None
     q25, q75 = np.percentile(inside, [25, 75])
     first = (depth > INTERIOR_EDGE_WIDTHS) & (depth <= INTERIOR_EDGE_WIDTHS + 1.0)  # the interior's first σ
-    if not first.any():  # no sample in the interior's first σ (a coarse grid): no step to judge flatness by
-        return None
-    plateau, rim = float(np.median(core)), float(np.median(sub[first]))
-    flat = max((q75 - q25) / 1.349, abs(plateau - rim)) <= INTERIOR_MAX_SPREAD * (plateau - background)
+    plateau = float(np.median(core))
+    step = abs(plateau - float(np.median(sub[first]))) if first.any() else 0.0  # none in it (a coarse grid): the spread
+    flat = max((q75 - q25) / 1.349, step) <= INTERIOR_MAX_SPREAD * (plateau - background)
     return plateau if plateau > median and flat else None
 
 
