@@ -198,7 +198,7 @@ def mesh(
         warnings.warn(f"signal-to-noise ratio {p['snr']:.2g} of the segmented channel: the surface is uncertain (a "
                       f"frame below {QC_MIN_SNR:g} is flagged in the summary); check the channel and the time point",
                       NemoWarning, stacklevel=2)
-    _check_object_size(whole, spacing, unit)
+    _check_object_size(whole, spacing, unit, None if mask is not None else volume)
     analysed = found if p["keep"] == "all" else found[:1]
     regions = regions_per_object(whole, analysed, surface.get("region_peaks") or _voxel_points(mask_regions, spacing))
     _warn_joined_regions(regions, from_mask=mask_regions is not None)
@@ -423,18 +423,43 @@ def _warn_joined_regions(regions: list[int], from_mask: bool = False) -> None:
                       "Give a mask that labels them apart (e.g. Cellpose or StarDist labels)", NemoWarning, stacklevel=3)
 
 
-def _check_object_size(whole: trimesh.Trimesh, spacing: tuple[float, float, float], unit: str) -> None:
+def _check_object_size(whole: trimesh.Trimesh, spacing: tuple[float, float, float], unit: str,
+                       volume: np.ndarray | None = None) -> None:
     """Refuse a surface whose largest piece is smaller than a voxel (specks selected by a wrong
-    threshold or label)."""
+    threshold or label); the error names isolated hot voxels of ``volume`` (:func:`_hot_voxels`) when
+    there are any, the likely specks."""
     from nemo.surface import face_components
 
     labels = face_components(np.asarray(whole.faces), len(whole.vertices))
     area = float(np.bincount(labels, weights=whole.area_faces).max())
     radius = float(np.sqrt(area / (4 * np.pi)))
     if radius < max(spacing):
+        hot = 0 if volume is None else _hot_voxels(volume)
+        cause = (f"; {hot} voxel(s) of the image stand far above all their neighbours (a camera's hot pixels?): the "
+                 "automatic threshold took them for the object; remove them (e.g. a 3x3x3 median filter) or give "
+                 "mesh.threshold" if hot else "")
         raise NemoError(f"the object found is smaller than a voxel (area {area:.3g} {unit}², radius of equal area "
                         f"{radius:.3g} {unit}, voxels up to {max(spacing):.3g} {unit}): no surface to analyse; check the "
-                        "threshold, the mask (and its labels) or the channel")
+                        f"threshold, the mask (and its labels) or the channel{cause}")
+
+
+def _hot_voxels(volume: np.ndarray) -> int:
+    """Voxels (of a (Z, Y, X) image) that exceed every one of their 26 neighbours by more than the image's
+    contrast (its 99.9th percentile above its median): no blurred image of an object does that, a camera's
+    hot pixel does. Only the voxels above median + contrast are looked at (vectorised over them)."""
+    median, top = np.percentile(volume, [50, 99.9])
+    contrast = float(top - median)
+    candidates = np.flatnonzero(volume > median + contrast)
+    if not len(candidates) or contrast <= 0 or len(candidates) > 100_000:  # many: bright structure, not specks
+        return 0
+    zyx = np.stack(np.unravel_index(candidates, volume.shape), axis=1)
+    steps = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)]) - 1
+    around = zyx[:, None, :] + steps[None]
+    inside = ((around >= 0) & (around < np.array(volume.shape))).all(axis=2)  # beyond the border: no neighbour
+    around = np.clip(around, 0, np.array(volume.shape) - 1)
+    values = volume[around[..., 0], around[..., 1], around[..., 2]].astype(np.float64)
+    brightest = np.where(inside, values, -np.inf).max(axis=1)
+    return int(np.count_nonzero(volume.flat[candidates].astype(np.float64) - brightest > contrast))
 
 
 def _object_walls(whole: trimesh.Trimesh, found: list[dict], p: dict) -> dict[str, trimesh.Trimesh]:

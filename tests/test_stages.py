@@ -670,6 +670,26 @@ def _cut_shell(r_in=9.0, r_out=14.0, centre=(22.0, 22.0, 16.0)):
     return (200.0 * edge(r - r_out) * edge(r_in - r)).astype(np.float32), np.array(centre)
 
 
+def test_hot_pixels_that_the_threshold_takes_for_the_object_are_named():
+    """Five voxels at 60 000 in a uint16 stack (2 µm planes) of a ball 50 counts above a background of 100 (a
+    camera's hot pixels): the automatic threshold takes them for the object, and the mesh step's refusal (an
+    object smaller than a voxel) now names them; the blurred ball alone has none (its brightest voxels have
+    bright neighbours). Hot pixels on the stack's border count too (their neighbours beyond it do not exist)."""
+    from scipy.ndimage import gaussian_filter
+
+    from nemo.stages import _hot_voxels
+
+    rng = np.random.default_rng(0)
+    z, y, x = np.indices((30, 40, 40))
+    ball = gaussian_filter(50.0 * (np.sqrt((x - 20) ** 2 + (y - 20) ** 2 + (z - 15) ** 2) < 8), 1.0)
+    clean = (100.0 + ball + rng.normal(0, 5, ball.shape)).astype(np.uint16)
+    hot = clean.copy()
+    hot.flat[rng.choice(hot.size, 5, replace=False)] = 60_000
+    assert _hot_voxels(clean) == 0 and _hot_voxels(hot) == 5
+    with pytest.raises(NemoError, match=r"5 voxel\(s\) of the image stand far above all their neighbours"):
+        stages.mesh(hot, (2.0, 1.0, 1.0), {"split": "none"})
+
+
 def test_the_mesh_step_records_the_walls_largest_opening():
     """A shell (wall 14-19 µm) whose top beyond z = 8 µm above its centre is gone (a cup: a wall that faded below
     the level with depth) has one boundary loop per wall off the image border, round its lip: its length lies
