@@ -39,6 +39,11 @@ def configure(verbosity: int = 0) -> None:
     logger.propagate = False
 
 
+def pretty_unit(unit: str | None) -> str:
+    """A length unit as printed and written: µm for its spellings (um, µm, μm, micron), "" for None."""
+    return "" if unit is None else "µm" if unit in ("um", "µm", "μm", "micron") else unit
+
+
 def listed(items: Iterable[str], most: int = 10, sep: str = "; ") -> str:
     """The first ``most`` of ``items`` joined by ``sep``, and how many more: a message about
     hundreds of objects (a tissue's nuclei) stays one readable line."""

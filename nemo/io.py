@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from nemo._log import logger
+from nemo._log import logger, pretty_unit
 from nemo.atomic import atomic_path
 from nemo.errors import NemoError, NemoWarning
 
@@ -844,7 +844,7 @@ def write_hyperstack(
         raise NemoError(f"ImageJ hyperstacks need axes in the order TZCYX, got {axes!r}")
     with atomic_path(path) as tmp:
         if ome:
-            ome_unit = "µm" if unit in ("um", "µm", "μm", "micron") else unit
+            ome_unit = pretty_unit(unit)
             tifffile.imwrite(
                 tmp, data, ome=True, photometric="minisblack", compression=compression,
                 metadata={

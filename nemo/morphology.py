@@ -65,7 +65,7 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from nemo._log import logger, step
+from nemo._log import logger, pretty_unit, step
 from nemo.errors import NemoError, NemoWarning
 from nemo.geometry import axis_frames, edge_graph, project_tangent, rim, unit_vectors
 from nemo.mesh import (
@@ -181,10 +181,6 @@ def _as_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
 
 def _unit_name(mesh: trimesh.Trimesh) -> str:
     return getattr(mesh, "units", None) or "um"
-
-
-def _pretty_unit(unit: str) -> str:
-    return "µm" if unit in ("um", "µm", "micron") else unit
 
 
 # --------------------------------------------------------------------------------------------
@@ -626,7 +622,7 @@ def default_radius(
         "n_probe": int(n_fit), "fraction": float(fraction), "quantile": float(quantile),
     }
     logger.info("curvature: default radius %.3g %s (%.1f edges; %s; radius of curvature %s)",
-                radius, _pretty_unit(_unit_name(mesh)), radius / h,
+                radius, pretty_unit(_unit_name(mesh)), radius / h,
                 {"stability": "where the curvature changes least with the radius",
                  "min_edges": "the fewest edges", "rim": "half the largest distance to the rim",
                  "size": f"{fraction:g} × the surface's size, the curvature still settling there",
@@ -866,7 +862,7 @@ def curvature(
 
     tree = cKDTree(vertices)
     fit, per_sample, chunk = _plan_fits(tree, vertices, samples, radius, fit, rng)
-    unit = _pretty_unit(_unit_name(mesh))
+    unit = pretty_unit(_unit_name(mesh))
     with step(f"curvature: {fit} fits at {n} of {n_vert} vertices (radius {radius:g} {unit}, "
               f"~{per_sample:.0f} neighbours each)"):
         out, d1, d2 = _fit_samples(vertices, normals, tree, samples, radius, fit, chunk)

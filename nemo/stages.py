@@ -225,12 +225,12 @@ def mesh(
 
 def _wall_openings(meshes: dict[str, trimesh.Trimesh], whole_rim: dict, n_objects: int) -> dict:
     """The mesh step's record of the walls' openings: ``wall_rim_loops`` and ``wall_largest_hole``, each wall's
-    own (:func:`_rim_loops`; its holes are its loops beyond the rims: the split opens one round every pore of a
+    own (:func:`_wall_loops`; its holes are its loops beyond the rims: the split opens one round every pore of a
     porous wall, and one round the lip where a wall has faded or torn away), each object's own with
     ``n_objects`` (one beside a cut object is not cut), and the analysed surface's ``rim_loops`` and
     ``largest_hole``; ``whole_rim`` is :func:`nemo.geometry.rim` of ``meshes["whole"]``."""
     border = np.asarray(meshes["whole"].vertices)[whole_rim["vertices"]]  # where the image border cuts it
-    openings = {name: _rim_loops(m, n_objects, border) for name, m in meshes.items()}
+    openings = {name: _wall_loops(m, n_objects, border) for name, m in meshes.items()}
     return {"wall_rim_loops": {name: rims for name, (rims, _) in openings.items()},
             "wall_largest_hole": {name: hole for name, (_, hole) in openings.items()},
             "rim_loops": openings["whole"][0], "largest_hole": openings["whole"][1]}
@@ -258,7 +258,7 @@ def wall_params(params: dict, name: str) -> dict:
     return {**params, "rim_loops": own, "largest_hole": (params.get("wall_largest_hole") or {}).get(name)}
 
 
-def _rim_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> tuple:
+def _wall_loops(mesh: trimesh.Trimesh, n_objects: int, border: np.ndarray) -> tuple:
     """Rim loops and the largest hole of ``mesh`` (one of the analysed surface's walls).
 
     Its rim loops are its boundary loops through a point of ``border`` (M, 3), the analysed surface's

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from nemo._log import pretty_unit
 from nemo.config import reaches_out_of_one_wall
 from nemo.errors import NemoError
 from nemo.objects import value_for
@@ -378,7 +379,7 @@ def _opening_flags(measure: Mapping) -> list[str]:
     span = hole * hole / (4.0 * math.pi) / area
     if span <= QC_MAX_HOLE_SPAN:
         return []
-    unit = {"um": "µm", "micron": "µm", None: ""}.get(measure.get("unit"), measure.get("unit"))
+    unit = pretty_unit(measure.get("unit"))
     return [f"surface has an opening {hole / math.pi:.3g} {unit} across besides its rim on the image border (the disc "
             f"it spans is {100 * span:.0f} % of the surface's area): a wall that faded below the level (with depth, or "
             "uneven light) or tore away, its area short and no volume, or an object open there (a cup)"]

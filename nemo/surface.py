@@ -1178,9 +1178,8 @@ def _auto_level(field: np.ndarray, method: str, edge: str, spacing=(1.0, 1.0, 1.
     background = float(centres[b0])
     if edge == "threshold":
         return thr, thr, background
-    flat_top = _yen_flat_top(sample) if method == "yen" else None
     level = _half_level(sub, thr, background, method, np.asarray(spacing, float) * k, edges, counts, b0, quiet,
-                        flat_top=flat_top)
+                        flat_top=method == "yen")
     return thr, level, background
 
 
@@ -1212,12 +1211,12 @@ def _yen_flat_top(sample: np.ndarray) -> tuple[float, float, float] | None:
 
 def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spacing: np.ndarray,
                 edges: np.ndarray | None = None, counts: np.ndarray | None = None, b0: int | None = None,
-                quiet: bool = False, core=..., flat_top: tuple[float, float, float] | None = None) -> float:
+                quiet: bool = False, core=..., flat_top: bool = False) -> float:
     """The level half-way between ``background`` and the plateau of the samples ``sub`` above ``thr``
     (:func:`_auto_level`; the histogram of ``sub`` and the background's bin ``b0`` when already made;
     ``core``, :func:`_interior_plateau` of ``sub``, when already found). ``spacing`` is that of
-    ``sub``'s samples. Without a plateau the threshold may be the level: then the middle of Yen's flat
-    top (``flat_top``, :func:`_yen_flat_top`) stands for ``thr``, the argmax of a flat criterion being a
+    ``sub``'s samples. Without a plateau the threshold may be the level: then, with ``flat_top``, the middle of
+    Yen's flat top (:func:`_yen_flat_top` of ``sub``) stands for ``thr``, the argmax of a flat criterion being a
     coin toss (the organoid's walls read 25 % thicker at one of its two near-equal optima)."""
     sample = sub.ravel()
     above = sample[sample > thr]
@@ -1252,6 +1251,7 @@ def _half_level(sub: np.ndarray, thr: float, background: float, method: str, spa
         # half-way to the object's median, never below the threshold: a textured noisy wall gets
         # its half-maximum level, a blob (median near the threshold) the threshold
         threshold_argmax = thr
+        flat_top = _yen_flat_top(sample) if flat_top else None
         if flat_top is not None:
             thr = flat_top[0]
             above = sample[sample > thr]
